@@ -1,0 +1,339 @@
+"""Truncated and converged preconditioned conjugate gradients, differentiable two ways.
+
+Solvers are frozen objects checked at construction (lineax style) and :func:`solve` returns the
+solution *and* its diagnostics::
+
+    sol = solve(A, b, TruncatedCG(iterations=25, gradient="implicit"))
+    sol.x, sol.iterations, sol.residual_norm
+
+PCG, ``K`` iterations from ``x0``::
+
+    r = b - A x; z = M r; p = z; rz = r.z
+    repeat K:  q = A p; alpha = rz / p.q; x += alpha p; r -= alpha q
+               z = M r; rz' = r.z; p = z + (rz'/rz) p
+
+Every division is made safe *before* dividing: once ``r.z`` has fallen to
+``FREEZE_RATIO * (r0.z0)`` (float64 round-off level) or ``p.q`` is not positive, the step
+length and the direction update are exactly zero, so ``K`` far past convergence, ``b = 0`` or an
+exact ``x0`` return the converged ``x`` with finite values *and* finite gradients (a
+``jnp.where`` on an unsafe quotient would still send NaN through reverse mode).
+
+Gradient modes
+--------------
+``"unrolled"``
+    Reverse (and forward) mode through the ``K`` iterations: the derivative of the truncated
+    map itself, including the Jacobi preconditioner's dependence on the operator. ``K`` is
+    static (one compile per distinct ``K``); ``checkpoint=True`` recomputes each iteration in the
+    backward pass instead of storing its intermediates.
+``"implicit"``
+    ``jax.custom_vjp``: the backward pass solves ``A lambda = x_bar`` with ``adjoint_iterations``
+    PCG iterations and returns ``b_bar = lambda``, ``values_bar[k] = -lambda[row_k] x[col_k]``
+    (and zero for ``x0``: at convergence ``x`` does not depend on it). Exact at convergence, the
+    PRDP approximation when truncated. ``K`` and ``K_adj`` are traced: changing them does not
+    recompile, and iterations stop early once the residual reaches round-off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import SolverConfigError
+from .operator import SparseMatrix, matvec
+from .precond import PRECONDITIONERS, make_preconditioner
+
+__all__ = ["ConvergedCG", "Solution", "TruncatedCG", "solve"]
+
+# r.z below FREEZE_RATIO * r0.z0 is round-off: CG stops moving (|r| ~ 1e-16 |r0| in M-norm)
+FREEZE_RATIO = float(np.finfo(np.float64).eps) ** 2
+GRADIENT_MODES = ("unrolled", "implicit")
+
+
+class Solution(NamedTuple):
+    """Result of :func:`solve`.
+
+    Attributes
+    ----------
+    x
+        The iterate after the solve.
+    iterations
+        Iterations that moved ``x`` (a frozen, converged iteration does not count).
+    residual_norm
+        ``||r||_2`` of the recursively updated residual at the end.
+    initial_residual_norm
+        ``||b - A x0||_2``.
+    residual_history
+        ``||r_k||_2`` for ``k = 0..K`` (unrolled mode); in implicit/converged mode a buffer of
+        ``history_size + 1`` entries, padded with the final value.
+    """
+
+    x: jax.Array
+    iterations: jax.Array
+    residual_norm: jax.Array
+    initial_residual_norm: jax.Array
+    residual_history: jax.Array
+
+
+def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
+    if value is None and allow_none:
+        return
+    if isinstance(value, jax.core.Tracer) or (
+            hasattr(value, "dtype") and jnp.issubdtype(value.dtype, jnp.integer)
+            and np.ndim(value) == 0 and not isinstance(value, np.ndarray)):
+        return  # traced (or a JAX integer scalar): checked by the caller's own logic
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+        raise SolverConfigError(f"{name}={value!r}: expected an integer >= 0")
+
+
+def _check_preconditioner(spec: Any) -> None:
+    if not (spec in PRECONDITIONERS or callable(spec)):
+        raise SolverConfigError(
+            f"preconditioner={spec!r}: expected one of {PRECONDITIONERS} or a callable pytree")
+
+
+@dataclasses.dataclass(frozen=True)
+class TruncatedCG:
+    """Exactly ``iterations`` PCG iterations (fewer only once converged to round-off).
+
+    Parameters
+    ----------
+    iterations
+        ``K >= 0``; ``K = 0`` returns ``x0``. Static in unrolled mode; may be a traced integer
+        in implicit mode (pass it to :func:`solve` through a jitted function's arguments).
+    preconditioner
+        ``"jacobi"`` (default), ``"identity"`` or a preconditioner pytree.
+    gradient
+        ``"unrolled"`` or ``"implicit"`` (see module docstring).
+    adjoint_iterations
+        ``K_adj`` for the implicit backward solve; ``None`` means ``K_adj = K``.
+    checkpoint
+        Unrolled mode: recompute iterations in the backward pass (memory ~ O(1) per step).
+    history_size
+        Implicit mode: length of the residual-history buffer minus one.
+    """
+
+    iterations: Any
+    preconditioner: Any = "jacobi"
+    gradient: str = "unrolled"
+    adjoint_iterations: Any = None
+    checkpoint: bool = False
+    history_size: int = 0
+
+    def __post_init__(self):
+        if self.gradient not in GRADIENT_MODES:
+            raise SolverConfigError(
+                f"gradient={self.gradient!r}: expected one of {GRADIENT_MODES}")
+        _check_preconditioner(self.preconditioner)
+        if self.gradient == "unrolled":
+            if isinstance(self.iterations, jax.core.Tracer):
+                raise SolverConfigError(
+                    "iterations is traced but gradient='unrolled' needs a static K (reverse "
+                    "mode through a loop needs its length); use gradient='implicit' for a "
+                    "traced K, or mark K static in jax.jit")
+            _check_count(self.iterations, "iterations")
+            object.__setattr__(self, "iterations", int(self.iterations))
+        else:
+            _check_count(self.iterations, "iterations")
+        _check_count(self.adjoint_iterations, "adjoint_iterations", allow_none=True)
+        _check_count(self.history_size, "history_size")
+
+
+@dataclasses.dataclass(frozen=True)
+class ConvergedCG:
+    """PCG until ``||r|| <= max(rtol ||b||, atol)`` or ``max_iterations``; implicit gradients.
+
+    The adjoint solve uses the same tolerances. ``max_iterations=None`` means ``10 n``.
+    """
+
+    rtol: float = 1e-12
+    atol: float = 0.0
+    max_iterations: int | None = None
+    preconditioner: Any = "jacobi"
+    history_size: int = 0
+
+    def __post_init__(self):
+        if not (np.isfinite(self.rtol) and self.rtol >= 0 and np.isfinite(self.atol)
+                and self.atol >= 0) or (self.rtol == 0 and self.atol == 0):
+            raise SolverConfigError(
+                f"rtol={self.rtol!r}, atol={self.atol!r}: expected finite, non-negative "
+                "tolerances, not both zero")
+        _check_count(self.max_iterations, "max_iterations", allow_none=True)
+        _check_count(self.history_size, "history_size")
+        _check_preconditioner(self.preconditioner)
+
+
+def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
+          x0: jax.Array | None = None) -> Solution:
+    """Solve ``A x = b`` (``A`` symmetric positive definite) with ``solver``.
+
+    >>> import numpy as np, scipy.sparse as sp
+    >>> from prdp_fem.operator import SparseMatrix
+    >>> A = SparseMatrix.from_scipy(sp.diags([4.0, 2.0]) + sp.eye(2, k=1) + sp.eye(2, k=-1))
+    >>> sol = solve(A, np.array([1.0, 2.0]), TruncatedCG(iterations=2))
+    >>> np.allclose(A.todense() @ sol.x, [1.0, 2.0]), int(sol.iterations)
+    (True, 2)
+    """
+    b = jnp.asarray(b, dtype=matrix.values.dtype)
+    x0 = jnp.zeros_like(b) if x0 is None else jnp.asarray(x0, dtype=b.dtype)
+    if b.shape != (matrix.shape[0],) or x0.shape != b.shape:
+        raise SolverConfigError(
+            f"b{tuple(b.shape)} / x0{tuple(x0.shape)}: expected vectors of length "
+            f"{matrix.shape[0]} to match the operator")
+    if isinstance(solver, TruncatedCG):
+        if solver.gradient == "unrolled":
+            precond = make_preconditioner(solver.preconditioner, matrix)
+            return _unrolled(matrix, precond, b, x0, solver.iterations, solver.checkpoint)
+        k_adj = solver.iterations if solver.adjoint_iterations is None \
+            else solver.adjoint_iterations
+        return _implicit_solve(matrix, b, x0, solver.iterations, k_adj,
+                               solver.preconditioner, 0.0, 0.0, solver.history_size)
+    if isinstance(solver, ConvergedCG):
+        max_iterations = 10 * matrix.shape[0] if solver.max_iterations is None \
+            else solver.max_iterations
+        return _implicit_solve(matrix, b, x0, max_iterations, max_iterations,
+                               solver.preconditioner, solver.rtol, solver.atol,
+                               solver.history_size)
+    raise SolverConfigError(f"solver={solver!r}: expected TruncatedCG or ConvergedCG")
+
+
+# --------------------------------------------------------------------------------------
+# one PCG iteration, guarded
+# --------------------------------------------------------------------------------------
+
+
+class _CGState(NamedTuple):
+    x: jax.Array
+    r: jax.Array
+    p: jax.Array
+    rz: jax.Array
+    freeze_level: jax.Array  # FREEZE_RATIO * r0.z0
+
+
+def _safe_ratio(num: jax.Array, den: jax.Array, ok: jax.Array) -> jax.Array:
+    """``num / den`` where ``ok``, else exactly 0; the denominator is made safe first."""
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
+
+
+def _init(matrix, precond, b, x0) -> tuple[_CGState, jax.Array]:
+    r = b - matvec(matrix, x0)
+    z = precond(r)
+    rz = jnp.vdot(r, z)
+    return _CGState(x0, r, z, rz, FREEZE_RATIO * rz), _norm(r)
+
+
+def _norm(v: jax.Array) -> jax.Array:
+    # sqrt has an infinite derivative at 0: guard it so a zero residual keeps gradients finite
+    sq = jnp.vdot(v, v)
+    positive = sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+def _active(state: _CGState) -> jax.Array:
+    return state.rz > state.freeze_level
+
+
+def _step(matrix, precond, state: _CGState) -> tuple[_CGState, jax.Array]:
+    """One PCG iteration; returns the new state and whether it moved ``x``."""
+    q = matvec(matrix, state.p)
+    pq = jnp.vdot(state.p, q)
+    moving = _active(state) & (pq > 0)
+    alpha = _safe_ratio(state.rz, pq, moving)
+    x = state.x + alpha * state.p
+    r = state.r - alpha * q
+    z = precond(r)
+    rz_new = jnp.vdot(r, z)
+    beta = _safe_ratio(rz_new, state.rz, moving)
+    p = jnp.where(moving, z + beta * state.p, state.p)
+    rz_new = jnp.where(moving, rz_new, state.rz)
+    return _CGState(x, r, p, rz_new, state.freeze_level), moving
+
+
+# --------------------------------------------------------------------------------------
+# unrolled: a fixed-length scan, differentiated by JAX
+# --------------------------------------------------------------------------------------
+
+
+def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solution:
+    state, r0_norm = _init(matrix, precond, b, x0)
+
+    def body(carry, _):
+        new, moving = _step(matrix, precond, carry)
+        return new, (moving, _norm(new.r))
+
+    if checkpoint:
+        body = jax.checkpoint(body)
+    state, (moved, norms) = jax.lax.scan(body, state, None, length=iterations)
+    history = jnp.concatenate([r0_norm[None], norms])
+    return Solution(state.x, jnp.sum(moved).astype(jnp.int32), history[-1], r0_norm, history)
+
+
+# --------------------------------------------------------------------------------------
+# implicit: while loop forward, truncated adjoint solve backward
+# --------------------------------------------------------------------------------------
+
+
+def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_size: int):
+    """PCG while ``k < max_iterations``, still moving and ``||r|| > max(rtol ||b||, atol)``."""
+    state, r0_norm = _init(matrix, precond, b, x0)
+    target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1])
+    positions = jnp.arange(history_size + 1)
+
+    def cond(carry):
+        k, st, norm, _, moved = carry
+        return (k < max_iterations) & moved & _active(st) & (norm > target)
+
+    def body(carry):
+        k, st, _, hist, _ = carry
+        new, moving = _step(matrix, precond, st)
+        norm = _norm(new.r)
+        hist = jnp.where(positions > k, norm, hist)  # pads the tail with the latest value
+        return k + moving.astype(k.dtype), new, norm, hist, moving
+
+    init = (jnp.zeros((), jnp.int32), state, r0_norm, jnp.full(history_size + 1, r0_norm),
+            jnp.asarray(True))
+    k, state, norm, history, _ = jax.lax.while_loop(cond, body, init)
+    return Solution(state.x, k, norm, r0_norm, history)
+
+
+def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond_spec, rtol, atol,
+                    history_size) -> Solution:
+    precond = make_preconditioner(precond_spec, matrix)
+    precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
+    tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
+    return _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
+                          jnp.asarray(adjoint_iterations, jnp.int32), matrix.rows, matrix.cols,
+                          precond, tolerances, matrix.shape, history_size)
+
+
+@partial(jax.custom_vjp, nondiff_argnums=(9, 10))
+def _implicit_core(values, b, x0, iterations, adjoint_iterations, rows, cols, precond,
+                   tolerances, shape, history_size):
+    matrix = SparseMatrix(rows, cols, values, shape)
+    return _while_solve(matrix, precond, b, x0, iterations, tolerances, history_size)
+
+
+def _implicit_fwd(values, b, x0, iterations, adjoint_iterations, rows, cols, precond,
+                  tolerances, shape, history_size):
+    matrix = SparseMatrix(rows, cols, values, shape)
+    sol = _while_solve(matrix, precond, b, x0, iterations, tolerances, history_size)
+    return sol, (values, sol.x, adjoint_iterations, rows, cols, precond, tolerances)
+
+
+def _implicit_bwd(shape, history_size, residuals, cotangent: Solution):
+    values, x, adjoint_iterations, rows, cols, precond, tolerances = residuals
+    matrix = SparseMatrix(rows, cols, values, shape)
+    # A is symmetric: the adjoint system is A lambda = x_bar, solved the same (truncated) way
+    adjoint = _while_solve(matrix, precond, cotangent.x, jnp.zeros_like(cotangent.x),
+                           adjoint_iterations, tolerances, 0).x
+    values_bar = -adjoint[rows] * x[cols]
+    zeros = partial(jax.tree_util.tree_map, jnp.zeros_like)
+    return (values_bar, adjoint, jnp.zeros_like(x), None, None, None, None, zeros(precond),
+            jnp.zeros_like(tolerances))
+
+
+_implicit_core.defvjp(_implicit_fwd, _implicit_bwd)

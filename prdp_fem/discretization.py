@@ -1,0 +1,313 @@
+"""Finite-element discretisation of ``-div(kappa grad u) = f`` with scikit-fem.
+
+:func:`discretize` picks the element (P1/P2 on triangles and tetrahedra, Q1/Q2 on quads and
+hexahedra), the coefficient space (``"P0"`` per cell or ``"P1"`` nodal), Dirichlet data
+(constant, callable ``g(x)`` with ``x`` of shape ``(dim, n)``, or a dict per boundary tag) and
+Neumann data ``kappa du/dn = h`` (dict per tag), and builds the maps of
+:class:`~prdp_fem.system.LinearSystem` once, in NumPy/SciPy.
+
+The assembly map comes from scikit-fem's unsummed element data (``BilinearForm.coo_data``):
+for the coefficient basis function ``psi_a`` of a cell, ``coo_data`` of
+``psi_a grad u . grad v`` gives that cell's entries per unit ``kappa_a``; summing duplicates once
+yields ``G`` with ``values(A) = G @ kappa`` exactly (the quadrature integrates the product).
+
+>>> from prdp_fem import unit_square
+>>> disc = discretize(unit_square(4), element="P1", kappa_space="P0")
+>>> disc.system.n_free, disc.system.n_kappa
+(9, 32)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from functools import cached_property
+
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+import skfem
+from skfem.helpers import dot, grad
+
+from .errors import DiscretizationError
+from .operator import SparseMatrix
+from .system import LinearSystem
+
+__all__ = ["Discretization", "discretize"]
+
+BoundaryValue = float | Callable[[np.ndarray], np.ndarray]
+BoundaryData = BoundaryValue | Mapping[str, BoundaryValue] | None
+
+_ELEMENTS = {
+    skfem.MeshTri1: {"P1": skfem.ElementTriP1, "P2": skfem.ElementTriP2},
+    skfem.MeshTet1: {"P1": skfem.ElementTetP1, "P2": skfem.ElementTetP2},
+    skfem.MeshQuad1: {"Q1": skfem.ElementQuad1, "Q2": skfem.ElementQuad2},
+    skfem.MeshHex1: {"Q1": skfem.ElementHex1, "Q2": skfem.ElementHex2},
+}
+_KAPPA_ELEMENTS = {
+    skfem.MeshTri1: {"P0": skfem.ElementTriP0, "P1": skfem.ElementTriP1},
+    skfem.MeshTet1: {"P0": skfem.ElementTetP0, "P1": skfem.ElementTetP1},
+    skfem.MeshQuad1: {"P0": skfem.ElementQuad0, "P1": skfem.ElementQuad1},
+    skfem.MeshHex1: {"P0": skfem.ElementHex0, "P1": skfem.ElementHex1},
+}
+# relative size below which an assembled entry is structurally zero (e.g. right triangles)
+_STRUCTURAL_ZERO = 1e-14
+
+
+@skfem.BilinearForm
+def _weighted_laplace(u, v, w):
+    return w.kappa * dot(grad(u), grad(v))
+
+
+@skfem.BilinearForm
+def _mass(u, v, _):
+    return u * v
+
+
+@skfem.BilinearForm
+def _laplace(u, v, _):
+    return dot(grad(u), grad(v))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Discretization:
+    """A discretised problem: bases, dof split and the :class:`LinearSystem` maps.
+
+    Use :func:`discretize` to build one. ``system`` is the JAX side; the SciPy matrices
+    (``mass_matrix``, ``laplace_matrix``, ``stiffness_matrix(kappa)``) are built on demand.
+    """
+
+    mesh: skfem.Mesh
+    element: str
+    kappa_space: str
+    basis: skfem.CellBasis
+    kappa_basis: skfem.CellBasis
+    free_dofs: np.ndarray
+    dirichlet_dofs: np.ndarray
+    dirichlet_values: np.ndarray
+    assembly: sp.csr_matrix  # G: nnz x n_kappa (values of the condensed operator)
+    pattern: tuple[np.ndarray, np.ndarray]  # (rows, cols) of the condensed operator
+    lifting: sp.csr_matrix  # L: n_free x n_kappa
+    neumann: np.ndarray  # h on the free dofs
+
+    @property
+    def n_dofs(self) -> int:
+        return int(self.basis.N)
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free_dofs)
+
+    @property
+    def n_kappa(self) -> int:
+        return int(self.kappa_basis.N)
+
+    @cached_property
+    def mass_matrix(self) -> sp.csr_matrix:
+        """Mass matrix on all dofs (built on first use)."""
+        return _mass.assemble(self.basis).tocsr()
+
+    @cached_property
+    def laplace_matrix(self) -> sp.csr_matrix:
+        """Stiffness matrix with ``kappa = 1`` on all dofs (H1-seminorm Gram matrix)."""
+        return _laplace.assemble(self.basis).tocsr()
+
+    @cached_property
+    def system(self) -> LinearSystem:
+        """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once."""
+        source = self.mass_matrix[self.free_dofs]
+        return LinearSystem(
+            assembly=SparseMatrix.from_scipy(self.assembly),
+            rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),
+            cols=jnp.asarray(self.pattern[1], dtype=jnp.int32),
+            lifting=SparseMatrix.from_scipy(self.lifting),
+            source=SparseMatrix.from_scipy(source),
+            neumann=jnp.asarray(self.neumann),
+            free_dofs=jnp.asarray(self.free_dofs, dtype=jnp.int32),
+            dirichlet_dofs=jnp.asarray(self.dirichlet_dofs, dtype=jnp.int32),
+            dirichlet_values=jnp.asarray(self.dirichlet_values),
+            n_dofs=self.n_dofs,
+        )
+
+    def stiffness_matrix(self, kappa: np.ndarray) -> sp.csr_matrix:
+        """Condensed ``A(kappa)`` as SciPy CSR (reference path, no JAX)."""
+        values = self.assembly @ np.asarray(kappa, dtype=float)
+        return sp.csr_matrix((values, self.pattern), shape=(self.n_free, self.n_free))
+
+    def rhs(self, kappa: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
+        """Condensed right-hand side ``S f + h - L kappa`` (NumPy reference path)."""
+        b = self.neumann - self.lifting @ np.asarray(kappa, dtype=float)
+        if f is not None:
+            b = b + self.mass_matrix[self.free_dofs] @ np.asarray(f, dtype=float)
+        return b
+
+    def load_vector(self, f: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """Free part of ``int f v`` with ``f(x)`` evaluated at quadrature points (exact load)."""
+        form = skfem.LinearForm(lambda v, w: f(w.x) * v)
+        return form.assemble(self.basis)[self.free_dofs]
+
+    def interpolate(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """Nodal values of ``fn`` at the dofs of the solution space (all dofs)."""
+        return np.asarray(fn(self.basis.doflocs), dtype=float)
+
+    def interpolate_kappa(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """``fn`` as a coefficient vector: cell centroids (P0) or vertices (P1)."""
+        if self.kappa_space == "P0":
+            return np.asarray(fn(self.mesh.p[:, self.mesh.t].mean(axis=1)), dtype=float)
+        return np.asarray(fn(self.kappa_basis.doflocs), dtype=float)
+
+    def expand(self, u_free: np.ndarray) -> np.ndarray:
+        """Full nodal vector from free values plus the Dirichlet data (NumPy)."""
+        full = np.zeros(self.n_dofs)
+        full[self.dirichlet_dofs] = self.dirichlet_values
+        full[self.free_dofs] = np.asarray(u_free)
+        return full
+
+
+def discretize(
+    mesh: skfem.Mesh,
+    *,
+    element: str = "P1",
+    kappa_space: str = "P0",
+    dirichlet: BoundaryData = 0.0,
+    neumann: Mapping[str, BoundaryValue] | None = None,
+) -> Discretization:
+    """Discretise ``-div(kappa grad u) = f`` on ``mesh``.
+
+    Parameters
+    ----------
+    element
+        ``"P1"``/``"P2"`` on triangle and tetrahedron meshes, ``"Q1"``/``"Q2"`` on quads and
+        hexahedra (``"P1"``/``"P2"`` are accepted there as aliases of Q1/Q2).
+    kappa_space
+        ``"P0"`` (one value per cell) or ``"P1"`` (nodal, linear/multilinear).
+    dirichlet
+        ``u = g`` data: a number or callable for the whole boundary, a dict
+        ``{boundary name: number | callable}``, or ``None`` for no Dirichlet boundary (the
+        operator is then singular unless Neumann data alone pins nothing: use with care).
+    neumann
+        ``kappa du/dn = h`` data as ``{boundary name: number | callable}``; boundaries in
+        neither dict are natural (``h = 0``).
+    """
+    mesh_type = type(mesh)
+    if mesh_type not in _ELEMENTS:
+        raise DiscretizationError(
+            f"mesh of type {mesh_type.__name__}: expected a linear triangle, tetrahedron, quad or "
+            "hexahedron mesh (see prdp_fem.load_mesh)")
+    element_cls = _lookup(_ELEMENTS[mesh_type], _alias(element, mesh_type), "element", mesh)
+    kappa_cls = _lookup(_KAPPA_ELEMENTS[mesh_type], kappa_space, "kappa_space", mesh)
+    basis = skfem.CellBasis(mesh, element_cls())
+    kappa_basis = basis.with_element(kappa_cls())
+    dirichlet_dofs, dirichlet_values = _dirichlet(basis, mesh, dirichlet)
+    free = np.setdiff1d(np.arange(basis.N), dirichlet_dofs)
+    if len(free) == 0:
+        raise DiscretizationError("dirichlet: every dof is constrained; expected free dofs")
+    full = np.zeros(basis.N)
+    full[dirichlet_dofs] = dirichlet_values
+    assembly, pattern, lifting = _assembly_maps(basis, kappa_basis, free, full)
+    neumann_load = _neumann(mesh, basis, neumann)[free]
+    return Discretization(
+        mesh=mesh, element=element, kappa_space=kappa_space, basis=basis,
+        kappa_basis=kappa_basis, free_dofs=free, dirichlet_dofs=dirichlet_dofs,
+        dirichlet_values=dirichlet_values, assembly=assembly, pattern=pattern,
+        lifting=lifting, neumann=neumann_load)
+
+
+def _alias(element: str, mesh_type) -> str:
+    if mesh_type in (skfem.MeshQuad1, skfem.MeshHex1):
+        return {"P1": "Q1", "P2": "Q2"}.get(element, element)
+    return element
+
+
+def _lookup(table: dict, key: str, field: str, mesh) -> type:
+    if key not in table:
+        raise DiscretizationError(
+            f"{field}={key!r} on a {type(mesh).__name__} mesh: expected one of {sorted(table)}")
+    return table[key]
+
+
+def _boundary_names(mesh) -> dict:
+    return dict(mesh.boundaries or {})
+
+
+def _facets_of(mesh, name: str, field: str) -> np.ndarray:
+    boundaries = _boundary_names(mesh)
+    if name not in boundaries:
+        raise DiscretizationError(
+            f"{field}: unknown boundary {name!r}; this mesh has {sorted(boundaries) or 'none'}")
+    return np.asarray(boundaries[name])
+
+
+def _dirichlet(basis, mesh, data: BoundaryData) -> tuple[np.ndarray, np.ndarray]:
+    if data is None:
+        return np.zeros(0, dtype=np.int64), np.zeros(0)
+    if not isinstance(data, Mapping):
+        data = {None: data}
+    values = np.full(basis.N, np.nan)
+    for name, value in data.items():
+        facets = mesh.boundary_facets() if name is None else _facets_of(mesh, name, "dirichlet")
+        dofs = basis.get_dofs(facets).all()
+        values[dofs] = _evaluate(value, basis.doflocs[:, dofs], f"dirichlet[{name!r}]")
+    dofs = np.flatnonzero(~np.isnan(values))
+    return dofs, values[dofs]
+
+
+def _evaluate(value: BoundaryValue, x: np.ndarray, field: str) -> np.ndarray:
+    result = np.broadcast_to(np.asarray(value(x) if callable(value) else value, dtype=float),
+                             x.shape[1:])
+    if not np.isfinite(result).all():
+        raise DiscretizationError(f"{field}: boundary data is NaN/Inf; expected finite values")
+    return np.array(result)
+
+
+def _neumann(mesh, basis, data) -> np.ndarray:
+    load = np.zeros(basis.N)
+    for name, value in (data or {}).items():
+        facet_basis = skfem.FacetBasis(mesh, basis.elem, facets=_facets_of(mesh, name, "neumann"))
+        form = skfem.LinearForm(
+            lambda v, w, value=value, name=name: _evaluate(value, w.x, f"neumann[{name!r}]") * v)
+        load += form.assemble(facet_basis)
+    return load
+
+
+def _assembly_maps(basis, kappa_basis, free, full_dirichlet):
+    """G (condensed values per unit kappa), the condensed pattern and the lifting map L."""
+    n = basis.N
+    nt = basis.nelems
+    free_index = np.full(n, -1)
+    free_index[free] = np.arange(len(free))
+    rows, cols, kappa_idx, data = [], [], [], []
+    for a in range(kappa_basis.Nbfun):
+        coo = _weighted_laplace.coo_data(basis, kappa=kappa_basis.basis[a][0])
+        element_of_entry = np.tile(np.arange(nt), coo.data.size // nt)
+        rows.append(coo.indices[0])
+        cols.append(coo.indices[1])
+        kappa_idx.append(kappa_basis.element_dofs[a][element_of_entry])
+        data.append(coo.data)
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    kappa_idx, data = np.concatenate(kappa_idx), np.concatenate(data)
+    keep = free_index[rows] >= 0
+    rows, cols, kappa_idx, data = rows[keep], cols[keep], kappa_idx[keep], data[keep]
+    on_free = free_index[cols] >= 0
+    n_free, n_kappa = len(free), kappa_basis.N
+
+    # lifting: Dirichlet columns times the Dirichlet data, per unit kappa
+    dcols = ~on_free
+    lifting = sp.csr_matrix(
+        (data[dcols] * full_dirichlet[cols[dcols]], (free_index[rows[dcols]], kappa_idx[dcols])),
+        shape=(n_free, n_kappa))
+    lifting.sum_duplicates()
+
+    # condensed pattern: entries keyed by (row, col) in free numbering, sorted by row then col
+    r, c = free_index[rows[on_free]], free_index[cols[on_free]]
+    keys, entry = np.unique(r.astype(np.int64) * n_free + c, return_inverse=True)
+    assembly = sp.csr_matrix((data[on_free], (entry.ravel(), kappa_idx[on_free])),
+                             shape=(len(keys), n_kappa))
+    assembly.sum_duplicates()
+    row_size = np.asarray(abs(assembly).sum(axis=1)).ravel()
+    diagonal = keys // n_free == keys % n_free
+    structural = diagonal | (row_size > _STRUCTURAL_ZERO * row_size.max())
+    assembly = assembly[structural].tocsr()
+    keys = keys[structural]
+    pattern = (keys // n_free, keys % n_free)
+    return assembly, pattern, lifting

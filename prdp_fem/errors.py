@@ -1,0 +1,71 @@
+"""Typed errors and warnings raised at the edges of prdp_fem.
+
+Every input error names *where* (a file or a field), *what* was found and *what was expected*,
+so that the CLI can print it as one line. All of them derive from :class:`PrdpFemError`, which
+derives from ``ValueError`` so that generic handlers keep working.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class PrdpFemError(ValueError):
+    """Base class of every input error prdp_fem raises on purpose."""
+
+
+class MeshError(PrdpFemError):
+    """A mesh file or mesh array cannot be used.
+
+    ``source`` is the file path (or a description such as ``"<array mesh>"``) and
+    ``problem`` a one-line explanation that says what was expected.
+    """
+
+    def __init__(self, source: str | Path, problem: str):
+        self.source = str(source)
+        self.problem = problem
+        super().__init__(f"{self.source}: {problem}")
+
+
+class MeshFileError(MeshError):
+    """The file is missing, empty, of an unknown format, or unreadable."""
+
+
+class UnsupportedCellsError(MeshError):
+    """The file holds no cell type prdp_fem can discretise (or only higher-order ones)."""
+
+
+class MixedDimensionError(MeshError):
+    """Cells of several types or dimensions that do not form one conforming mesh."""
+
+
+class NonFiniteCoordinatesError(MeshError):
+    """A node coordinate is NaN or infinite."""
+
+
+class DegenerateCellError(MeshError):
+    """A cell has (numerically) zero area or volume."""
+
+
+class InvertedCellError(MeshError):
+    """A cell is inverted in a way that cannot be repaired by renumbering its nodes."""
+
+
+class DuplicateNodeError(MeshError):
+    """Two nodes share coordinates: the mesh is cracked along them."""
+
+
+class UnusedNodeError(MeshError):
+    """A node belongs to no cell: it would make the stiffness matrix singular."""
+
+
+class DiscretizationError(PrdpFemError):
+    """An element, field kind or boundary condition request that does not fit the mesh."""
+
+
+class SolverConfigError(PrdpFemError):
+    """A solver was constructed with an invalid option."""
+
+
+class MeshRepairWarning(UserWarning):
+    """A mesh was changed on load (orientation fixed, nodes merged or dropped)."""

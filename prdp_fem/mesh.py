@@ -1,0 +1,577 @@
+"""Mesh input: read any meshio format, validate it, and return a tagged scikit-fem mesh.
+
+Supported cells: ``triangle``, ``quad`` (2-D), ``tetra``, ``hexahedron`` (3-D), all linear.
+Lower-dimensional cells that are facets of the mesh (Gmsh physical curves/surfaces, Medit
+references, cell sets) become named boundaries; tags on the cells become named subdomains.
+
+Validation raises one typed :mod:`prdp_fem.errors` exception per problem, naming the file:
+
+* missing / empty / unreadable file          -> :class:`~prdp_fem.errors.MeshFileError`
+* no supported cells (or only 2nd order)     -> :class:`~prdp_fem.errors.UnsupportedCellsError`
+* mixed cell types, non-facet lower cells,
+  2-D cells on non-planar nodes              -> :class:`~prdp_fem.errors.MixedDimensionError`
+* NaN / Inf coordinates                      -> :class:`~prdp_fem.errors.NonFiniteCoordinatesError`
+* duplicate or unused nodes                  -> :class:`~prdp_fem.errors.DuplicateNodeError`,
+                                                :class:`~prdp_fem.errors.UnusedNodeError`
+  (``repair=True`` merges / drops them instead, with a :class:`MeshRepairWarning`)
+* zero-measure cells                         -> :class:`~prdp_fem.errors.DegenerateCellError`
+* inverted cells: a cell whose node order is reversed (clockwise) is kept as it is, since
+  scikit-fem integrates with ``|det J|`` and its operator equals the renumbered cell's; it is
+  counted in :func:`mesh_quality` (``n_inverted``). Quads/hexes whose corner Jacobians change
+  sign (self-intersecting "bow-tie" or non-convex cells) cannot be repaired and raise
+  :class:`~prdp_fem.errors.InvertedCellError`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import NamedTuple
+
+import meshio
+import numpy as np
+import skfem
+
+from .errors import (
+    DegenerateCellError,
+    DuplicateNodeError,
+    InvertedCellError,
+    MeshFileError,
+    MeshRepairWarning,
+    MixedDimensionError,
+    NonFiniteCoordinatesError,
+    UnsupportedCellsError,
+    UnusedNodeError,
+)
+
+__all__ = [
+    "MeshQuality",
+    "load_mesh",
+    "mesh_from_arrays",
+    "mesh_quality",
+    "save_mesh",
+]
+
+# meshio cell type -> (topological dimension, scikit-fem mesh class, facet cell type)
+SUPPORTED_CELLS = {
+    "triangle": (2, skfem.MeshTri1, "line"),
+    "quad": (2, skfem.MeshQuad1, "line"),
+    "tetra": (3, skfem.MeshTet1, "triangle"),
+    "hexahedron": (3, skfem.MeshHex1, "quad"),
+}
+HIGHER_ORDER_CELLS = {"triangle6", "quad8", "quad9", "tetra10", "hexahedron20", "hexahedron27"}
+# scikit-fem numbers hexahedron nodes differently from meshio/VTK
+_HEX_MESHIO_TO_SKFEM = np.array([0, 4, 3, 1, 7, 5, 2, 6])
+_HEX_SKFEM_TO_MESHIO = np.argsort(_HEX_MESHIO_TO_SKFEM)
+# the three edges leaving each hexahedron corner (meshio order), right-handed for a positive cell
+_HEX_CORNER_EDGES = np.array([[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7],
+                              [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]])
+# integer cell data that carry region tags, in order of preference
+TAG_KEYS = ("gmsh:physical", "medit:ref", "cell_tags", "tags", "ref")
+# |measure| / (longest edge)^d below this is a degenerate cell
+DEGENERACY_TOL = 1e-10
+# nodes closer than this times the bounding-box diameter are duplicates
+DUPLICATE_TOL = 1e-12
+
+
+def load_mesh(path: str | Path, *, repair: bool = False) -> skfem.Mesh:
+    """Read a mesh file (any meshio format), validate it and return a tagged skfem mesh.
+
+    Parameters
+    ----------
+    path
+        Mesh file: Gmsh ``.msh`` (2.2 / 4.1, ASCII or binary), ``.vtu``, ``.vtk``, ``.xdmf``,
+        Medit ``.mesh`` and the other formats meshio reads.
+    repair
+        Merge duplicate nodes and drop unused ones (with a :class:`MeshRepairWarning`)
+        instead of raising.
+
+    Returns
+    -------
+    skfem.Mesh
+        With ``mesh.boundaries`` (named facet sets) and ``mesh.subdomains`` (named cell sets)
+        from the file's tags; names come from Gmsh physical names where present, else the
+        tag number as a string.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise MeshFileError(path, "file does not exist; expected a mesh file")
+    if not path.is_file():
+        raise MeshFileError(path, "is not a regular file; expected a mesh file")
+    if path.stat().st_size == 0:
+        raise MeshFileError(path, "file is empty; expected a mesh file")
+    try:
+        raw = meshio.read(path)
+    except Exception as exc:  # meshio raises many types: turn each into one clear error
+        detail = f"{type(exc).__name__}: {exc}".strip().splitlines()[0][:200]
+        raise MeshFileError(
+            path,
+            f"could not be read as a mesh ({detail}); expected a file in a meshio format "
+            "such as Gmsh .msh, .vtu, .xdmf or Medit .mesh",
+        ) from exc
+    return _mesh_from_meshio(raw, str(path), repair=repair)
+
+
+def mesh_from_arrays(
+    points: np.ndarray,
+    cells: np.ndarray,
+    cell_type: str,
+    *,
+    facets: dict[str, np.ndarray] | None = None,
+    source: str = "<array mesh>",
+    repair: bool = False,
+) -> skfem.Mesh:
+    """Validate node/cell arrays (meshio layout: ``points`` (n, d), ``cells`` (m, k)).
+
+    ``facets`` maps boundary names to facet node arrays (m_f, k_f) that become named boundaries.
+    """
+    blocks = [meshio.CellBlock(cell_type, np.asarray(cells))]
+    cell_data: dict[str, list[np.ndarray]] = {}
+    field_data: dict[str, np.ndarray] = {}
+    if facets:
+        facet_type = SUPPORTED_CELLS.get(cell_type, (0, None, "line"))[2]
+        tags = [np.zeros(len(cells), dtype=int)]
+        for number, (name, nodes) in enumerate(facets.items(), start=1):
+            blocks.append(meshio.CellBlock(facet_type, np.asarray(nodes)))
+            tags.append(np.full(len(nodes), number))
+            field_data[name] = np.array([number, SUPPORTED_CELLS[cell_type][0] - 1])
+        cell_data["gmsh:physical"] = tags
+    raw = meshio.Mesh(np.asarray(points, dtype=float), blocks, cell_data=cell_data,
+                      field_data=field_data)
+    return _mesh_from_meshio(raw, source, repair=repair)
+
+
+def save_mesh(mesh: skfem.Mesh, path: str | Path, *, file_format: str | None = None,
+              binary: bool = False) -> None:
+    """Write ``mesh`` with its named boundaries as tagged facet cells (any meshio format).
+
+    ``.msh`` is written as Gmsh 2.2 (physical names kept); Medit files get ``medit:ref``
+    numbers; other formats an integer ``cell_tags`` cell-data array. Tag numbers follow
+    ``sorted(mesh.boundaries)``.
+    """
+    path = Path(path)
+    cell_type = _meshio_cell_type(mesh)
+    dim, _, facet_type = SUPPORTED_CELLS[cell_type]
+    t = mesh.t.T
+    if cell_type == "hexahedron":
+        t = t[:, _HEX_SKFEM_TO_MESHIO]
+    blocks = [meshio.CellBlock(cell_type, t.astype(np.int64))]
+    tags = [np.zeros(len(t), dtype=np.int64)]
+    field_data = {}
+    for number, name in enumerate(sorted(mesh.boundaries or {}), start=1):
+        facet_ids = np.asarray(mesh.boundaries[name])
+        facet_nodes = mesh.facets[:, facet_ids].T
+        if facet_type == "quad":
+            facet_nodes = _order_quad_facets(mesh, facet_nodes)
+        blocks.append(meshio.CellBlock(facet_type, facet_nodes.astype(np.int64)))
+        tags.append(np.full(len(facet_ids), number, dtype=np.int64))
+        field_data[name] = np.array([number, dim - 1])
+    fmt = file_format or _format_from_suffix(path)
+    if fmt.startswith("gmsh"):
+        cell_data = {"gmsh:physical": tags, "gmsh:geometrical": tags}
+    elif fmt == "medit":
+        cell_data = {"medit:ref": tags}
+    else:
+        cell_data = {"cell_tags": tags}
+    points = mesh.p.T
+    if points.shape[1] == 2 and fmt in ("vtu", "vtk", "xdmf"):  # VTK-based formats want 3-D
+        points = np.column_stack([points, np.zeros(len(points))])
+    out = meshio.Mesh(points, blocks, cell_data=cell_data, field_data=field_data)
+    kwargs = {}
+    if fmt.startswith("gmsh"):
+        kwargs["binary"] = binary
+    elif fmt == "xdmf":
+        kwargs["data_format"] = "XML"  # no HDF5 dependency
+    meshio.write(path, out, file_format=fmt, **kwargs)
+
+
+def _format_from_suffix(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix == ".msh":
+        return "gmsh22"  # meshio's 4.1 writer needs Gmsh entities; 2.2 carries the same tags
+    formats = meshio.extension_to_filetypes.get(suffix)
+    if not formats:
+        raise MeshFileError(path, f"unknown mesh file suffix {suffix!r}; expected one of "
+                            f"{sorted(meshio.extension_to_filetypes)}")
+    return formats[0]
+
+
+# --------------------------------------------------------------------------------------
+# validation pipeline
+# --------------------------------------------------------------------------------------
+
+
+def _mesh_from_meshio(raw: meshio.Mesh, source: str, *, repair: bool) -> skfem.Mesh:
+    cell_type, cells, facet_blocks, cell_tags = _select_cells(raw, source)
+    dim = SUPPORTED_CELLS[cell_type][0]
+    points = _checked_points(raw.points, dim, source)
+    _check_indices(cells, len(points), source)
+    points, cells, facet_blocks = _handle_duplicates(points, cells, facet_blocks, source, repair)
+    points, cells, facet_blocks = _handle_unused(points, cells, facet_blocks, source, repair)
+    _check_cell_shapes(points, cells, cell_type, source)
+    mesh_cls = SUPPORTED_CELLS[cell_type][1]
+    t = cells[:, _HEX_MESHIO_TO_SKFEM] if cell_type == "hexahedron" else cells
+    mesh = mesh_cls(np.ascontiguousarray(points.T), np.ascontiguousarray(t.T), validate=False)
+    _check_not_folded(mesh, source)
+    boundaries = _facet_tags(mesh, facet_blocks, raw.field_data, dim, source)
+    subdomains = _cell_tags(cell_tags, raw.field_data, dim)
+    if boundaries or subdomains:
+        mesh = mesh.with_boundaries(boundaries) if boundaries else mesh
+        mesh = mesh.with_subdomains(subdomains) if subdomains else mesh
+    return mesh
+
+
+def _select_cells(raw: meshio.Mesh, source: str):
+    """Pick the top-dimensional cell block; return facet blocks with their tags."""
+    present = [block.type for block in raw.cells]
+    supported = sorted({t for t in present if t in SUPPORTED_CELLS},
+                       key=lambda t: -SUPPORTED_CELLS[t][0])
+    if not supported:
+        higher = sorted(set(present) & HIGHER_ORDER_CELLS)
+        if higher:
+            raise UnsupportedCellsError(
+                source, f"holds only second-order cells {higher}; expected linear triangle, "
+                "quad, tetra or hexahedron cells (export a first-order mesh; P2 is built on it)")
+        found = sorted(set(present)) or "no cells"
+        raise UnsupportedCellsError(
+            source, f"holds {found}; expected triangle, quad, tetra or hexahedron cells")
+    top_dim = SUPPORTED_CELLS[supported[0]][0]
+    top_types = [t for t in supported if SUPPORTED_CELLS[t][0] == top_dim]
+    if len(top_types) > 1:
+        raise MixedDimensionError(
+            source, f"mixes {top_types} cells; expected one cell type per mesh")
+    cell_type = top_types[0]
+    facet_type = SUPPORTED_CELLS[cell_type][2]
+    tag_key = next((k for k in TAG_KEYS if k in raw.cell_data), None)
+    cell_blocks, cell_tags, facet_blocks = [], [], []
+    for i, block in enumerate(raw.cells):
+        tags = None if tag_key is None else np.asarray(raw.cell_data[tag_key][i]).astype(int)
+        sets = _cell_set_membership(raw, i, len(block.data))
+        if block.type == cell_type:
+            cell_blocks.append(block.data)
+            cell_tags.append((tags, sets))
+        elif block.type == facet_type:
+            facet_blocks.append((np.asarray(block.data), tags, sets))
+        elif block.type in SUPPORTED_CELLS and SUPPORTED_CELLS[block.type][0] == top_dim - 1:
+            raise MixedDimensionError(
+                source, f"has {block.type} cells beside {cell_type} cells; lower-dimensional "
+                f"cells must be {facet_type} facets of the {cell_type} mesh")
+    cells = np.concatenate(cell_blocks).astype(np.int64)
+    return cell_type, cells, facet_blocks, cell_tags
+
+
+def _cell_set_membership(raw: meshio.Mesh, block_index: int, n: int) -> dict[str, np.ndarray]:
+    """Cell sets (XDMF, Exodus, Abaqus...) restricted to one block, as local index arrays."""
+    sets = {}
+    for name, per_block in (raw.cell_sets or {}).items():
+        if name.startswith("gmsh:") or block_index >= len(per_block):
+            continue
+        members = per_block[block_index]
+        if members is not None and len(members):
+            sets[name] = np.asarray(members, dtype=np.int64)[np.asarray(members) < n]
+    return sets
+
+
+def _checked_points(points: np.ndarray, dim: int, source: str) -> np.ndarray:
+    points = np.asarray(points, dtype=float)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        raise NonFiniteCoordinatesError(
+            source, f"{int(bad.sum())} node(s) have NaN/Inf coordinates (first: node {first} "
+            f"at {points[first].tolist()}); expected finite coordinates")
+    if dim == 2 and points.shape[1] == 3:
+        z = points[:, 2]
+        if np.ptp(z) > 1e-12 * max(np.ptp(points[:, :2]), 1.0):
+            raise MixedDimensionError(
+                source, f"has 2-D cells on nodes spanning 3-D (z from {z.min():g} to "
+                f"{z.max():g}); expected a planar 2-D mesh (surfaces in 3-D are not supported)")
+        points = points[:, :2]
+    if points.shape[1] < dim:
+        raise MixedDimensionError(
+            source, f"has {dim}-D cells but {points.shape[1]}-D node coordinates")
+    return np.ascontiguousarray(points[:, :dim])
+
+
+def _check_indices(cells: np.ndarray, n_points: int, source: str) -> None:
+    if cells.size and (cells.min() < 0 or cells.max() >= n_points):
+        raise MeshFileError(
+            source, f"a cell references node {int(cells.max())} but the file has {n_points} "
+            "nodes; expected node indices in range")
+
+
+def _handle_duplicates(points, cells, facet_blocks, source, repair):
+    diameter = float(np.ptp(points, axis=0).max()) or 1.0
+    keys = np.round(points / (DUPLICATE_TOL * diameter * 1e3)).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    if len(first) == len(points):
+        return points, cells, facet_blocks
+    canonical = first[inverse]
+    dup = np.flatnonzero(canonical != np.arange(len(points)))
+    if not repair:
+        i = int(dup[0])
+        raise DuplicateNodeError(
+            source, f"{len(dup)} duplicate node(s) (first: node {i} repeats node "
+            f"{int(canonical[i])} at {points[i].tolist()}); expected distinct nodes "
+            "(load with repair=True to merge them)")
+    warnings.warn(f"{source}: merged {len(dup)} duplicate node(s)", MeshRepairWarning,
+                  stacklevel=4)
+    cells = canonical[cells]
+    facet_blocks = [(canonical[f], tags, sets) for f, tags, sets in facet_blocks]
+    return points, cells, facet_blocks
+
+
+def _handle_unused(points, cells, facet_blocks, source, repair):
+    used = np.zeros(len(points), dtype=bool)
+    used[cells.ravel()] = True
+    if used.all():
+        return points, cells, facet_blocks
+    unused = np.flatnonzero(~used)
+    if not repair:
+        raise UnusedNodeError(
+            source, f"{len(unused)} node(s) belong to no cell (first: node {int(unused[0])} at "
+            f"{points[unused[0]].tolist()}); expected every node in a cell "
+            "(load with repair=True to drop them)")
+    warnings.warn(f"{source}: dropped {len(unused)} unused node(s)", MeshRepairWarning,
+                  stacklevel=4)
+    new_index = np.cumsum(used) - 1
+    kept_blocks = []
+    for facets, tags, sets in facet_blocks:
+        keep = used[facets].all(axis=1)
+        kept_sets = {k: v[keep[v]] for k, v in sets.items()}  # indices shift below
+        remap = np.cumsum(keep) - 1
+        kept_sets = {k: remap[v] for k, v in kept_sets.items()}
+        kept_blocks.append((new_index[facets[keep]],
+                            None if tags is None else tags[keep], kept_sets))
+    return points[used], new_index[cells], kept_blocks
+
+
+def _signed_measures(points: np.ndarray, cells: np.ndarray, cell_type: str) -> np.ndarray:
+    """Signed measure per cell; for quads/hexes, the corner Jacobians (n_cells, n_corners)."""
+    x = points[cells]  # (n, k, d)
+    if cell_type == "triangle":
+        e1, e2 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]
+        return 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+    if cell_type == "tetra":
+        e = x[:, 1:] - x[:, :1]
+        return np.linalg.det(e) / 6.0
+    if cell_type == "quad":
+        nxt, prv = np.roll(x, -1, axis=1), np.roll(x, 1, axis=1)
+        a, b = nxt - x, prv - x
+        return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    # hexahedron, meshio order: bottom 0-3, top 4-7; corner Jacobians from 3 edges per corner
+    edges = x[:, _HEX_CORNER_EDGES] - x[:, :, None, :]  # (n, 8, 3, 3)
+    return np.linalg.det(edges)
+
+
+def _longest_edge(points: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    x = points[cells]
+    k = cells.shape[1]
+    i, j = np.triu_indices(k, 1)
+    return np.linalg.norm(x[:, i] - x[:, j], axis=-1).max(axis=1)
+
+
+def _check_cell_shapes(points, cells, cell_type, source) -> None:
+    measure = _signed_measures(points, cells, cell_type)
+    dim = SUPPORTED_CELLS[cell_type][0]
+    scale = _longest_edge(points, cells) ** dim
+    corner = measure if measure.ndim == 2 else measure[:, None]
+    tiny = np.abs(corner) <= DEGENERACY_TOL * scale[:, None]
+    if tiny.any():
+        bad = np.flatnonzero(tiny.any(axis=1))
+        i = int(bad[0])
+        raise DegenerateCellError(
+            source, f"{len(bad)} {cell_type} cell(s) have zero {'area' if dim == 2 else 'volume'}"
+            f" (first: cell {i} with nodes {cells[i].tolist()}); expected cells of positive "
+            "measure")
+    negative = corner < 0
+    mixed = negative.any(axis=1) & ~negative.all(axis=1)
+    if mixed.any():
+        i = int(np.flatnonzero(mixed)[0])
+        raise InvertedCellError(
+            source, f"{int(mixed.sum())} {cell_type} cell(s) are self-intersecting or non-convex "
+            f"(first: cell {i} with nodes {cells[i].tolist()}); expected convex cells with a "
+            "consistent node order")
+    # a consistently inverted cell is a valid cell: scikit-fem integrates with |det J|, so
+    # its operator equals that of the renumbered cell (tested); nothing to repair
+
+
+def _check_not_folded(mesh: skfem.Mesh, source: str) -> None:
+    """Cells on either side of an interior facet must lie on opposite sides of it."""
+    left, right = mesh.f2t
+    interior = right >= 0
+    if not interior.any():
+        return
+    facets = mesh.facets[:, interior]
+    x0 = mesh.p[:, facets[0]]
+    if mesh.dim() == 2:
+        tangent = mesh.p[:, facets[1]] - x0
+        normal = np.array([-tangent[1], tangent[0]])
+    else:
+        normal = np.cross((mesh.p[:, facets[1]] - x0).T, (mesh.p[:, facets[2]] - x0).T).T
+    centroids = mesh.p[:, mesh.t].mean(axis=1)
+    side_left = np.einsum("dn,dn->n", centroids[:, left[interior]] - x0, normal)
+    side_right = np.einsum("dn,dn->n", centroids[:, right[interior]] - x0, normal)
+    folded = side_left * side_right >= 0
+    if folded.any():
+        k = int(np.flatnonzero(folded)[0])
+        a, b = int(left[interior][k]), int(right[interior][k])
+        raise InvertedCellError(
+            source, f"{int(folded.sum())} interior facet(s) have both neighbouring cells on the "
+            f"same side (first: cells {a} and {b}): the mesh is folded by inverted cells; "
+            "expected non-overlapping cells")
+
+
+def _match_rows(reference: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Index of each query row (as a node set) among reference rows, -1 if absent."""
+    if len(query) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ref = np.sort(reference, axis=1)
+    qry = np.sort(query, axis=1)
+    _, inverse = np.unique(np.vstack([ref, qry]), axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    lookup = np.full(inverse.max() + 1, -1, dtype=np.int64)
+    lookup[inverse[: len(ref)]] = np.arange(len(ref))
+    return lookup[inverse[len(ref):]]
+
+
+def _tag_name(tag: int, field_data: dict, dim: int) -> str:
+    for name, value in (field_data or {}).items():
+        value = np.atleast_1d(value)
+        if int(value[0]) == tag and (len(value) < 2 or int(value[1]) == dim):
+            return str(name)
+    return str(tag)
+
+
+def _facet_tags(mesh, facet_blocks, field_data, dim, source) -> dict[str, np.ndarray]:
+    groups: dict[str, list[np.ndarray]] = {}
+    for nodes, tags, sets in facet_blocks:
+        ids = _match_rows(mesh.facets.T, nodes)
+        if (ids < 0).any():
+            raise MixedDimensionError(
+                source, f"{int((ids < 0).sum())} lower-dimensional cell(s) are not facets of "
+                "the mesh; expected boundary/interface facets only")
+        if tags is not None:
+            for tag in np.unique(tags):
+                groups.setdefault(_tag_name(int(tag), field_data, dim - 1), []).append(
+                    ids[tags == tag])
+        for name, members in sets.items():
+            groups.setdefault(name, []).append(ids[members])
+    return {name: np.unique(np.concatenate(parts)).astype(np.int64)
+            for name, parts in groups.items()}
+
+
+def _cell_tags(cell_tags, field_data, dim) -> dict[str, np.ndarray]:
+    groups: dict[str, list[np.ndarray]] = {}
+    offset = 0
+    for tags, sets in cell_tags:
+        n = 0 if tags is None else len(tags)
+        named = tags is not None and any(
+            _tag_name(int(t), field_data, dim) != str(int(t)) for t in np.unique(tags))
+        if tags is not None and (named or len(np.unique(tags)) > 1):
+            for tag in np.unique(tags):
+                groups.setdefault(_tag_name(int(tag), field_data, dim), []).append(
+                    offset + np.flatnonzero(tags == tag))
+        for name, members in sets.items():
+            groups.setdefault(name, []).append(offset + members)
+        offset += n
+    return {name: np.unique(np.concatenate(parts)).astype(np.int64)
+            for name, parts in groups.items()}
+
+
+def _meshio_cell_type(mesh: skfem.Mesh) -> str:
+    for name, (_, cls, _) in SUPPORTED_CELLS.items():
+        if isinstance(mesh, cls):
+            return name
+    raise UnsupportedCellsError(type(mesh).__name__, "expected a linear tri/quad/tet/hex mesh")
+
+
+def _order_quad_facets(mesh: skfem.Mesh, facet_nodes: np.ndarray) -> np.ndarray:
+    """Put the 4 nodes of each hexahedron face in cyclic order (skfem stores them sorted)."""
+    x = mesh.p.T[facet_nodes]  # (n, 4, 3)
+    centre = x.mean(axis=1, keepdims=True)
+    normal = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    u = x[:, 0] - centre[:, 0]
+    v = np.cross(normal, u)
+    rel = x - centre
+    angle = np.arctan2(np.einsum("nkd,nd->nk", rel, v), np.einsum("nkd,nd->nk", rel, u))
+    return np.take_along_axis(facet_nodes, np.argsort(angle, axis=1), axis=1)
+
+
+# --------------------------------------------------------------------------------------
+# quality report
+# --------------------------------------------------------------------------------------
+
+
+class MeshQuality(NamedTuple):
+    """Summary of a mesh: sizes, extreme cell measures and a shape-quality range.
+
+    ``n_inverted`` counts cells numbered clockwise (valid, see :mod:`prdp_fem.mesh`).
+    ``quality`` is 1 for an equilateral simplex / square cell and tends to 0 for slivers:
+    triangles ``4 sqrt(3) A / sum l^2``, tetrahedra ``6 sqrt(2) V / l_rms^3``, quads/hexes
+    the smallest scaled corner Jacobian (corner Jacobian over the product of its edges).
+    """
+
+    cell_type: str
+    dim: int
+    n_nodes: int
+    n_cells: int
+    h_min: float
+    h_max: float
+    measure_min: float
+    measure_max: float
+    total_measure: float
+    quality_min: float
+    quality_mean: float
+    n_inverted: int
+
+
+def mesh_quality(mesh: skfem.Mesh) -> MeshQuality:
+    """Sizes and shape quality of ``mesh``."""
+    cell_type = _meshio_cell_type(mesh)
+    dim = SUPPORTED_CELLS[cell_type][0]
+    points = mesh.p.T
+    cells = mesh.t.T
+    if cell_type == "hexahedron":
+        cells = cells[:, _HEX_SKFEM_TO_MESHIO]
+    x = points[cells]
+    k = cells.shape[1]
+    i, j = np.triu_indices(k, 1)
+    lengths = np.linalg.norm(x[:, i] - x[:, j], axis=-1)
+    signed = _signed_measures(points, cells, cell_type)
+    n_inverted = int((signed.reshape(len(cells), -1) < 0).all(axis=1).sum())
+    measure = np.abs(signed)
+    if cell_type == "triangle":
+        quality = 4 * np.sqrt(3) * measure / (lengths**2).sum(axis=1)
+    elif cell_type == "tetra":
+        quality = 6 * np.sqrt(2) * measure / np.sqrt((lengths**2).mean(axis=1)) ** 3
+    else:  # scaled Jacobian: corner Jacobian over the product of its edge lengths
+        quality = _scaled_jacobian(x, cell_type)
+        measure = np.asarray(skfem.Functional(lambda w: 1.0 + 0 * w.x[0]).elemental(
+            skfem.Basis(mesh, _p0_element(mesh))))
+    return MeshQuality(
+        cell_type=cell_type, dim=dim, n_nodes=points.shape[0], n_cells=cells.shape[0],
+        h_min=float(lengths.min()), h_max=float(lengths.max()),
+        measure_min=float(measure.min()), measure_max=float(measure.max()),
+        total_measure=float(measure.sum()),
+        quality_min=float(quality.min()), quality_mean=float(quality.mean()),
+        n_inverted=n_inverted,
+    )
+
+
+def _scaled_jacobian(x: np.ndarray, cell_type: str) -> np.ndarray:
+    if cell_type == "quad":
+        a, b = np.roll(x, -1, axis=1) - x, np.roll(x, 1, axis=1) - x
+        det = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+        norms = np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1)
+    else:
+        edges = x[:, _HEX_CORNER_EDGES] - x[:, :, None, :]
+        det = np.linalg.det(edges)
+        norms = np.linalg.norm(edges, axis=-1).prod(axis=-1)
+    return np.abs(det / norms).min(axis=1)
+
+
+def _p0_element(mesh: skfem.Mesh) -> skfem.Element:
+    return {skfem.MeshTri1: skfem.ElementTriP0, skfem.MeshQuad1: skfem.ElementQuad0,
+            skfem.MeshTet1: skfem.ElementTetP0, skfem.MeshHex1: skfem.ElementHex0}[type(mesh)]()

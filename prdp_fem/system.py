@@ -1,0 +1,76 @@
+"""The condensed linear system as a differentiable, affine function of (kappa, f).
+
+After Dirichlet condensation, the free-dof system of ``-div(kappa grad u) = f`` is
+
+.. math::
+
+    A(\\kappa)\\, u_I = b(\\kappa, f), \\qquad
+    \\mathrm{values}(A) = G\\,\\kappa, \\qquad
+    b = S f + h - L\\,\\kappa,
+
+with the assembly map ``G`` (nnz x n_kappa), the lifting map ``L`` (free x n_kappa, the Dirichlet
+columns applied to the Dirichlet data), the source map ``S`` (free rows of the mass matrix) and
+the Neumann load ``h``. All are built once by :mod:`prdp_fem.discretization`; here they are
+pytree leaves, so a :class:`LinearSystem` is passed to jitted functions as an argument.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+
+from .operator import SparseMatrix, matvec
+
+__all__ = ["LinearSystem"]
+
+
+@partial(jax.tree_util.register_dataclass,
+         data_fields=["assembly", "rows", "cols", "lifting", "source", "neumann", "free_dofs",
+                      "dirichlet_dofs", "dirichlet_values"],
+         meta_fields=["n_dofs"])
+@dataclasses.dataclass(frozen=True)
+class LinearSystem:
+    """Maps ``kappa -> A(kappa)`` and ``(kappa, f) -> b`` on the free dofs.
+
+    ``rows``/``cols`` are the (row-sorted) sparsity pattern of ``A``; ``assembly`` is ``G``.
+    """
+
+    assembly: SparseMatrix
+    rows: jax.Array
+    cols: jax.Array
+    lifting: SparseMatrix
+    source: SparseMatrix
+    neumann: jax.Array
+    free_dofs: jax.Array
+    dirichlet_dofs: jax.Array
+    dirichlet_values: jax.Array
+    n_dofs: int
+
+    @property
+    def n_free(self) -> int:
+        return int(self.free_dofs.shape[0])
+
+    @property
+    def n_kappa(self) -> int:
+        return self.assembly.shape[1]
+
+    def operator(self, kappa: jax.Array) -> SparseMatrix:
+        """``A(kappa)`` on the free dofs (linear in ``kappa``)."""
+        values = matvec(self.assembly, kappa)
+        return SparseMatrix(self.rows, self.cols, values, (self.n_free, self.n_free))
+
+    def rhs(self, kappa: jax.Array, f: jax.Array | None = None) -> jax.Array:
+        """``b = S f + h - L kappa`` (``f`` nodal in the solution space; ``None`` means 0)."""
+        b = self.neumann - matvec(self.lifting, kappa)
+        if f is not None:
+            b = b + matvec(self.source, f)
+        return b
+
+    def expand(self, u_free: jax.Array) -> jax.Array:
+        """Full nodal vector: free values plus the Dirichlet data."""
+        full = jnp.zeros(self.n_dofs, dtype=u_free.dtype)
+        full = full.at[self.dirichlet_dofs].set(self.dirichlet_values.astype(u_free.dtype))
+        return full.at[self.free_dofs].set(u_free)
