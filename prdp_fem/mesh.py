@@ -100,9 +100,11 @@ def load_mesh(path: str | Path, *, repair: bool = False) -> skfem.Mesh:
         raise MeshFileError(path, "is not a regular file; expected a mesh file")
     if path.stat().st_size == 0:
         raise MeshFileError(path, "file is empty; expected a mesh file")
+    # .msh is also ANSYS's suffix: meshio then tries both and exits the process on failure
+    file_format = "gmsh" if path.suffix.lower() == ".msh" else None
     try:
-        raw = meshio.read(path)
-    except Exception as exc:  # meshio raises many types: turn each into one clear error
+        raw = meshio.read(path, file_format=file_format)
+    except (Exception, SystemExit) as exc:  # meshio raises many types: make one clear error
         detail = f"{type(exc).__name__}: {exc}".strip().splitlines()[0][:200]
         raise MeshFileError(
             path,

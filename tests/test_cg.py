@@ -1,0 +1,333 @@
+"""Truncated and converged PCG: forward accuracy, then grouped by transformation
+(vjp: unrolled and implicit, jvp, jit/recompiles, vmap)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prdp_fem as pf
+from prdp_fem.cg import ConvergedCG, TruncatedCG, solve
+
+
+def solve_problem(disc, kappa, f, solver, x0=None):
+    system = disc.system
+    return solve(system.operator(kappa), system.rhs(kappa, f), solver, x0=x0)
+
+
+def exact(disc, kappa, f):
+    return pf.direct_solve(disc.stiffness_matrix(kappa), disc.rhs(kappa, f)).x
+
+
+# ------------------------------------------------------------------------------------------
+# forward
+# ------------------------------------------------------------------------------------------
+
+
+def test_zero_iterations_return_x0(small_problem):
+    disc, kappa, f = small_problem
+    x0 = np.linspace(-1, 1, disc.n_free)
+    for mode in ("unrolled", "implicit"):
+        sol = solve_problem(disc, kappa, f, TruncatedCG(0, gradient=mode), x0=x0)
+        np.testing.assert_array_equal(sol.x, x0)
+        assert int(sol.iterations) == 0
+
+
+@pytest.mark.parametrize("preconditioner", ["identity", "jacobi"])
+def test_energy_error_decreases_monotonically_in_k(small_problem, preconditioner):
+    disc, kappa, f = small_problem
+    A = disc.stiffness_matrix(kappa)
+    x_star = exact(disc, kappa, f)
+    energy = []
+    for k in range(0, 40):
+        x = np.asarray(solve_problem(disc, kappa, f, TruncatedCG(k, preconditioner)).x)
+        energy.append(np.sqrt((x - x_star) @ A @ (x - x_star)))
+    energy = np.array(energy)
+    assert np.all(np.diff(energy) <= 1e-12 * energy[0])
+    assert energy[-1] < 1e-8 * energy[0]
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_k_far_past_convergence_is_finite_and_exact(small_problem, mode):
+    disc, kappa, f = small_problem
+    k = 10 * disc.n_free
+    sol = solve_problem(disc, kappa, f, TruncatedCG(k, gradient=mode))
+    x_star = exact(disc, kappa, f)
+    assert np.all(np.isfinite(sol.x))
+    np.testing.assert_allclose(sol.x, x_star, rtol=1e-12, atol=1e-12 * abs(x_star).max())
+    assert int(sol.iterations) < disc.n_free  # frozen after convergence, not counted
+    assert np.all(np.isfinite(sol.residual_history))
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_zero_rhs_and_exact_start_are_finite(small_problem, mode):
+    disc, kappa, f = small_problem
+    op = disc.system.operator(kappa)
+    b = disc.system.rhs(kappa, f)
+    zero = solve(op, jnp.zeros_like(b), TruncatedCG(25, gradient=mode))
+    np.testing.assert_array_equal(zero.x, 0.0)
+    x_star = exact(disc, kappa, f)
+    started = solve(op, b, TruncatedCG(25, gradient=mode), x0=x_star)
+    np.testing.assert_allclose(started.x, x_star, rtol=1e-12)
+
+
+def test_converged_cg_agrees_with_pyamg():
+    disc = pf.discretize(pf.rectangle_with_hole(12), element="P2", kappa_space="P1",
+                         dirichlet={"left": 1.0, "hole": 0.0})
+    kappa = disc.interpolate_kappa(lambda x: np.exp(np.sin(2 * x[0]) * x[1]))
+    f = disc.interpolate(lambda x: x[0] * x[1])
+    sol = solve_problem(disc, kappa, f, ConvergedCG(rtol=1e-13))
+    ref = pf.amg_solve(disc.stiffness_matrix(kappa), disc.rhs(kappa, f), rtol=1e-13)
+    rel = np.linalg.norm(np.asarray(sol.x) - ref.x) / np.linalg.norm(ref.x)
+    assert rel < 1e-10
+    assert float(sol.residual_norm) <= 1e-13 * np.linalg.norm(disc.rhs(kappa, f)) * 1.0001
+
+
+def test_converged_cg_respects_max_iterations(small_problem):
+    disc, kappa, f = small_problem
+    sol = solve_problem(disc, kappa, f, ConvergedCG(rtol=1e-14, max_iterations=3,
+                                                    history_size=5))
+    assert int(sol.iterations) == 3
+    history = np.asarray(sol.residual_history)
+    assert history[3] == history[4] == history[5] == float(sol.residual_norm)
+
+
+def test_diagnostics_match_the_residual(small_problem):
+    disc, kappa, f = small_problem
+    sol = solve_problem(disc, kappa, f, TruncatedCG(12))
+    A, b = disc.stiffness_matrix(kappa), disc.rhs(kappa, f)
+    true_residual = np.linalg.norm(b - A @ np.asarray(sol.x))
+    assert float(sol.residual_norm) == pytest.approx(true_residual, rel=1e-8)
+    assert float(sol.initial_residual_norm) == pytest.approx(np.linalg.norm(b))
+    assert sol.residual_history.shape == (13,)
+
+
+def test_solver_options_are_checked_at_construction():
+    with pytest.raises(pf.SolverConfigError, match="gradient='adjoint'"):
+        TruncatedCG(5, gradient="adjoint")
+    with pytest.raises(pf.SolverConfigError, match="iterations=-1"):
+        TruncatedCG(-1)
+    with pytest.raises(pf.SolverConfigError, match="preconditioner='ilu'"):
+        TruncatedCG(5, preconditioner="ilu")
+    with pytest.raises(pf.SolverConfigError, match="rtol=0"):
+        ConvergedCG(rtol=0.0, atol=0.0)
+    with pytest.raises(pf.SolverConfigError, match="expected vectors of length"):
+        A = pf.SparseMatrix.from_scipy(np.eye(3))
+        solve(A, np.ones(4), TruncatedCG(2))
+
+
+# ------------------------------------------------------------------------------------------
+# vjp: unrolled (exact derivative of the K-iteration map) and implicit (adjoint solve)
+# ------------------------------------------------------------------------------------------
+
+WEIGHTS_SEED = 5
+
+
+def loss_fn(disc, solver, argument):
+    """Scalar J = w . x_K as a function of kappa, of f, or of x0."""
+    system = disc.system
+    w = jax.random.normal(jax.random.PRNGKey(WEIGHTS_SEED), (disc.n_free,))
+
+    def loss(kappa, f, x0):
+        return w @ solve(system.operator(kappa), system.rhs(kappa, f), solver, x0=x0).x
+
+    index = {"kappa": 0, "f": 1, "x0": 2}[argument]
+
+    def partial_loss(value, args):
+        args = list(args)
+        args[index] = value
+        return loss(*args)
+
+    return jax.jit(partial_loss), index
+
+
+@pytest.mark.parametrize("kappa_space", ["P0", "P1"])
+@pytest.mark.parametrize("argument", ["kappa", "f", "x0"])
+def test_unrolled_gradient_passes_taylor_test(kappa_space, argument):
+    disc = pf.discretize(pf.unit_square(6), element="P1", kappa_space=kappa_space,
+                         dirichlet=lambda x: x[1])
+    kappa = jnp.asarray(disc.interpolate_kappa(lambda x: 1.0 + x[0]))
+    f = jnp.asarray(disc.interpolate(lambda x: np.sin(3 * x[0])))
+    x0 = jnp.asarray(np.cos(np.arange(disc.n_free)))
+    args = (kappa, f, x0)
+    fn, index = loss_fn(disc, TruncatedCG(8), argument)
+    result = pf.taylor_test(lambda v: fn(v, args), args[index], h0=1e-2)
+    assert result.passed(), result.rates
+    assert np.all(np.isfinite(result.rates[:3]))
+
+
+def test_taylor_test_rejects_a_wrong_gradient(small_problem):
+    disc, kappa, f = small_problem
+    fn, _ = loss_fn(disc, TruncatedCG(8), "kappa")
+    args = (jnp.asarray(kappa), jnp.asarray(f), jnp.zeros(disc.n_free))
+    wrong = 1.2 * jax.grad(lambda v: fn(v, args))(args[0])
+    result = pf.taylor_test(lambda v: fn(v, args), args[0], gradient=wrong)
+    assert not result.passed()
+    assert np.nanmedian(result.rates) == pytest.approx(1.0, abs=0.2)
+
+
+def exact_gradients(disc, kappa, f, w):
+    """dJ/dkappa and dJ/df of J = w . x* by the adjoint method, pyamg-converged."""
+    A = disc.stiffness_matrix(kappa)
+    x = pf.amg_solve(A, disc.rhs(kappa, f), rtol=1e-13).x
+    lam = pf.amg_solve(A, w, rtol=1e-13).x
+    rows, cols = disc.pattern
+    values_bar = -lam[rows] * x[cols]
+    kappa_bar = disc.assembly.T @ values_bar - disc.lifting.T @ lam
+    f_bar = disc.mass_matrix[disc.free_dofs].T @ lam
+    return kappa_bar, f_bar
+
+
+@pytest.fixture
+def p1_kappa_problem():
+    disc = pf.discretize(pf.unit_square(10), element="P1", kappa_space="P1",
+                         dirichlet={"left": 1.0, "right": 0.0})
+    kappa = jnp.asarray(disc.interpolate_kappa(lambda x: 1.0 + 3 * x[0] * x[1]))
+    f = jnp.asarray(disc.interpolate(lambda x: np.sin(2 * x[1])))
+    w = np.asarray(jax.random.normal(jax.random.PRNGKey(WEIGHTS_SEED), (disc.n_free,)))
+    return disc, kappa, f, w
+
+
+def gradients(disc, kappa, f, solver):
+    fn = loss_fn(disc, solver, "kappa")[0]
+    fn_f = loss_fn(disc, solver, "f")[0]
+    args = (kappa, f, jnp.zeros(disc.n_free))
+    return jax.grad(fn)(kappa, args), jax.grad(fn_f)(f, args)
+
+
+def relative(a, b):
+    return float(np.linalg.norm(np.asarray(a) - b) / np.linalg.norm(b))
+
+
+def test_implicit_gradient_at_large_k_equals_exact_adjoint(p1_kappa_problem):
+    disc, kappa, f, w = p1_kappa_problem
+    kappa_bar, f_bar = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
+    solver = TruncatedCG(10 * disc.n_free, gradient="implicit")
+    g_kappa, g_f = gradients(disc, kappa, f, solver)
+    assert relative(g_kappa, kappa_bar) < 1e-8
+    assert relative(g_f, f_bar) < 1e-8
+    converged = gradients(disc, kappa, f, ConvergedCG(rtol=1e-13))
+    assert relative(converged[0], kappa_bar) < 1e-8
+
+
+def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem):
+    disc, kappa, f, w = p1_kappa_problem
+    kappa_bar, _ = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
+    errors = {"unrolled": [], "implicit": []}
+    for k in (3, 10, 30):
+        for mode in errors:
+            g, _ = gradients(disc, kappa, f, TruncatedCG(k, gradient=mode))
+            assert np.all(np.isfinite(g))
+            errors[mode].append(relative(g, kappa_bar))
+    for mode, errs in errors.items():
+        assert errs[0] > 1e-2, mode  # truncation is visible at small K
+        assert errs[0] > errs[1] > errs[2], (mode, errs)
+
+
+def test_implicit_adjoint_iterations_are_separate(p1_kappa_problem):
+    disc, kappa, f, w = p1_kappa_problem
+    kappa_bar, _ = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
+    big = 10 * disc.n_free
+    coarse_adjoint = gradients(disc, kappa, f, TruncatedCG(big, gradient="implicit",
+                                                           adjoint_iterations=3))[0]
+    fine_adjoint = gradients(disc, kappa, f, TruncatedCG(big, gradient="implicit",
+                                                         adjoint_iterations=big))[0]
+    assert relative(fine_adjoint, kappa_bar) < 1e-8
+    assert relative(coarse_adjoint, kappa_bar) > 1e-3
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_gradients_finite_far_past_convergence_and_at_zero_rhs(small_problem, mode):
+    disc, kappa, f = small_problem
+    k = 10 * disc.n_free
+    fn, _ = loss_fn(disc, TruncatedCG(k, gradient=mode), "kappa")
+    args = (jnp.asarray(kappa), jnp.asarray(f), jnp.zeros(disc.n_free))
+    g = jax.grad(fn)(args[0], args)
+    assert np.all(np.isfinite(g))
+    op = disc.system.operator(jnp.asarray(kappa))
+
+    def zero_rhs_loss(values):
+        return jnp.sum(solve(op.with_values(values), jnp.zeros(disc.n_free),
+                             TruncatedCG(k, gradient=mode)).x ** 2)
+
+    assert np.all(np.isfinite(jax.grad(zero_rhs_loss)(op.values)))
+
+
+def test_unrolled_checkpoint_gives_the_same_gradient(small_problem):
+    disc, kappa, f = small_problem
+    args = (jnp.asarray(kappa), jnp.asarray(f), jnp.zeros(disc.n_free))
+    plain = jax.grad(loss_fn(disc, TruncatedCG(15), "kappa")[0])(args[0], args)
+    checkpointed = jax.grad(loss_fn(disc, TruncatedCG(15, checkpoint=True), "kappa")[0])(
+        args[0], args)
+    np.testing.assert_allclose(checkpointed, plain, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# jvp: forward mode through the unrolled iterations
+# ------------------------------------------------------------------------------------------
+
+
+def test_unrolled_jvp_matches_vjp(small_problem):
+    disc, kappa, f = small_problem
+    fn, _ = loss_fn(disc, TruncatedCG(10), "kappa")
+    args = (jnp.asarray(kappa), jnp.asarray(f), jnp.zeros(disc.n_free))
+    direction = jnp.asarray(np.random.default_rng(7).normal(size=disc.n_kappa))
+    _, tangent = jax.jvp(lambda v: fn(v, args), (args[0],), (direction,))
+    reverse = jax.grad(fn)(args[0], args) @ direction
+    assert float(tangent) == pytest.approx(float(reverse), rel=1e-11)
+
+
+# ------------------------------------------------------------------------------------------
+# jit: traced K in implicit mode does not recompile
+# ------------------------------------------------------------------------------------------
+
+
+def test_implicit_k_is_traced_without_recompiling(small_problem):
+    disc, kappa, f = small_problem
+    system = disc.system
+    traces = []
+
+    @jax.jit
+    def value_and_grad(kappa, k, k_adj):
+        traces.append(1)
+
+        def loss(kappa):
+            solver = TruncatedCG(k, gradient="implicit", adjoint_iterations=k_adj)
+            return jnp.sum(solve(system.operator(kappa), system.rhs(kappa, f), solver).x ** 2)
+
+        return jax.value_and_grad(loss)(kappa)
+
+    values = [value_and_grad(jnp.asarray(kappa), k, k + 2)[0] for k in (2, 5, 40, 400)]
+    assert len(traces) == 1
+    x_star = exact(disc, kappa, f)
+    assert float(values[-1]) == pytest.approx(float(x_star @ x_star), rel=1e-12)
+    assert float(values[0]) != pytest.approx(float(values[-1]), rel=1e-3)
+
+
+def test_unrolled_with_traced_k_is_a_clear_error(small_problem):
+    disc, kappa, f = small_problem
+
+    @jax.jit
+    def run(k):
+        return solve_problem(disc, kappa, f, TruncatedCG(k)).x
+
+    with pytest.raises(pf.SolverConfigError, match="needs a static K"):
+        run(5)
+
+
+# ------------------------------------------------------------------------------------------
+# vmap: a batch of right-hand sides
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_vmap_over_sources_matches_loop(small_problem, mode):
+    disc, kappa, f = small_problem
+    system = disc.system
+    op = system.operator(jnp.asarray(kappa))
+    sources = jnp.stack([jnp.asarray(f) * s for s in (0.5, 1.0, 2.0)])
+    solver = TruncatedCG(7, gradient=mode)
+    batched = jax.vmap(lambda src: solve(op, system.rhs(kappa, src), solver).x)(sources)
+    for i, src in enumerate(sources):
+        single = solve(op, system.rhs(kappa, src), solver).x
+        np.testing.assert_allclose(batched[i], single, rtol=1e-12)

@@ -1,0 +1,139 @@
+"""Discretisation: the assembly map against scikit-fem, boundary data, convergence rates."""
+
+import numpy as np
+import pytest
+import skfem
+from conftest import MESH_DIR
+from skfem.helpers import dot, grad
+
+import prdp_fem as pf
+
+
+def skfem_reference(disc, kappa):
+    """Full operator assembled directly by scikit-fem with the kappa field interpolated."""
+    form = skfem.BilinearForm(lambda u, v, w: w.k * dot(grad(u), grad(v)))
+    return form.assemble(disc.basis, k=disc.kappa_basis.interpolate(kappa)).tocsr()
+
+
+CASES = [
+    (lambda: pf.unit_square(5), "P1"), (lambda: pf.unit_square(3), "P2"),
+    (lambda: pf.unit_cube(2), "P1"), (lambda: pf.unit_cube(2), "P2"),
+    (lambda: pf.unit_square(4, "quad"), "Q1"), (lambda: pf.unit_cube(2, "hexahedron"), "Q1"),
+]
+
+
+@pytest.mark.parametrize("kappa_space", ["P0", "P1"])
+@pytest.mark.parametrize(("make", "element"), CASES)
+def test_assembly_map_equals_scikit_fem(make, element, kappa_space):
+    def g(x):
+        return 1.0 + x[0] ** 2 - x[1]
+
+    disc = pf.discretize(make(), element=element, kappa_space=kappa_space, dirichlet=g)
+    rng = np.random.default_rng(0)
+    kappa = rng.uniform(0.5, 2.0, disc.n_kappa)
+    full = skfem_reference(disc, kappa)
+    free, fixed = disc.free_dofs, disc.dirichlet_dofs
+    assert abs(disc.stiffness_matrix(kappa) - full[free][:, free]).max() < 1e-13
+    lifted = -full[free][:, fixed] @ disc.dirichlet_values
+    np.testing.assert_allclose(disc.rhs(kappa), lifted, atol=1e-13)
+    # the JAX side gives the same operator and right-hand side
+    op = disc.system.operator(kappa)
+    assert abs(op.to_scipy() - disc.stiffness_matrix(kappa)).max() < 1e-13
+    np.testing.assert_allclose(disc.system.rhs(kappa), disc.rhs(kappa), atol=1e-13)
+
+
+def test_dirichlet_per_tag_and_neumann(manufactured_2d):
+    """Dirichlet on left/right (callable and constant-free), Neumann flux on top/bottom."""
+    m = manufactured_2d
+
+    def flux(sign, axis):
+        return lambda x: sign * m.kappa(x) * m.grad_u(x)[axis]
+
+    errors = []
+    for n in (8, 16, 32):
+        disc = pf.discretize(pf.unit_square(n), element="P2", kappa_space="P1",
+                             dirichlet={"left": m.u, "right": m.u},
+                             neumann={"top": flux(1, 1), "bottom": flux(-1, 1)})
+        kappa = disc.interpolate_kappa(m.kappa)
+        x = pf.direct_solve(disc.stiffness_matrix(kappa), disc.rhs(kappa, disc.interpolate(m.f))).x
+        errors.append(pf.l2_error(disc, disc.expand(x), m.u))
+    rates = np.log2(np.array(errors[:-1]) / errors[1:])
+    assert rates[-1] == pytest.approx(3.0, abs=0.15)
+
+
+def test_unknown_boundary_and_element_are_named():
+    mesh = pf.unit_square(2)
+    with pytest.raises(pf.DiscretizationError, match="unknown boundary 'inlet'.*'left'"):
+        pf.discretize(mesh, dirichlet={"inlet": 0.0})
+    with pytest.raises(pf.DiscretizationError, match="element='P3'.*expected one of"):
+        pf.discretize(mesh, element="P3")
+    with pytest.raises(pf.DiscretizationError, match="kappa_space='P2'"):
+        pf.discretize(mesh, kappa_space="P2")
+    with pytest.raises(pf.DiscretizationError, match="NaN/Inf"):
+        pf.discretize(mesh, dirichlet=lambda x: np.nan * x[0])
+
+
+def test_source_map_is_the_mass_matrix(small_problem):
+    disc, kappa, f = small_problem
+    b_f = disc.system.rhs(kappa, f) - disc.system.rhs(kappa)
+    np.testing.assert_allclose(b_f, (disc.mass_matrix @ f)[disc.free_dofs], atol=1e-14)
+    # mass matrix integrates constants to the area, laplace matrix annihilates them
+    ones = np.ones(disc.n_dofs)
+    assert ones @ disc.mass_matrix @ ones == pytest.approx(1.0)
+    assert abs(disc.laplace_matrix @ ones).max() < 1e-12
+
+
+def convergence_rates(meshes, element, manufactured):
+    m = manufactured
+    errors = []
+    for mesh in meshes:
+        disc = pf.discretize(mesh, element=element, kappa_space="P1", dirichlet=m.u)
+        kappa = disc.interpolate_kappa(m.kappa)
+        A = disc.stiffness_matrix(kappa)
+        b = disc.rhs(kappa, disc.interpolate(m.f))
+        x = pf.amg_solve(A, b, rtol=1e-12).x
+        full = disc.expand(x)
+        errors.append((pf.l2_error(disc, full, m.u), pf.h1_error(disc, full, m.grad_u)))
+    errors = np.array(errors)
+    return np.log2(errors[:-1] / errors[1:])[-1]
+
+
+EXPECTED = {"P1": (2.0, 1.0), "Q1": (2.0, 1.0), "P2": (3.0, 2.0)}
+
+
+@pytest.mark.parametrize(("name", "make", "element"), [
+    ("square P1", lambda r: pf.unit_square(4 * 2**r), "P1"),
+    ("square P2", lambda r: pf.unit_square(4 * 2**r), "P2"),
+    ("square Q1", lambda r: pf.unit_square(4 * 2**r, "quad"), "Q1"),
+    ("L-shape P1", lambda r: pf.l_shape(r + 2), "P1"),
+    ("cube P1", lambda r: pf.unit_cube(4 * 2**r), "P1"),
+    ("cube P2", lambda r: pf.unit_cube(2 * 2**r), "P2"),
+])
+def test_rates_on_generated_meshes(name, make, element, manufactured_2d, manufactured_3d):
+    meshes = [make(r) for r in range(3)]
+    manufactured = manufactured_3d if meshes[0].dim() == 3 else manufactured_2d
+    l2_rate, h1_rate = convergence_rates(meshes, element, manufactured)
+    assert l2_rate == pytest.approx(EXPECTED[element][0], abs=0.15), name
+    assert h1_rate == pytest.approx(EXPECTED[element][1], abs=0.15), name
+
+
+@pytest.mark.parametrize(("filename", "element", "levels"), [
+    ("square_tri.msh", "P1", 3), ("square_tri.msh", "P2", 3), ("plate_hole.msh", "P1", 3),
+    ("plate_hole.msh", "P2", 2), ("square_quad.msh", "Q1", 3), ("cube_tet.msh", "P2", 2),
+])
+def test_rates_on_shipped_meshes(filename, element, levels, manufactured_2d, manufactured_3d):
+    base = pf.load_mesh(MESH_DIR / filename)
+    manufactured = manufactured_3d if base.dim() == 3 else manufactured_2d
+    l2_rate, h1_rate = convergence_rates([base.refined(r) for r in range(levels)], element,
+                                         manufactured)
+    assert l2_rate == pytest.approx(EXPECTED[element][0], abs=0.15)
+    assert h1_rate == pytest.approx(EXPECTED[element][1], abs=0.15)
+
+
+@pytest.mark.slow
+def test_rates_on_shipped_tetrahedra_p1(manufactured_3d):
+    base = pf.load_mesh(MESH_DIR / "cube_tet.msh")
+    l2_rate, h1_rate = convergence_rates([base.refined(r) for r in range(1, 4)], "P1",
+                                         manufactured_3d)
+    assert l2_rate == pytest.approx(2.0, abs=0.15)
+    assert h1_rate == pytest.approx(1.0, abs=0.15)

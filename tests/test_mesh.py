@@ -1,0 +1,254 @@
+"""Mesh input: shipped Gmsh files, round trips through other formats, every bad input."""
+
+import shutil
+import warnings
+
+import meshio
+import numpy as np
+import pytest
+from conftest import SHIPPED_MESHES
+
+import prdp_fem as pf
+from prdp_fem.mesh import save_mesh
+
+EXPECTED_TAGS = {
+    "square_tri.msh": ("MeshTri1", {"left", "right", "bottom", "top"}),
+    "square_quad.msh": ("MeshQuad1", {"left", "right", "bottom", "top"}),
+    "plate_hole.msh": ("MeshTri1", {"left", "right", "bottom", "top", "hole"}),
+    "cube_tet.msh": ("MeshTet1", {"left", "right", "bottom", "top", "front", "back"}),
+}
+
+
+def operator_of(mesh):
+    element = "Q1" if type(mesh).__name__.startswith(("MeshQuad", "MeshHex")) else "P1"
+    disc = pf.discretize(mesh, element=element, kappa_space="P0")
+    kappa = 1.0 + np.arange(disc.n_kappa) % 7
+    return disc.stiffness_matrix(kappa)
+
+
+def test_four_shipped_meshes_exist():
+    assert {p.name for p in SHIPPED_MESHES} >= set(EXPECTED_TAGS)
+
+
+@pytest.mark.parametrize("name", sorted(EXPECTED_TAGS))
+def test_shipped_mesh_loads_with_tags(name):
+    from conftest import MESH_DIR
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mesh = pf.load_mesh(MESH_DIR / name)
+    cls, tags = EXPECTED_TAGS[name]
+    assert type(mesh).__name__ == cls
+    assert set(mesh.boundaries) == tags
+    # tagged facets are boundary facets and together cover the whole boundary
+    tagged = np.unique(np.concatenate([np.asarray(v) for v in mesh.boundaries.values()]))
+    np.testing.assert_array_equal(tagged, np.sort(mesh.boundary_facets()))
+    quality = pf.mesh_quality(mesh)
+    assert quality.quality_min > 0.1
+    expected_measure = {"plate_hole.msh": 2.0 - np.pi * 0.2**2}.get(name, 1.0)
+    # the hole is a polygon, so its area differs from the disk's by O(h^2)
+    assert quality.total_measure == pytest.approx(expected_measure, rel=5e-3)
+
+
+@pytest.mark.parametrize("path", SHIPPED_MESHES, ids=lambda p: p.name)
+@pytest.mark.parametrize("formats", [(".vtu", ".xdmf"), (".mesh", ".msh")])
+def test_round_trip_through_two_formats_keeps_the_operator(path, formats, tmp_path):
+    mesh = pf.load_mesh(path)
+    reference = operator_of(mesh)
+    current = mesh
+    for suffix in formats:
+        target = tmp_path / f"copy{suffix}"
+        save_mesh(current, target)
+        current = pf.load_mesh(target)
+        assert abs(operator_of(current) - reference).max() <= 1e-13 * abs(reference).max()
+        assert sorted(len(v) for v in current.boundaries.values()) == sorted(
+            len(v) for v in mesh.boundaries.values())
+
+
+def test_msh22_round_trip_keeps_physical_names(tmp_path):
+    mesh = pf.rectangle_with_hole(8)
+    save_mesh(mesh, tmp_path / "hole.msh")
+    loaded = pf.load_mesh(tmp_path / "hole.msh")
+    assert {k: len(v) for k, v in loaded.boundaries.items()} == {
+        k: len(v) for k, v in mesh.boundaries.items()}
+
+
+@pytest.mark.parametrize("make", [
+    lambda: pf.unit_square(3), lambda: pf.unit_square(3, "quad"), lambda: pf.unit_cube(2),
+    lambda: pf.unit_cube(2, "hexahedron"), lambda: pf.l_shape(1), lambda: pf.disk(1),
+    lambda: pf.rectangle_with_hole(4)])
+def test_generators_measure_and_round_trip(make, tmp_path):
+    mesh = make()
+    quality = pf.mesh_quality(mesh)
+    save_mesh(mesh, tmp_path / "m.vtu")
+    again = pf.load_mesh(tmp_path / "m.vtu")
+    np.testing.assert_allclose(again.p, mesh.p)
+    assert abs(operator_of(again) - operator_of(mesh)).max() < 1e-12
+    assert quality.total_measure > 0
+
+
+def test_generator_measures():
+    assert pf.mesh_quality(pf.l_shape(2)).total_measure == pytest.approx(3.0)
+    assert pf.mesh_quality(pf.rectangle_with_hole(8)).total_measure == pytest.approx(1.75)
+    assert pf.mesh_quality(pf.unit_cube(3, "hexahedron")).total_measure == pytest.approx(1.0)
+    # inscribed polygon: area below pi, converging at O(h^2)
+    assert pf.mesh_quality(pf.disk(4)).total_measure == pytest.approx(np.pi, rel=2e-2)
+
+
+def test_clockwise_cells_give_the_same_operator():
+    square = pf.unit_square(4, "quad")
+    cells = square.t.T
+    flipped = pf.mesh_from_arrays(square.p.T, cells[:, ::-1], "quad")
+    assert pf.mesh_quality(flipped).n_inverted != pf.mesh_quality(square).n_inverted
+    assert abs(operator_of(flipped) - operator_of(square)).max() < 1e-13
+
+
+# ------------------------------------------------------------------------------------------
+# bad input: one typed error each, naming the file and the problem
+# ------------------------------------------------------------------------------------------
+
+
+def write(tmp_path, name, points, cells, **kwargs):
+    path = tmp_path / name
+    meshio.write(path, meshio.Mesh(points, cells, **kwargs))
+    return path
+
+
+SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+TWO_TRIANGLES = [("triangle", np.array([[0, 1, 2], [0, 2, 3]]))]
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(pf.MeshFileError, match=r"nope\.msh: file does not exist"):
+        pf.load_mesh(tmp_path / "nope.msh")
+
+
+def test_empty_file(tmp_path):
+    (tmp_path / "empty.msh").write_text("")
+    with pytest.raises(pf.MeshFileError, match=r"empty\.msh: file is empty"):
+        pf.load_mesh(tmp_path / "empty.msh")
+
+
+def test_unreadable_file(tmp_path):
+    (tmp_path / "junk.msh").write_text("this is not a mesh\n")
+    with pytest.raises(pf.MeshFileError, match=r"junk\.msh: could not be read as a mesh"):
+        pf.load_mesh(tmp_path / "junk.msh")
+
+
+def test_unknown_format(tmp_path):
+    (tmp_path / "mesh.unknown").write_text("1 2 3\n")
+    with pytest.raises(pf.MeshFileError, match=r"mesh\.unknown: could not be read"):
+        pf.load_mesh(tmp_path / "mesh.unknown")
+
+
+def test_directory_is_not_a_mesh(tmp_path):
+    with pytest.raises(pf.MeshFileError, match="not a regular file"):
+        pf.load_mesh(tmp_path)
+
+
+def test_no_supported_cells(tmp_path):
+    path = write(tmp_path, "lines.vtu", SQUARE, [("line", np.array([[0, 1], [1, 2]]))])
+    with pytest.raises(pf.UnsupportedCellsError, match=r"lines\.vtu: holds \['line'\]"):
+        pf.load_mesh(path)
+
+
+def test_second_order_cells_are_named(tmp_path):
+    points = np.vstack([SQUARE, [[0.5, 0], [0.5, 0.5], [0, 0.5]]])
+    path = write(tmp_path, "p2.vtu", points, [("triangle6", np.array([[0, 1, 3, 4, 5, 6]]))])
+    with pytest.raises(pf.UnsupportedCellsError, match="second-order cells.*triangle6"):
+        pf.load_mesh(path)
+
+
+def test_mixed_cell_types(tmp_path):
+    points = np.vstack([SQUARE, [[2.0, 0.0], [2.0, 1.0]]])
+    cells = [("triangle", np.array([[0, 1, 2], [0, 2, 3]])), ("quad", np.array([[1, 4, 5, 2]]))]
+    path = write(tmp_path, "mixed.vtu", points, cells)
+    with pytest.raises(pf.MixedDimensionError, match=r"mixed\.vtu: mixes"):
+        pf.load_mesh(path)
+
+
+def test_lower_dimensional_cells_that_are_not_facets(tmp_path):
+    cells = [*TWO_TRIANGLES, ("line", np.array([[1, 3]]))]  # the diagonal is 0-2, not 1-3
+    path = write(tmp_path, "stray.vtu", SQUARE, cells)
+    with pytest.raises(pf.MixedDimensionError, match="not facets of the mesh"):
+        pf.load_mesh(path)
+
+
+def test_surface_in_3d_is_mixed_dimension(tmp_path):
+    points = np.column_stack([SQUARE, [0.0, 0.0, 1.0, 0.0]])
+    path = write(tmp_path, "bent.vtu", points, TWO_TRIANGLES)
+    with pytest.raises(pf.MixedDimensionError, match="nodes spanning 3-D"):
+        pf.load_mesh(path)
+
+
+def test_nan_coordinates(tmp_path):
+    points = SQUARE.copy()
+    points[2, 1] = np.nan
+    path = write(tmp_path, "nan.vtu", points, TWO_TRIANGLES)
+    with pytest.raises(pf.NonFiniteCoordinatesError, match=r"nan\.vtu: 1 node.*node 2"):
+        pf.load_mesh(path)
+
+
+def test_inf_coordinates():
+    points = SQUARE.copy()
+    points[0, 0] = np.inf
+    with pytest.raises(pf.NonFiniteCoordinatesError, match="NaN/Inf"):
+        pf.mesh_from_arrays(points, TWO_TRIANGLES[0][1], "triangle")
+
+
+def test_degenerate_cell(tmp_path):
+    points = np.vstack([SQUARE, [[2.0, 0.0]]])
+    cells = [("triangle", np.array([[0, 1, 2], [0, 2, 3], [0, 1, 4]]))]  # 0,1,4 collinear
+    path = write(tmp_path, "flat.vtu", points, cells)
+    with pytest.raises(pf.DegenerateCellError, match=r"flat\.vtu: 1 triangle cell.*zero area"):
+        pf.load_mesh(path)
+
+
+def test_bowtie_quad_is_inverted(tmp_path):
+    path = write(tmp_path, "bowtie.vtu", SQUARE, [("quad", np.array([[0, 1, 3, 2]]))])
+    with pytest.raises(pf.InvertedCellError, match="self-intersecting"):
+        pf.load_mesh(path)
+
+
+def test_folded_mesh_is_inverted():
+    # node 4 pulled through the opposite edge: its cells overlap their neighbours
+    square = pf.unit_square(2)
+    points = square.p.T.copy()
+    centre = int(np.argmin(np.linalg.norm(points - 0.5, axis=1)))
+    points[centre] = [1.2, 0.9]
+    with pytest.raises(pf.InvertedCellError, match="folded"):
+        pf.mesh_from_arrays(points, square.t.T, "triangle", source="folded.msh")
+
+
+def test_duplicate_nodes_raise_then_repair(tmp_path):
+    points = np.vstack([SQUARE, [[0.0, 0.0]]])  # node 4 duplicates node 0
+    cells = [("triangle", np.array([[0, 1, 2], [4, 2, 3]]))]
+    path = write(tmp_path, "dup.vtu", points, cells)
+    with pytest.raises(pf.DuplicateNodeError, match=r"dup\.vtu: 1 duplicate node.*node 4"):
+        pf.load_mesh(path)
+    with pytest.warns(pf.MeshRepairWarning, match="merged 1 duplicate"):
+        mesh = pf.load_mesh(path, repair=True)
+    assert mesh.p.shape[1] == 4
+    assert pf.mesh_quality(mesh).total_measure == pytest.approx(1.0)
+
+
+def test_unused_nodes_raise_then_repair(tmp_path):
+    points = np.vstack([SQUARE, [[5.0, 5.0]]])
+    path = write(tmp_path, "unused.vtu", points, TWO_TRIANGLES)
+    with pytest.raises(pf.UnusedNodeError, match=r"unused\.vtu: 1 node.*belong to no cell"):
+        pf.load_mesh(path)
+    with pytest.warns(pf.MeshRepairWarning, match="dropped 1 unused"):
+        mesh = pf.load_mesh(path, repair=True)
+    assert mesh.p.shape[1] == 4
+
+
+def test_node_index_out_of_range(tmp_path):
+    with pytest.raises(pf.MeshFileError, match="references node 7"):
+        pf.mesh_from_arrays(SQUARE, np.array([[0, 1, 7]]), "triangle")
+
+
+def test_errors_are_value_errors_with_source_and_problem(tmp_path):
+    shutil.copy(SHIPPED_MESHES[0], tmp_path / "ok.msh")
+    with pytest.raises(ValueError) as info:
+        pf.load_mesh(tmp_path / "missing.vtu")
+    assert info.value.source.endswith("missing.vtu")
+    assert "expected" in info.value.problem
