@@ -63,9 +63,9 @@ def test_dirichlet_per_tag_and_neumann(manufactured_2d):
 
 def test_unknown_boundary_and_element_are_named():
     mesh = pf.unit_square(2)
-    with pytest.raises(pf.DiscretizationError, match="unknown boundary 'inlet'.*'left'"):
+    with pytest.raises(pf.DiscretizationError, match=r"unknown boundary 'inlet'.*'left'"):
         pf.discretize(mesh, dirichlet={"inlet": 0.0})
-    with pytest.raises(pf.DiscretizationError, match="element='P3'.*expected one of"):
+    with pytest.raises(pf.DiscretizationError, match=r"element='P3'.*expected one of"):
         pf.discretize(mesh, element="P3")
     with pytest.raises(pf.DiscretizationError, match="kappa_space='P2'"):
         pf.discretize(mesh, kappa_space="P2")

@@ -1,0 +1,62 @@
+"""The prdp-fem command: the forward study, exit codes and one-line errors."""
+
+import json
+
+import pytest
+
+from prdp_fem.cli import main
+
+
+def test_forward_study_writes_records(tmp_path, capsys):
+    out = tmp_path / "forward.jsonl"
+    status = main(["forward", "--n", "16", "--iterations", "0", "20", "400", "--out", str(out)])
+    assert status == 0
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [r["requested_iterations"] for r in records] == [0, 20, 400]
+    assert records[0]["relative_l2_error"] == pytest.approx(1.0)
+    assert records[1]["relative_l2_error"] < 1.0
+    assert records[2]["relative_l2_error"] < 1e-10
+    assert records[2]["iterations"] < 400  # converged to round-off and stopped
+    assert "first-solve compile" in capsys.readouterr().out
+    # appended, not overwritten
+    main(["forward", "--n", "8", "--iterations", "3", "--out", str(out)])
+    assert len(out.read_text().splitlines()) == 4
+
+
+def test_forward_on_a_mesh_file(capsys):
+    from conftest import MESH_DIR
+    status = main(["forward", "--mesh", str(MESH_DIR / "square_quad.msh"), "--element", "Q1",
+                   "--iterations", "200"])
+    assert status == 0
+    last = capsys.readouterr().out.strip().splitlines()[-2].split()
+    assert float(last[3]) < 1e-10  # relative L2 error at K = 200
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["forward", "--mesh", "missing.msh"], "missing.msh: file does not exist"),
+    (["forward", "--scene", "torus"], "scene 'torus': expected one of"),
+    (["forward", "--iterations", "-3"], "expected integers >= 0"),
+    (["forward", "--n", "4", "--element", "P7"], "element='P7'"),
+    (["mesh", "nowhere.vtu"], "nowhere.vtu: file does not exist"),
+])
+def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert err.startswith("prdp-fem: error: ") and message in err
+
+
+def test_mesh_report(capsys):
+    from conftest import MESH_DIR
+    assert main(["mesh", str(MESH_DIR / "plate_hole.msh")]) == 0
+    out = capsys.readouterr().out
+    assert "boundary: hole" in out
+    assert "cell_type: triangle" in out
+
+
+def test_bench_cg_reports_the_operator(capsys):
+    assert main(["bench", "cg", "--sides", "16", "--iterations", "5", "--repeats", "1"]) == 0
+    row = capsys.readouterr().out.strip().splitlines()[-1].split()
+    assert int(row[0]) == 15 * 15  # interior dofs of a 16 x 16 square
+    assert int(row[1]) == 15 * 15 + 4 * 15 * 14  # five-point pattern of P1 on right triangles
+    assert len(row) == 6  # dofs, nnz, SpMV, iteration, ratio, compile
