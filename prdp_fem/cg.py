@@ -12,11 +12,13 @@ PCG, ``K`` iterations from ``x0``::
     repeat K:  q = A p; alpha = rz / p.q; x += alpha p; r -= alpha q
                z = M r; rz' = r.z; p = z + (rz'/rz) p
 
-Every division is made safe *before* dividing: once ``r.z`` has fallen to
-``FREEZE_RATIO * (r0.z0)`` (float64 round-off level) or ``p.q`` is not positive, the step
-length and the direction update are exactly zero, so ``K`` far past convergence, ``b = 0`` or an
-exact ``x0`` return the converged ``x`` with finite values *and* finite gradients (a
-``jnp.where`` on an unsafe quotient would still send NaN through reverse mode).
+CG runs on the correction ``d = (x - x0) / ||r0||`` (the same iterates, with O(1) inner
+products whatever the size of ``b``). Every division is made safe *before* dividing: once
+``r.z`` has fallen to ``eps^2 (r0.z0)`` (round-off for the working dtype) or ``p.q`` is not
+positive, the step length and the direction update are exactly zero, so ``K`` far past
+convergence, ``b = 0`` or an exact ``x0`` return the converged ``x`` with finite values *and*
+finite gradients (a ``jnp.where`` on an unsafe quotient would still send NaN through reverse
+mode). Diagnostics are never differentiated (``stop_gradient`` in both modes).
 
 Gradient modes
 --------------
@@ -31,6 +33,12 @@ Gradient modes
     (and zero for ``x0``: at convergence ``x`` does not depend on it). Exact at convergence, the
     PRDP approximation when truncated. ``K`` and ``K_adj`` are traced: changing them does not
     recompile, and iterations stop early once the residual reaches round-off.
+
+Limits (by design): implicit mode is first-order reverse mode only (``jax.jvp`` raises; a
+Hessian through it is not exact). In unrolled mode at ``b - A x0 = 0`` the K-iteration map is
+not differentiable (it is positively homogeneous in the residual) and the gradient returned
+there is zero: start a source inversion from a non-zero residual, or use implicit mode, whose
+gradient at zero residual is the (truncated) adjoint solution as usual.
 """
 
 from __future__ import annotations
@@ -49,8 +57,6 @@ from .precond import PRECONDITIONERS, make_preconditioner
 
 __all__ = ["ConvergedCG", "Solution", "TruncatedCG", "solve"]
 
-# r.z below FREEZE_RATIO * r0.z0 is round-off: CG stops moving (|r| ~ 1e-16 |r0| in M-norm)
-FREEZE_RATIO = float(np.finfo(np.float64).eps) ** 2
 GRADIENT_MODES = ("unrolled", "implicit")
 
 
@@ -82,18 +88,23 @@ class Solution(NamedTuple):
 def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
     if value is None and allow_none:
         return
-    if isinstance(value, jax.core.Tracer) or (
-            hasattr(value, "dtype") and jnp.issubdtype(value.dtype, jnp.integer)
-            and np.ndim(value) == 0 and not isinstance(value, np.ndarray)):
-        return  # traced (or a JAX integer scalar): checked by the caller's own logic
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+    if isinstance(value, jax.core.Tracer):
+        return  # traced: a negative count runs zero iterations (the loop test is k < K)
+    if (isinstance(value, bool) or np.ndim(value) != 0
+            or not np.issubdtype(np.asarray(value).dtype, np.integer) or int(value) < 0):
         raise SolverConfigError(f"{name}={value!r}: expected an integer >= 0")
 
 
 def _check_preconditioner(spec: Any) -> None:
-    if not (spec in PRECONDITIONERS or callable(spec)):
-        raise SolverConfigError(
-            f"preconditioner={spec!r}: expected one of {PRECONDITIONERS} or a callable pytree")
+    if isinstance(spec, str) and spec in PRECONDITIONERS:
+        return
+    if callable(spec) and not isinstance(spec, str) and all(
+            hasattr(leaf, "dtype") or isinstance(leaf, int | float)
+            for leaf in jax.tree_util.tree_leaves(spec)):
+        return
+    raise SolverConfigError(
+        f"preconditioner={spec!r}: expected one of {PRECONDITIONERS} or a callable pytree of "
+        "arrays (e.g. a registered dataclass with __call__; a plain function is not a pytree)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -141,6 +152,7 @@ class TruncatedCG:
             _check_count(self.iterations, "iterations")
         _check_count(self.adjoint_iterations, "adjoint_iterations", allow_none=True)
         _check_count(self.history_size, "history_size")
+        object.__setattr__(self, "history_size", int(self.history_size))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,6 +177,7 @@ class ConvergedCG:
         _check_count(self.max_iterations, "max_iterations", allow_none=True)
         _check_count(self.history_size, "history_size")
         _check_preconditioner(self.preconditioner)
+        object.__setattr__(self, "history_size", int(self.history_size))
 
 
 def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
@@ -207,11 +220,13 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
 
 
 class _CGState(NamedTuple):
-    x: jax.Array
+    """PCG on the scaled correction: ``x = x0 + scale * d`` with ``A d = r0 / scale``."""
+
+    d: jax.Array
     r: jax.Array
     p: jax.Array
     rz: jax.Array
-    freeze_level: jax.Array  # FREEZE_RATIO * r0.z0
+    freeze_level: jax.Array  # eps^2 * r0.z0: below it r.z is round-off and CG stops moving
 
 
 def _safe_ratio(num: jax.Array, den: jax.Array, ok: jax.Array) -> jax.Array:
@@ -219,11 +234,21 @@ def _safe_ratio(num: jax.Array, den: jax.Array, ok: jax.Array) -> jax.Array:
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
-def _init(matrix, precond, b, x0) -> tuple[_CGState, jax.Array]:
-    r = b - matvec(matrix, x0)
+def _init(matrix, precond, b, x0) -> tuple[_CGState, jax.Array, jax.Array]:
+    """Initial state of CG on the correction, scaled to a unit residual.
+
+    CG from ``x0`` equals CG from zero on ``A d = r0``; solving for ``d`` scaled by
+    ``1/||r0||`` keeps every inner product O(1), so neither the values nor their derivatives
+    (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides.
+    """
+    r0 = b - matvec(matrix, x0)
+    r0_norm = _norm(r0)
+    scale = jnp.where(r0_norm > 0, r0_norm, 1.0)
+    r = r0 / scale
     z = precond(r)
     rz = jnp.vdot(r, z)
-    return _CGState(x0, r, z, rz, FREEZE_RATIO * rz), _norm(r)
+    eps = jnp.finfo(r.dtype).eps
+    return _CGState(jnp.zeros_like(r), r, z, rz, eps * eps * rz), r0_norm, scale
 
 
 def _norm(v: jax.Array) -> jax.Array:
@@ -243,14 +268,14 @@ def _step(matrix, precond, state: _CGState) -> tuple[_CGState, jax.Array]:
     pq = jnp.vdot(state.p, q)
     moving = _active(state) & (pq > 0)
     alpha = _safe_ratio(state.rz, pq, moving)
-    x = state.x + alpha * state.p
+    d = state.d + alpha * state.p
     r = state.r - alpha * q
     z = precond(r)
     rz_new = jnp.vdot(r, z)
     beta = _safe_ratio(rz_new, state.rz, moving)
     p = jnp.where(moving, z + beta * state.p, state.p)
     rz_new = jnp.where(moving, rz_new, state.rz)
-    return _CGState(x, r, p, rz_new, state.freeze_level), moving
+    return _CGState(d, r, p, rz_new, state.freeze_level), moving
 
 
 # --------------------------------------------------------------------------------------
@@ -259,7 +284,7 @@ def _step(matrix, precond, state: _CGState) -> tuple[_CGState, jax.Array]:
 
 
 def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solution:
-    state, r0_norm = _init(matrix, precond, b, x0)
+    state, r0_norm, scale = _init(matrix, precond, b, x0)
 
     def body(carry, _):
         new, moving = _step(matrix, precond, carry)
@@ -268,8 +293,9 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solu
     if checkpoint:
         body = jax.checkpoint(body)
     state, (moved, norms) = jax.lax.scan(body, state, None, length=iterations)
-    history = jnp.concatenate([r0_norm[None], norms])
-    return Solution(state.x, jnp.sum(moved).astype(jnp.int32), history[-1], r0_norm, history)
+    history = jax.lax.stop_gradient(scale * jnp.concatenate([jnp.ones(1, norms.dtype), norms]))
+    return Solution(x0 + scale * state.d, jnp.sum(moved).astype(jnp.int32), history[-1],
+                    jax.lax.stop_gradient(r0_norm), history)
 
 
 # --------------------------------------------------------------------------------------
@@ -279,8 +305,8 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solu
 
 def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_size: int):
     """PCG while ``k < max_iterations``, still moving and ``||r|| > max(rtol ||b||, atol)``."""
-    state, r0_norm = _init(matrix, precond, b, x0)
-    target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1])
+    state, r0_norm, scale = _init(matrix, precond, b, x0)
+    target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1]) / scale
     positions = jnp.arange(history_size + 1)
 
     def cond(carry):
@@ -294,10 +320,11 @@ def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_siz
         hist = jnp.where(positions > k, norm, hist)  # pads the tail with the latest value
         return k + moving.astype(k.dtype), new, norm, hist, moving
 
-    init = (jnp.zeros((), jnp.int32), state, r0_norm, jnp.full(history_size + 1, r0_norm),
+    unit = jnp.ones((), b.dtype) * (r0_norm > 0)
+    init = (jnp.zeros((), jnp.int32), state, unit, jnp.full(history_size + 1, unit),
             jnp.asarray(True))
     k, state, norm, history, _ = jax.lax.while_loop(cond, body, init)
-    return Solution(state.x, k, norm, r0_norm, history)
+    return Solution(x0 + scale * state.d, k, scale * norm, r0_norm, scale * history)
 
 
 def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond_spec, rtol, atol,
@@ -305,9 +332,11 @@ def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond_spec,
     precond = make_preconditioner(precond_spec, matrix)
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
-    return _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
-                          jnp.asarray(adjoint_iterations, jnp.int32), matrix.rows, matrix.cols,
-                          precond, tolerances, matrix.shape, history_size)
+    sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
+                         jnp.asarray(adjoint_iterations, jnp.int32), matrix.rows, matrix.cols,
+                         precond, tolerances, matrix.shape, history_size)
+    diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
+    return Solution(sol.x, *diagnostics)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(9, 10))

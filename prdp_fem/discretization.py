@@ -87,7 +87,8 @@ class Discretization:
     dirichlet_values: np.ndarray
     assembly: sp.csr_matrix  # G: nnz x n_kappa (values of the condensed operator)
     pattern: tuple[np.ndarray, np.ndarray]  # (rows, cols) of the condensed operator
-    lifting: sp.csr_matrix  # L: n_free x n_kappa
+    lifting_assembly: sp.csr_matrix  # G_D: values of the (free, Dirichlet) block per kappa
+    lifting_pattern: tuple[np.ndarray, np.ndarray]  # (free row, index into dirichlet_dofs)
     neumann: np.ndarray  # h on the free dofs
 
     @property
@@ -101,6 +102,14 @@ class Discretization:
     @property
     def n_kappa(self) -> int:
         return int(self.kappa_basis.N)
+
+    @cached_property
+    def lifting(self) -> sp.csr_matrix:
+        """``L`` (free x n_kappa): ``A_ID(kappa) g = L kappa`` for the stored Dirichlet data."""
+        rows, cols = self.lifting_pattern
+        weights = sp.csr_matrix((self.dirichlet_values[cols], (rows, np.arange(len(rows)))),
+                                shape=(self.n_free, len(rows)))
+        return (weights @ self.lifting_assembly).tocsr()
 
     @cached_property
     def mass_matrix(self) -> sp.csr_matrix:
@@ -120,7 +129,9 @@ class Discretization:
             assembly=SparseMatrix.from_scipy(self.assembly),
             rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),
             cols=jnp.asarray(self.pattern[1], dtype=jnp.int32),
-            lifting=SparseMatrix.from_scipy(self.lifting),
+            lifting=SparseMatrix.from_scipy(self.lifting_assembly),
+            lifting_rows=jnp.asarray(self.lifting_pattern[0], dtype=jnp.int32),
+            lifting_cols=jnp.asarray(self.lifting_pattern[1], dtype=jnp.int32),
             source=SparseMatrix.from_scipy(source),
             neumann=jnp.asarray(self.neumann),
             free_dofs=jnp.asarray(self.free_dofs, dtype=jnp.int32),
@@ -202,15 +213,15 @@ def discretize(
     free = np.setdiff1d(np.arange(basis.N), dirichlet_dofs)
     if len(free) == 0:
         raise DiscretizationError("dirichlet: every dof is constrained; expected free dofs")
-    full = np.zeros(basis.N)
-    full[dirichlet_dofs] = dirichlet_values
-    assembly, pattern, lifting = _assembly_maps(basis, kappa_basis, free, full)
+    assembly, pattern, lifting_assembly, lifting_pattern = _assembly_maps(basis, kappa_basis,
+                                                                          free)
     neumann_load = _neumann(mesh, basis, neumann)[free]
     return Discretization(
         mesh=mesh, element=element, kappa_space=kappa_space, basis=basis,
         kappa_basis=kappa_basis, free_dofs=free, dirichlet_dofs=dirichlet_dofs,
         dirichlet_values=dirichlet_values, assembly=assembly, pattern=pattern,
-        lifting=lifting, neumann=neumann_load)
+        lifting_assembly=lifting_assembly, lifting_pattern=lifting_pattern,
+        neumann=neumann_load)
 
 
 def _alias(element: str, mesh_type) -> str:
@@ -270,8 +281,8 @@ def _neumann(mesh, basis, data) -> np.ndarray:
     return load
 
 
-def _assembly_maps(basis, kappa_basis, free, full_dirichlet):
-    """G (condensed values per unit kappa), the condensed pattern and the lifting map L."""
+def _assembly_maps(basis, kappa_basis, free):
+    """G and pattern of the condensed operator; G_D and pattern of its Dirichlet columns."""
     n = basis.N
     nt = basis.nelems
     free_index = np.full(n, -1)
@@ -291,23 +302,31 @@ def _assembly_maps(basis, kappa_basis, free, full_dirichlet):
     on_free = free_index[cols] >= 0
     n_free, n_kappa = len(free), kappa_basis.N
 
-    # lifting: Dirichlet columns times the Dirichlet data, per unit kappa
+    # Dirichlet columns: their own summed pattern (free row, index into the Dirichlet dofs)
     dcols = ~on_free
-    lifting = sp.csr_matrix(
-        (data[dcols] * full_dirichlet[cols[dcols]], (free_index[rows[dcols]], kappa_idx[dcols])),
-        shape=(n_free, n_kappa))
-    lifting.sum_duplicates()
+    dirichlet_index = np.full(n, -1)
+    dirichlet_index[np.flatnonzero(free_index < 0)] = np.arange(n - n_free)
+    lifting_assembly, lifting_pattern = _summed_map(
+        free_index[rows[dcols]], dirichlet_index[cols[dcols]], n - n_free, kappa_idx[dcols],
+        data[dcols], n_kappa)
 
     # condensed pattern: entries keyed by (row, col) in free numbering, sorted by row then col
-    r, c = free_index[rows[on_free]], free_index[cols[on_free]]
-    keys, entry = np.unique(r.astype(np.int64) * n_free + c, return_inverse=True)
-    assembly = sp.csr_matrix((data[on_free], (entry.ravel(), kappa_idx[on_free])),
-                             shape=(len(keys), n_kappa))
+    assembly, pattern = _summed_map(free_index[rows[on_free]], free_index[cols[on_free]], n_free,
+                                    kappa_idx[on_free], data[on_free], n_kappa)
+    return assembly, pattern, lifting_assembly, lifting_pattern
+
+
+def _summed_map(r, c, n_cols, kappa_idx, data, n_kappa):
+    """Sum duplicate (r, c) entries into a map G: kappa -> values on a row-sorted pattern.
+
+    Entries that are zero for every kappa (geometric cancellation) are dropped, diagonals kept.
+    """
+    keys, entry = np.unique(r.astype(np.int64) * n_cols + c, return_inverse=True)
+    assembly = sp.csr_matrix((data, (entry.ravel(), kappa_idx)), shape=(len(keys), n_kappa))
     assembly.sum_duplicates()
     row_size = np.asarray(abs(assembly).sum(axis=1)).ravel()
-    diagonal = keys // n_free == keys % n_free
-    structural = diagonal | (row_size > _STRUCTURAL_ZERO * row_size.max())
-    assembly = assembly[structural].tocsr()
+    diagonal = keys // n_cols == keys % n_cols
+    scale = row_size.max() if row_size.size else 0.0
+    structural = diagonal | (row_size > _STRUCTURAL_ZERO * scale)
     keys = keys[structural]
-    pattern = (keys // n_free, keys % n_free)
-    return assembly, pattern, lifting
+    return assembly[structural].tocsr(), (keys // n_cols, keys % n_cols)

@@ -68,6 +68,8 @@ _HEX_CORNER_EDGES = np.array([[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7],
                               [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]])
 # integer cell data that carry region tags, in order of preference
 TAG_KEYS = ("gmsh:physical", "medit:ref", "cell_tags", "tags", "ref")
+# 0/1 cell data naming one region each, as save_mesh writes them for VTK-based formats
+NAMED_PREFIXES = ("boundary:", "subdomain:")
 # |measure| / (longest edge)^d below this is a degenerate cell
 DEGENERACY_TOL = 1e-10
 # nodes closer than this times the bounding-box diameter are duplicates
@@ -147,9 +149,10 @@ def save_mesh(mesh: skfem.Mesh, path: str | Path, *, file_format: str | None = N
               binary: bool = False) -> None:
     """Write ``mesh`` with its named boundaries as tagged facet cells (any meshio format).
 
-    ``.msh`` is written as Gmsh 2.2 (physical names kept); Medit files get ``medit:ref``
-    numbers; other formats an integer ``cell_tags`` cell-data array. Tag numbers follow
-    ``sorted(mesh.boundaries)``.
+    Boundaries and subdomains are kept by name: ``.msh`` is written as Gmsh 2.2 with physical
+    names; VTK-based formats (``.vtu``, ``.vtk``, ``.xdmf``) get an integer ``cell_tags`` array
+    plus one 0/1 array per region (``boundary:NAME``, ``subdomain:NAME``); Medit keeps only
+    ``medit:ref`` numbers. Numbers: boundaries ``1..nb`` in sorted order, then subdomains.
     """
     path = Path(path)
     cell_type = _meshio_cell_type(mesh)
@@ -158,9 +161,21 @@ def save_mesh(mesh: skfem.Mesh, path: str | Path, *, file_format: str | None = N
     if cell_type == "hexahedron":
         t = t[:, _HEX_SKFEM_TO_MESHIO]
     blocks = [meshio.CellBlock(cell_type, t.astype(np.int64))]
-    tags = [np.zeros(len(t), dtype=np.int64)]
+    boundary_names = sorted(mesh.boundaries or {})
+    subdomain_names = sorted(mesh.subdomains or {})
+    # numeric tags: boundaries 1..nb, subdomains nb+1..; a cell in several subdomains keeps
+    # the last one (numeric tags are a partition; the named arrays below keep every set)
+    cell_tag = np.zeros(len(t), dtype=np.int64)
     field_data = {}
-    for number, name in enumerate(sorted(mesh.boundaries or {}), start=1):
+    for number, name in enumerate(subdomain_names, start=len(boundary_names) + 1):
+        cell_tag[np.asarray(mesh.subdomains[name])] = number
+        field_data[name] = np.array([number, dim])
+    tags = [cell_tag]
+    named = {f"subdomain:{name}": [np.isin(np.arange(len(t)), mesh.subdomains[name])
+                                   .astype(np.int32)] for name in subdomain_names}
+    named.update({f"boundary:{name}": [np.zeros(len(t), dtype=np.int32)]
+                  for name in boundary_names})
+    for number, name in enumerate(boundary_names, start=1):
         facet_ids = np.asarray(mesh.boundaries[name])
         facet_nodes = mesh.facets[:, facet_ids].T
         if facet_type == "quad":
@@ -168,13 +183,16 @@ def save_mesh(mesh: skfem.Mesh, path: str | Path, *, file_format: str | None = N
         blocks.append(meshio.CellBlock(facet_type, facet_nodes.astype(np.int64)))
         tags.append(np.full(len(facet_ids), number, dtype=np.int64))
         field_data[name] = np.array([number, dim - 1])
+        for key in named:
+            flag = key == f"boundary:{name}"
+            named[key].append(np.full(len(facet_ids), int(flag), dtype=np.int32))
     fmt = file_format or _format_from_suffix(path)
     if fmt.startswith("gmsh"):
         cell_data = {"gmsh:physical": tags, "gmsh:geometrical": tags}
     elif fmt == "medit":
-        cell_data = {"medit:ref": tags}
+        cell_data = {"medit:ref": tags}  # numbers only: Medit has no region names
     else:
-        cell_data = {"cell_tags": tags}
+        cell_data = {"cell_tags": tags, **named}
     points = mesh.p.T
     if points.shape[1] == 2 and fmt in ("vtu", "vtk", "xdmf"):  # VTK-based formats want 3-D
         points = np.column_stack([points, np.zeros(len(points))])
@@ -244,14 +262,21 @@ def _select_cells(raw: meshio.Mesh, source: str):
             source, f"mixes {top_types} cells; expected one cell type per mesh")
     cell_type = top_types[0]
     facet_type = SUPPORTED_CELLS[cell_type][2]
-    tag_key = next((k for k in TAG_KEYS if k in raw.cell_data), None)
+    named_keys = [k for k in raw.cell_data if k.startswith(NAMED_PREFIXES)]
+    # named 0/1 arrays written by save_mesh carry the names: numeric tags would repeat them
+    tag_key = None if named_keys else next((k for k in TAG_KEYS if k in raw.cell_data), None)
     cell_blocks, cell_tags, facet_blocks = [], [], []
     for i, block in enumerate(raw.cells):
         tags = None if tag_key is None else np.asarray(raw.cell_data[tag_key][i]).astype(int)
         sets = _cell_set_membership(raw, i, len(block.data))
+        prefix = "subdomain:" if block.type == cell_type else "boundary:"
+        for key in named_keys:
+            members = np.flatnonzero(np.asarray(raw.cell_data[key][i]).ravel())
+            if key.startswith(prefix) and members.size:
+                sets[key[len(prefix):]] = members
         if block.type == cell_type:
             cell_blocks.append(block.data)
-            cell_tags.append((tags, sets))
+            cell_tags.append((tags, sets, len(block.data)))
         elif block.type == facet_type:
             facet_blocks.append((np.asarray(block.data), tags, sets))
         elif block.type in SUPPORTED_CELLS and SUPPORTED_CELLS[block.type][0] == top_dim - 1:
@@ -467,8 +492,7 @@ def _facet_tags(mesh, facet_blocks, field_data, dim, source) -> dict[str, np.nda
 def _cell_tags(cell_tags, field_data, dim) -> dict[str, np.ndarray]:
     groups: dict[str, list[np.ndarray]] = {}
     offset = 0
-    for tags, sets in cell_tags:
-        n = 0 if tags is None else len(tags)
+    for tags, sets, n in cell_tags:
         named = tags is not None and any(
             _tag_name(int(t), field_data, dim) != str(int(t)) for t in np.unique(tags))
         if tags is not None and (named or len(np.unique(tags)) > 1):

@@ -35,6 +35,9 @@ __all__ = ["SparseMatrix", "diagonal", "matvec", "rmatvec"]
 class SparseMatrix:
     """COO matrix with entries sorted by row (duplicates allowed; they add up).
 
+    The constructor trusts its input (it runs inside jit); build from unsorted data with
+    :meth:`from_coo`, :meth:`from_scipy` or :meth:`from_bcoo`, which sort.
+
     Attributes
     ----------
     rows, cols
@@ -59,6 +62,15 @@ class SparseMatrix:
         return dataclasses.replace(self, values=values)
 
     @classmethod
+    def from_coo(cls, rows, cols, values, shape: tuple[int, int]) -> SparseMatrix:
+        """From COO arrays in any order (sorted by row here; the constructor assumes it)."""
+        rows, cols = np.asarray(rows), np.asarray(cols)
+        order = np.lexsort((cols, rows))
+        return cls(jnp.asarray(rows[order], dtype=jnp.int32),
+                   jnp.asarray(cols[order], dtype=jnp.int32),
+                   jnp.asarray(values, dtype=float)[order], (int(shape[0]), int(shape[1])))
+
+    @classmethod
     def from_scipy(cls, matrix: sp.spmatrix | sp.sparray) -> SparseMatrix:
         csr = sp.csr_matrix(matrix)
         csr.sum_duplicates()
@@ -79,10 +91,7 @@ class SparseMatrix:
     @classmethod
     def from_bcoo(cls, matrix: jsparse.BCOO) -> SparseMatrix:
         indices = np.asarray(matrix.indices)
-        order = np.lexsort((indices[:, 1], indices[:, 0]))
-        return cls(jnp.asarray(indices[order, 0], dtype=jnp.int32),
-                   jnp.asarray(indices[order, 1], dtype=jnp.int32),
-                   jnp.asarray(matrix.data)[order], tuple(int(s) for s in matrix.shape))
+        return cls.from_coo(indices[:, 0], indices[:, 1], matrix.data, matrix.shape)
 
     def todense(self) -> jax.Array:
         return jnp.zeros(self.shape, self.values.dtype).at[self.rows, self.cols].add(self.values)

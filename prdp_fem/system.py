@@ -8,10 +8,12 @@ After Dirichlet condensation, the free-dof system of ``-div(kappa grad u) = f`` 
     \\mathrm{values}(A) = G\\,\\kappa, \\qquad
     b = S f + h - L\\,\\kappa,
 
-with the assembly map ``G`` (nnz x n_kappa), the lifting map ``L`` (free x n_kappa, the Dirichlet
-columns applied to the Dirichlet data), the source map ``S`` (free rows of the mass matrix) and
-the Neumann load ``h``. All are built once by :mod:`prdp_fem.discretization`; here they are
-pytree leaves, so a :class:`LinearSystem` is passed to jitted functions as an argument.
+with the assembly map ``G`` (nnz x n_kappa), the lifting ``L kappa = A_ID(kappa) g`` (the
+Dirichlet columns, assembled by their own map ``G_D``, applied to the Dirichlet data ``g``,
+which is a pytree leaf: ``b`` is differentiable in it too), the source map ``S`` (free rows
+of the mass matrix) and the Neumann load ``h``. All are built once by
+:mod:`prdp_fem.discretization`; here they are pytree leaves, so a :class:`LinearSystem` is
+passed to jitted functions as an argument.
 """
 
 from __future__ import annotations
@@ -28,20 +30,24 @@ __all__ = ["LinearSystem"]
 
 
 @partial(jax.tree_util.register_dataclass,
-         data_fields=["assembly", "rows", "cols", "lifting", "source", "neumann", "free_dofs",
-                      "dirichlet_dofs", "dirichlet_values"],
+         data_fields=["assembly", "rows", "cols", "lifting", "lifting_rows", "lifting_cols",
+                      "source", "neumann", "free_dofs", "dirichlet_dofs", "dirichlet_values"],
          meta_fields=["n_dofs"])
 @dataclasses.dataclass(frozen=True)
 class LinearSystem:
     """Maps ``kappa -> A(kappa)`` and ``(kappa, f) -> b`` on the free dofs.
 
-    ``rows``/``cols`` are the (row-sorted) sparsity pattern of ``A``; ``assembly`` is ``G``.
+    ``rows``/``cols`` are the (row-sorted) sparsity pattern of ``A``; ``assembly`` is ``G``;
+    ``lifting`` is ``G_D`` on the pattern ``(lifting_rows, lifting_cols)`` of the Dirichlet
+    columns (``lifting_cols`` index ``dirichlet_values``).
     """
 
     assembly: SparseMatrix
     rows: jax.Array
     cols: jax.Array
     lifting: SparseMatrix
+    lifting_rows: jax.Array
+    lifting_cols: jax.Array
     source: SparseMatrix
     neumann: jax.Array
     free_dofs: jax.Array
@@ -63,8 +69,15 @@ class LinearSystem:
         return SparseMatrix(self.rows, self.cols, values, (self.n_free, self.n_free))
 
     def rhs(self, kappa: jax.Array, f: jax.Array | None = None) -> jax.Array:
-        """``b = S f + h - L kappa`` (``f`` nodal in the solution space; ``None`` means 0)."""
-        b = self.neumann - matvec(self.lifting, kappa)
+        """``b = S f + h - A_ID(kappa) g`` (``f`` nodal in the solution space; ``None``: 0).
+
+        Differentiable in ``kappa``, ``f`` and the Dirichlet data ``g = dirichlet_values``.
+        """
+        coupling = matvec(self.lifting, kappa)  # values of A_ID(kappa)
+        lifted = jax.ops.segment_sum(coupling * self.dirichlet_values[self.lifting_cols],
+                                     self.lifting_rows, num_segments=self.n_free,
+                                     indices_are_sorted=True)
+        b = self.neumann - lifted
         if f is not None:
             b = b + matvec(self.source, f)
         return b

@@ -331,3 +331,66 @@ def test_vmap_over_sources_matches_loop(small_problem, mode):
     for i, src in enumerate(sources):
         single = solve(op, system.rhs(kappa, src), solver).x
         np.testing.assert_allclose(batched[i], single, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# scale, options and the Taylor utility itself
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_tiny_rhs_scales_exactly_with_finite_gradients(small_problem, mode):
+    """CG is scale-invariant: b * 1e-150 gives x * 1e-150, and gradients stay finite."""
+    disc, kappa, f = small_problem
+    system = disc.system
+    solver = TruncatedCG(20, gradient=mode)  # below convergence: a smooth map of b
+    b = system.rhs(jnp.asarray(kappa), jnp.asarray(f))
+    op = system.operator(jnp.asarray(kappa))
+    x = solve(op, b, solver).x
+    tiny = solve(op, 1e-150 * b, solver).x
+    np.testing.assert_allclose(tiny * 1e150, x, rtol=1e-10)
+
+    def loss(values):
+        return 1e150 * jnp.sum(solve(op.with_values(values), 1e-150 * b, solver).x)
+
+    g = jax.grad(loss)(op.values)
+    reference = jax.grad(lambda v: jnp.sum(solve(op.with_values(v), b, solver).x))(op.values)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_allclose(g, reference, rtol=1e-8, atol=1e-12 * abs(reference).max())
+
+
+def test_preconditioner_and_counts_are_validated():
+    with pytest.raises(pf.SolverConfigError, match="a plain function is not a pytree"):
+        TruncatedCG(5, preconditioner=lambda r: r)
+    with pytest.raises(pf.SolverConfigError, match=r"iterations=.*-3.*expected an integer >= 0"):
+        TruncatedCG(np.int64(-3))
+    with pytest.raises(pf.SolverConfigError, match=r"max_iterations=.*-1"):
+        ConvergedCG(max_iterations=np.int64(-1))
+    assert TruncatedCG(np.int64(4)).iterations == 4
+    assert TruncatedCG(np.array(4), gradient="implicit").iterations == 4
+
+
+def test_custom_preconditioner_pytree_in_both_modes(small_problem):
+    disc, kappa, f = small_problem
+    op = disc.system.operator(jnp.asarray(kappa))
+    custom = pf.JacobiPreconditioner(1.0 / pf.diagonal(op))
+    b = disc.system.rhs(jnp.asarray(kappa), jnp.asarray(f))
+    for mode in ("unrolled", "implicit"):
+        a = solve(op, b, TruncatedCG(9, preconditioner=custom, gradient=mode)).x
+        ref = solve(op, b, TruncatedCG(9, preconditioner="jacobi", gradient=mode)).x
+        np.testing.assert_allclose(a, ref, rtol=1e-12)
+
+
+def test_taylor_test_accepts_exact_gradient_of_a_linear_map(small_problem):
+    disc, kappa, _ = small_problem
+    system = disc.system
+    op = system.operator(jnp.asarray(kappa))
+
+    def linear_in_f(f):  # x = A^{-1} S f is linear in f (no Dirichlet lifting in the loss)
+        return jnp.sum(solve(op, system.rhs(kappa, f) - system.rhs(kappa),
+                             TruncatedCG(400, gradient="implicit")).x)
+
+    result = pf.taylor_test(jax.jit(linear_in_f), jnp.ones(disc.n_dofs))
+    assert result.passed()
+    assert not pf.taylor_test(jax.jit(linear_in_f), jnp.ones(disc.n_dofs),
+                              gradient=jnp.zeros(disc.n_dofs)).passed()

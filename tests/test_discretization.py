@@ -137,3 +137,29 @@ def test_rates_on_shipped_tetrahedra_p1(manufactured_3d):
                                          manufactured_3d)
     assert l2_rate == pytest.approx(2.0, abs=0.15)
     assert h1_rate == pytest.approx(1.0, abs=0.15)
+
+
+def test_rhs_follows_the_dirichlet_data_leaf():
+    """Changing g in the LinearSystem pytree equals re-discretising with that data."""
+    import dataclasses
+
+    import jax
+    import jax.numpy as jnp
+
+    mesh = pf.unit_square(6)
+    once = pf.discretize(mesh, element="P2", kappa_space="P1", dirichlet=lambda x: x[0] + x[1])
+    twice = pf.discretize(mesh, element="P2", kappa_space="P1",
+                          dirichlet=lambda x: 2 * (x[0] + x[1]))
+    kappa = jnp.asarray(once.interpolate_kappa(lambda x: 1 + x[1]))
+    system = dataclasses.replace(once.system,
+                                 dirichlet_values=2 * once.system.dirichlet_values)
+    np.testing.assert_allclose(system.rhs(kappa), twice.system.rhs(kappa), atol=1e-13)
+    np.testing.assert_allclose(twice.rhs(np.asarray(kappa)), twice.system.rhs(kappa),
+                               atol=1e-13)
+    # b is linear in g: the derivative along g is b(g) - b(0)
+    def rhs_of(g):
+        return dataclasses.replace(once.system, dirichlet_values=g).rhs(kappa)
+
+    g = once.system.dirichlet_values
+    _, tangent = jax.jvp(rhs_of, (g,), (g,))
+    np.testing.assert_allclose(tangent, rhs_of(g) - rhs_of(0 * g), atol=1e-13)

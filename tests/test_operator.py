@@ -69,3 +69,12 @@ def test_vmap_over_vectors(random_spd):
     X = np.random.default_rng(4).normal(size=(5, 40))
     Y = jax.vmap(pf.matvec, in_axes=(None, 0))(A, X)
     np.testing.assert_allclose(Y, (random_spd @ X.T).T, rtol=1e-13)
+
+
+def test_from_coo_sorts_and_sums(random_spd):
+    coo = random_spd.tocoo()
+    order = np.random.default_rng(5).permutation(coo.nnz)
+    A = pf.SparseMatrix.from_coo(coo.row[order], coo.col[order], coo.data[order], coo.shape)
+    assert np.all(np.diff(np.asarray(A.rows)) >= 0)
+    x = np.linspace(-1, 1, 40)
+    np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
