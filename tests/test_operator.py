@@ -5,6 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import prdp_fem as pf
 
@@ -78,3 +80,18 @@ def test_from_coo_sorts_and_sums(random_spd):
     assert np.all(np.diff(np.asarray(A.rows)) >= 0)
     x = np.linspace(-1, 1, 40)
     np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(1, 12), nnz=st.integers(0, 60), seed=st.integers(0, 2**31 - 1))
+def test_matvec_matches_scipy_for_any_coo(n, nnz, seed):
+    """Duplicates, empty rows, any order: matvec, rmatvec and diagonal equal SciPy's."""
+    rng = np.random.default_rng(seed)
+    rows, cols = rng.integers(0, n, nnz), rng.integers(0, n, nnz)
+    values = rng.normal(size=nnz)
+    reference = sp.csr_matrix((values, (rows, cols)), shape=(n, n))
+    A = pf.SparseMatrix.from_coo(rows, cols, values, (n, n))
+    x = rng.normal(size=n)
+    np.testing.assert_allclose(pf.matvec(A, x), reference @ x, atol=1e-12)
+    np.testing.assert_allclose(pf.rmatvec(A, x), reference.T @ x, atol=1e-12)
+    np.testing.assert_allclose(pf.diagonal(A), reference.diagonal(), atol=1e-12)
