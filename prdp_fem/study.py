@@ -20,6 +20,7 @@ import numpy as np
 
 from .cg import TruncatedCG, solve
 from .discretization import Discretization, discretize
+from .errors import PrdpFemError
 from .generators import l_shape, rectangle_with_hole, unit_cube, unit_square
 from .mesh import load_mesh
 from .reference import amg_solve
@@ -67,6 +68,7 @@ def _scene(mesh, element: str, dirichlet) -> Scene:
 SCENES: dict[str, Callable[[int, str], Scene]] = {
     "square": lambda n, el: _scene(unit_square(n), el, 0.0),
     "hole": lambda n, el: _scene(rectangle_with_hole(n), el, {"left": 0.0, "hole": 1.0}),
+X
     "lshape": lambda n, el: _scene(l_shape(max(int(np.log2(max(n, 2))) - 1, 0)), el, 0.0),
     "cube": lambda n, el: _scene(unit_cube(n), el, 0.0),
 }
@@ -78,7 +80,6 @@ def build_scene(name: str | None = None, *, n: int = 64, element: str = "P1",
     if mesh_path is not None:
         return _scene(load_mesh(mesh_path), element, 0.0)
     if name not in SCENES:
-        from .errors import PrdpFemError
         raise PrdpFemError(f"scene {name!r}: expected one of {sorted(SCENES)}")
     return SCENES[name](n, element)
 
