@@ -68,7 +68,7 @@ def _scene(mesh, element: str, dirichlet) -> Scene:
 SCENES: dict[str, Callable[[int, str], Scene]] = {
     "square": lambda n, el: _scene(unit_square(n), el, 0.0),
     "hole": lambda n, el: _scene(rectangle_with_hole(n), el, {"left": 0.0, "hole": 1.0}),
-X
+    # l_shape(r) has 2^(r+1) cells across its side of length 2: r = log2(n) - 1 gives n
     "lshape": lambda n, el: _scene(l_shape(max(int(np.log2(max(n, 2))) - 1, 0)), el, 0.0),
     "cube": lambda n, el: _scene(unit_cube(n), el, 0.0),
 }
