@@ -131,12 +131,13 @@ def test_rates_on_shipped_meshes(filename, element, levels, manufactured_2d, man
 
 
 @pytest.mark.slow
-def test_rates_on_shipped_tetrahedra_p1(manufactured_3d):
-    base = pf.load_mesh(MESH_DIR / "cube_tet.msh")
-    l2_rate, h1_rate = convergence_rates([base.refined(r) for r in range(1, 4)], "P1",
+def test_rates_on_fine_tetrahedra_p1(manufactured_3d):
+    """P1 on 8^3 .. 32^3 cubes (200k cells at the finest). Not on refined shipped tetrahedra:
+    scikit-fem's uniform refinement halves their minimum shape quality per level."""
+    l2_rate, h1_rate = convergence_rates([pf.unit_cube(n) for n in (8, 16, 32)], "P1",
                                          manufactured_3d)
-    assert l2_rate == pytest.approx(2.0, abs=0.15)
-    assert h1_rate == pytest.approx(1.0, abs=0.15)
+    assert l2_rate == pytest.approx(2.0, abs=0.1)
+    assert h1_rate == pytest.approx(1.0, abs=0.05)
 
 
 def test_rhs_follows_the_dirichlet_data_leaf():
