@@ -117,6 +117,11 @@ class Discretization:
         return _mass.assemble(self.basis).tocsr()
 
     @cached_property
+    def source_matrix(self) -> sp.csr_matrix:
+        """``S``: free rows of the mass matrix, so that ``b_f = S f`` for nodal ``f``."""
+        return self.mass_matrix[self.free_dofs].tocsr()
+
+    @cached_property
     def laplace_matrix(self) -> sp.csr_matrix:
         """Stiffness matrix with ``kappa = 1`` on all dofs (H1-seminorm Gram matrix)."""
         return _laplace.assemble(self.basis).tocsr()
@@ -124,7 +129,6 @@ class Discretization:
     @cached_property
     def system(self) -> LinearSystem:
         """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once."""
-        source = self.mass_matrix[self.free_dofs]
         return LinearSystem(
             assembly=SparseMatrix.from_scipy(self.assembly),
             rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),
@@ -132,7 +136,7 @@ class Discretization:
             lifting=SparseMatrix.from_scipy(self.lifting_assembly),
             lifting_rows=jnp.asarray(self.lifting_pattern[0], dtype=jnp.int32),
             lifting_cols=jnp.asarray(self.lifting_pattern[1], dtype=jnp.int32),
-            source=SparseMatrix.from_scipy(source),
+            source=SparseMatrix.from_scipy(self.source_matrix),
             neumann=jnp.asarray(self.neumann),
             free_dofs=jnp.asarray(self.free_dofs, dtype=jnp.int32),
             dirichlet_dofs=jnp.asarray(self.dirichlet_dofs, dtype=jnp.int32),
@@ -149,7 +153,7 @@ class Discretization:
         """Condensed right-hand side ``S f + h - L kappa`` (NumPy reference path)."""
         b = self.neumann - self.lifting @ np.asarray(kappa, dtype=float)
         if f is not None:
-            b = b + self.mass_matrix[self.free_dofs] @ np.asarray(f, dtype=float)
+            b = b + self.source_matrix @ np.asarray(f, dtype=float)
         return b
 
     def load_vector(self, f: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

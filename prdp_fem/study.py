@@ -94,7 +94,7 @@ def forward_convergence(scene: Scene, iterations: Sequence[int], *,
     b_ref = disc.rhs(scene.kappa, scene.source)
     x_ref = amg_solve(A_ref, b_ref, rtol=1e-12).x
     energy_ref = np.sqrt(x_ref @ (A_ref @ x_ref))
-    mass_free = disc.mass_matrix[disc.free_dofs][:, disc.free_dofs]
+    mass_free = disc.source_matrix[:, disc.free_dofs]
     l2_ref = np.sqrt(x_ref @ (mass_free @ x_ref))
     system = disc.system
     kappa = jnp.asarray(scene.kappa)

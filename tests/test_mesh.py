@@ -146,27 +146,17 @@ SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 TWO_TRIANGLES = [("triangle", np.array([[0, 1, 2], [0, 2, 3]]))]
 
 
-def test_missing_file(tmp_path):
-    with pytest.raises(pf.MeshFileError, match=r"nope\.msh: file does not exist"):
-        pf.load_mesh(tmp_path / "nope.msh")
-
-
-def test_empty_file(tmp_path):
-    (tmp_path / "empty.msh").write_text("")
-    with pytest.raises(pf.MeshFileError, match=r"empty\.msh: file is empty"):
-        pf.load_mesh(tmp_path / "empty.msh")
-
-
-def test_unreadable_file(tmp_path):
-    (tmp_path / "junk.msh").write_text("this is not a mesh\n")
-    with pytest.raises(pf.MeshFileError, match=r"junk\.msh: could not be read as a mesh"):
-        pf.load_mesh(tmp_path / "junk.msh")
-
-
-def test_unknown_format(tmp_path):
-    (tmp_path / "mesh.unknown").write_text("1 2 3\n")
-    with pytest.raises(pf.MeshFileError, match=r"mesh\.unknown: could not be read"):
-        pf.load_mesh(tmp_path / "mesh.unknown")
+@pytest.mark.parametrize(("name", "content", "message"), [
+    ("nope.msh", None, r"nope\.msh: file does not exist"),
+    ("empty.msh", "", r"empty\.msh: file is empty"),
+    ("junk.msh", "this is not a mesh\n", r"junk\.msh: could not be read as a mesh"),
+    ("mesh.unknown", "1 2 3\n", r"mesh\.unknown: could not be read"),
+])
+def test_bad_files(tmp_path, name, content, message):
+    if content is not None:
+        (tmp_path / name).write_text(content)
+    with pytest.raises(pf.MeshFileError, match=message):
+        pf.load_mesh(tmp_path / name)
 
 
 def test_directory_is_not_a_mesh(tmp_path):
