@@ -50,12 +50,13 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import io_callback
 
 from .errors import SolverConfigError
 from .operator import SparseMatrix, matvec
 from .precond import PRECONDITIONERS, make_preconditioner
 
-__all__ = ["ConvergedCG", "Solution", "TruncatedCG", "solve"]
+__all__ = ["ConvergedCG", "IterationCounter", "Solution", "TruncatedCG", "solve"]
 
 GRADIENT_MODES = ("unrolled", "implicit")
 
@@ -83,6 +84,43 @@ class Solution(NamedTuple):
     residual_norm: jax.Array
     initial_residual_norm: jax.Array
     residual_history: jax.Array
+
+
+class IterationCounter:
+    """Host-side tally of the CG iterations that actually ran, primal and adjoint.
+
+    Pass one to :func:`solve` (``counter=``): every forward solve adds its iterations to
+    ``primal`` and every backward (adjoint) solve -- the truncated adjoint PCG in implicit mode,
+    the reversed scan in unrolled mode -- adds its own to ``adjoint``, through
+    ``jax.experimental.io_callback``, so the tally is exact even inside jitted line searches that
+    evaluate the objective an unknown number of times. One counter belongs to one run (it is
+    hashed by identity and is part of the compiled function); read it after the results are
+    ready (``jax.block_until_ready``). Not for use under ``vmap``.
+    """
+
+    def __init__(self):
+        self.primal = 0
+        self.adjoint = 0
+        self.primal_solves = 0
+        self.adjoint_solves = 0
+
+    def _add_primal(self, iterations) -> None:
+        self.primal += int(iterations)
+        self.primal_solves += 1
+
+    def _add_adjoint(self, iterations) -> None:
+        self.adjoint += int(iterations)
+        self.adjoint_solves += 1
+
+    def snapshot(self) -> tuple[int, int]:
+        """``(primal, adjoint)`` iterations so far."""
+        return self.primal, self.adjoint
+
+
+def _tap(counter: IterationCounter | None, kind: str, iterations: jax.Array) -> None:
+    if counter is not None:
+        target = counter._add_primal if kind == "primal" else counter._add_adjoint
+        io_callback(target, None, iterations, ordered=False)
 
 
 def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
@@ -160,6 +198,7 @@ class ConvergedCG:
     """PCG until ``||r|| <= max(rtol ||b||, atol)`` or ``max_iterations``; implicit gradients.
 
     The adjoint solve uses the same tolerances. ``max_iterations=None`` means ``10 n``.
+    ``rtol`` may be a traced scalar (a tolerance schedule inside a jitted step).
     """
 
     rtol: float = 1e-12
@@ -169,7 +208,9 @@ class ConvergedCG:
     history_size: int = 0
 
     def __post_init__(self):
-        if not (np.isfinite(self.rtol) and self.rtol >= 0 and np.isfinite(self.atol)
+        if isinstance(self.rtol, jax.core.Tracer):
+            pass  # checked where it was chosen (e.g. the refinement controller)
+        elif not (np.isfinite(self.rtol) and self.rtol >= 0 and np.isfinite(self.atol)
                 and self.atol >= 0) or (self.rtol == 0 and self.atol == 0):
             raise SolverConfigError(
                 f"rtol={self.rtol!r}, atol={self.atol!r}: expected finite, non-negative "
@@ -181,8 +222,10 @@ class ConvergedCG:
 
 
 def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
-          x0: jax.Array | None = None) -> Solution:
+          x0: jax.Array | None = None, *, counter: IterationCounter | None = None) -> Solution:
     """Solve ``A x = b`` (``A`` symmetric positive definite) with ``solver``.
+
+    ``counter`` (an :class:`IterationCounter`) tallies the iterations run forward and backward.
 
     >>> import numpy as np, scipy.sparse as sp
     >>> from prdp_fem.operator import SparseMatrix
@@ -200,18 +243,26 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     if isinstance(solver, TruncatedCG):
         if solver.gradient == "unrolled":
             precond = make_preconditioner(solver.preconditioner, matrix)
-            return _unrolled(matrix, precond, b, x0, solver.iterations, solver.checkpoint)
-        k_adj = solver.iterations if solver.adjoint_iterations is None \
-            else solver.adjoint_iterations
-        return _implicit_solve(matrix, b, x0, solver.iterations, k_adj,
-                               solver.preconditioner, 0.0, 0.0, solver.history_size)
-    if isinstance(solver, ConvergedCG):
+            sol = _unrolled(matrix, precond, b, x0, solver.iterations, solver.checkpoint)
+            if counter is not None:
+                sol = sol._replace(x=_adjoint_tap(sol.x, sol.iterations, counter))
+        else:
+            k_adj = solver.iterations if solver.adjoint_iterations is None \
+                else solver.adjoint_iterations
+            sol = _implicit_solve(matrix, b, x0, solver.iterations, k_adj,
+                                  solver.preconditioner, 0.0, 0.0, solver.history_size, counter)
+    elif isinstance(solver, ConvergedCG):
         max_iterations = 10 * matrix.shape[0] if solver.max_iterations is None \
             else solver.max_iterations
-        return _implicit_solve(matrix, b, x0, max_iterations, max_iterations,
-                               solver.preconditioner, solver.rtol, solver.atol,
-                               solver.history_size)
-    raise SolverConfigError(f"solver={solver!r}: expected TruncatedCG or ConvergedCG")
+        sol = _implicit_solve(matrix, b, x0, max_iterations, max_iterations,
+                              solver.preconditioner, solver.rtol, solver.atol,
+                              solver.history_size, counter)
+    else:
+        raise SolverConfigError(f"solver={solver!r}: expected TruncatedCG or ConvergedCG")
+    _tap(counter, "primal", sol.iterations)
+    return sol
+
+
 
 
 # --------------------------------------------------------------------------------------
@@ -298,6 +349,24 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solu
                     jax.lax.stop_gradient(r0_norm), history)
 
 
+@partial(jax.custom_vjp, nondiff_argnums=(2,))
+def _adjoint_tap(x, iterations, counter):
+    """Identity on ``x`` whose backward pass counts the reversed scan's iterations."""
+    return x
+
+
+def _adjoint_tap_fwd(x, iterations, counter):
+    return x, iterations
+
+
+def _adjoint_tap_bwd(counter, iterations, x_bar):
+    _tap(counter, "adjoint", iterations)
+    return x_bar, None
+
+
+_adjoint_tap.defvjp(_adjoint_tap_fwd, _adjoint_tap_bwd)
+
+
 # --------------------------------------------------------------------------------------
 # implicit: while loop forward, truncated adjoint solve backward
 # --------------------------------------------------------------------------------------
@@ -328,37 +397,39 @@ def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_siz
 
 
 def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond_spec, rtol, atol,
-                    history_size) -> Solution:
+                    history_size, counter=None) -> Solution:
     precond = make_preconditioner(precond_spec, matrix)
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
                          jnp.asarray(adjoint_iterations, jnp.int32), matrix.rows, matrix.cols,
-                         precond, tolerances, matrix.shape, history_size)
+                         precond, tolerances, matrix.shape, history_size, counter)
     diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
     return Solution(sol.x, *diagnostics)
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(9, 10))
+@partial(jax.custom_vjp, nondiff_argnums=(9, 10, 11))
 def _implicit_core(values, b, x0, iterations, adjoint_iterations, rows, cols, precond,
-                   tolerances, shape, history_size):
+                   tolerances, shape, history_size, counter):
     matrix = SparseMatrix(rows, cols, values, shape)
     return _while_solve(matrix, precond, b, x0, iterations, tolerances, history_size)
 
 
 def _implicit_fwd(values, b, x0, iterations, adjoint_iterations, rows, cols, precond,
-                  tolerances, shape, history_size):
+                  tolerances, shape, history_size, counter):
     matrix = SparseMatrix(rows, cols, values, shape)
     sol = _while_solve(matrix, precond, b, x0, iterations, tolerances, history_size)
     return sol, (values, sol.x, adjoint_iterations, rows, cols, precond, tolerances)
 
 
-def _implicit_bwd(shape, history_size, residuals, cotangent: Solution):
+def _implicit_bwd(shape, history_size, counter, residuals, cotangent: Solution):
     values, x, adjoint_iterations, rows, cols, precond, tolerances = residuals
     matrix = SparseMatrix(rows, cols, values, shape)
     # A is symmetric: the adjoint system is A lambda = x_bar, solved the same (truncated) way
-    adjoint = _while_solve(matrix, precond, cotangent.x, jnp.zeros_like(cotangent.x),
-                           adjoint_iterations, tolerances, 0).x
+    adjoint_solution = _while_solve(matrix, precond, cotangent.x, jnp.zeros_like(cotangent.x),
+                                    adjoint_iterations, tolerances, 0)
+    _tap(counter, "adjoint", adjoint_solution.iterations)
+    adjoint = adjoint_solution.x
     values_bar = -adjoint[rows] * x[cols]
     zeros = partial(jax.tree_util.tree_map, jnp.zeros_like)
     return (values_bar, adjoint, jnp.zeros_like(x), None, None, None, None, zeros(precond),

@@ -26,6 +26,7 @@ from functools import cached_property
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
 
@@ -164,6 +165,15 @@ class Discretization:
     def interpolate(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Nodal values of ``fn`` at the dofs of the solution space (all dofs)."""
         return np.asarray(fn(self.basis.doflocs), dtype=float)
+
+    def project(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """L2 projection of ``fn`` onto the solution space, all dofs (``M p = int fn v``).
+
+        A misfit ``||u - p||_M^2`` differs from ``int (u - fn)^2`` by a constant only, so both
+        have the same minimiser; ``fn`` is evaluated at quadrature points.
+        """
+        load = skfem.LinearForm(lambda v, w: fn(w.x) * v).assemble(self.basis)
+        return spla.spsolve(self.mass_matrix.tocsc(), load)
 
     def interpolate_kappa(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """``fn`` as a coefficient vector: cell centroids (P0) or vertices (P1)."""

@@ -1,0 +1,92 @@
+"""Side-by-side runs of one inverse problem and the PRDP saving against the converged run.
+
+The saving follows ``BENCHMARKS.md``: a run *reaches* the converged run's final parameter error
+``e*`` at the first step from which its error stays within ``band`` (1 %) of ``e*`` up to its
+last step -- a pass-through on an oscillating error curve does not count, and a run that ends
+outside the band never reaches it. Its cost there (run time without compilation, cumulative
+primal + adjoint CG iterations) is compared with the converged run's *total*, the same number of
+optimiser steps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import NamedTuple
+
+from .history import History, StepRecord
+from .inverse import InverseProblem, invert
+
+__all__ = ["ComparisonRow", "compare", "format_table", "settled"]
+
+
+class ComparisonRow(NamedTuple):
+    method: str
+    final_error: float
+    final_K: int           # -1 for a tolerance-mode (converged) run
+    time: float            # whole run, compilation excluded
+    compile_time: float
+    iterations: int        # cumulative primal + adjoint CG iterations, whole run
+    reached_step: int | None
+    time_to_reach: float   # NaN when the band is never reached
+    iterations_to_reach: float
+    time_saving: float     # 1 - time_to_reach / converged total time
+    iteration_saving: float
+
+
+def settled(history: History, target: float, band: float = 0.01) -> StepRecord | None:
+    """First record from which ``|error - target| <= band * target`` holds to the end."""
+    inside = [abs(r.parameter_error - target) <= band * target for r in history]
+    if not inside or not inside[-1]:
+        return None
+    first = len(inside) - 1
+    while first > 0 and inside[first - 1]:
+        first -= 1
+    return history[first]
+
+
+def compare(problem: InverseProblem, runs: Mapping[str, dict], *, steps: int,
+            reference: str = "converged", band: float = 0.01) -> list[ComparisonRow]:
+    """Run ``invert(problem, steps=steps, **runs[name])`` for every name; rows in that order.
+
+    ``runs[reference]`` is the converged baseline whose final error and total cost the savings
+    are measured against.
+    """
+    if reference not in runs:
+        raise KeyError(f"reference run {reference!r} missing from {sorted(runs)}")
+    histories = {name: invert(problem, steps=steps, **kwargs).history
+                 for name, kwargs in runs.items()}
+    base = histories[reference][-1]
+    rows = []
+    for name, history in histories.items():
+        last = history[-1]
+        hit = settled(history, base.parameter_error, band)
+        t_hit = hit.time if hit else math.nan
+        i_hit = hit.primal_iterations + hit.adjoint_iterations_total if hit else math.nan
+        rows.append(ComparisonRow(
+            method=name, final_error=last.parameter_error,
+            final_K=-1 if last.rtol > 0 else last.iterations,
+            time=last.time, compile_time=last.compile_time,
+            iterations=last.primal_iterations + last.adjoint_iterations_total,
+            reached_step=hit.step if hit else None, time_to_reach=t_hit,
+            iterations_to_reach=i_hit, time_saving=1.0 - t_hit / base.time,
+            iteration_saving=1.0 - i_hit / (base.primal_iterations
+                                            + base.adjoint_iterations_total)))
+    return rows
+
+
+def format_table(rows: list[ComparisonRow]) -> str:
+    """A fixed-width text table of :func:`compare` rows."""
+    head = (f"{'method':<12}{'final err':>11}{'K end':>7}{'time s':>9}{'compile s':>10}"
+            f"{'CG its':>9}{'reach@':>8}{'t reach':>9}{'saving t':>10}{'saving its':>11}")
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        reach = "-" if r.reached_step is None else str(r.reached_step)
+        def pct(x):
+            return "-" if math.isnan(x) else f"{100 * x:.0f} %"
+        t_reach = "-" if math.isnan(r.time_to_reach) else f"{r.time_to_reach:.2f}"
+        K = "tol" if r.final_K < 0 else str(r.final_K)
+        lines.append(f"{r.method:<12}{r.final_error:>11.4e}{K:>7}{r.time:>9.2f}"
+                     f"{r.compile_time:>10.2f}{r.iterations:>9}{reach:>8}{t_reach:>9}"
+                     f"{pct(r.time_saving):>10}{pct(r.iteration_saving):>11}")
+    return "\n".join(lines)

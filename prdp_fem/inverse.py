@@ -1,0 +1,385 @@
+r"""Inverse problems through truncated solves, and the optimisation loop that refines them.
+
+.. math::
+
+    \min_z\; J(z) = \tfrac12 \|B u(z) - d\|_W^2 + \alpha R(\mathrm{field}(z)),
+    \qquad A(\kappa) u = b(\kappa, f),
+
+with ``(kappa, f)`` from :class:`~prdp_fem.parameters.Parameterization` (a source or a
+log-coefficient), ``u`` from truncated PCG (:mod:`prdp_fem.cg`), an
+:class:`~prdp_fem.observations.Observation` and a :class:`~prdp_fem.regularizers.Regularizer`.
+
+:func:`invert` runs any optax ``GradientTransformation`` (L-BFGS with its zoom line search by
+default) while a refinement controller (:mod:`prdp_fem.prdp`) picks the CG iterations of every
+step, and records a :class:`~prdp_fem.history.History`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optax.tree_utils as otu
+
+from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, solve
+from .discretization import Discretization
+from .errors import PrdpFemError, SolverConfigError
+from .history import History, StepRecord
+from .observations import Observation
+from .operator import SparseMatrix, matvec
+from .parameters import Parameterization, parameter_basis, parameter_mass
+from .prdp import Refinement, RefinementState, prdp
+from .reference import amg_solve
+from .regularizers import Regularizer, regularizer
+from .system import LinearSystem
+
+__all__ = [
+    "InverseProblem",
+    "Inversion",
+    "InversionError",
+    "Validation",
+    "inverse_problem",
+    "invert",
+]
+
+
+class InversionError(PrdpFemError):
+    """An optimisation produced non-finite parameters (names the step and the solver)."""
+
+
+class LossParts(NamedTuple):
+    misfit: jax.Array
+    regularization: jax.Array
+    solution: Solution
+
+
+@partial(jax.tree_util.register_dataclass,
+         data_fields=["system", "observation", "regularizer", "alpha", "known", "truth",
+                      "parameter_mass"],
+         meta_fields=["parameterization"])
+@dataclasses.dataclass(frozen=True)
+class InverseProblem:
+    """Everything the objective needs, as a pytree (pass it to jitted code as an argument).
+
+    ``known`` is the other coefficient: ``kappa`` when the source is unknown, ``f`` (nodal in
+    the solution space) when log-kappa is. ``truth`` is the parameter *field* to measure errors
+    against (``None`` when unknown). ``alpha`` is a leaf: sweeping it does not recompile.
+    """
+
+    system: LinearSystem
+    parameterization: Parameterization
+    observation: Observation
+    regularizer: Regularizer
+    alpha: jax.Array
+    known: jax.Array
+    truth: jax.Array | None
+    parameter_mass: SparseMatrix
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self.regularizer.reference.shape[0])
+
+    def with_alpha(self, alpha: float) -> InverseProblem:
+        return dataclasses.replace(self, alpha=jnp.asarray(float(alpha)))
+
+    def field(self, z: jax.Array) -> jax.Array:
+        return self.parameterization.field(z)
+
+    def state(self, z: jax.Array, solver, x0: jax.Array | None = None,
+              counter: IterationCounter | None = None) -> Solution:
+        """The (truncated) solve at ``z``; ``Solution.x`` on the free dofs."""
+        kappa, f = self.parameterization.coefficients(z, self.known)
+        A = self.system.operator(kappa)
+        return solve(A, self.system.rhs(kappa, f), solver, x0, counter=counter)
+
+    def loss(self, z: jax.Array, solver, x0: jax.Array | None = None,
+             counter: IterationCounter | None = None) -> tuple[jax.Array, LossParts]:
+        """``J(z)`` and its parts (misfit, alpha R, the solve's diagnostics)."""
+        sol = self.state(z, solver, x0, counter)
+        misfit = self.observation.misfit(self.system.expand(sol.x))
+        reg = self.alpha * self.regularizer(self.field(z))
+        return misfit + reg, LossParts(misfit, reg, sol)
+
+    def parameter_error(self, z: jax.Array) -> jax.Array:
+        """Relative L2 error of ``field(z)`` against ``truth`` (NaN when no truth)."""
+        if self.truth is None:
+            return jnp.asarray(jnp.nan)
+        e = self.field(z) - self.truth
+        norm2 = jnp.vdot(self.truth, matvec(self.parameter_mass, self.truth))
+        return jnp.sqrt(jnp.vdot(e, matvec(self.parameter_mass, e)) / norm2)
+
+
+def inverse_problem(disc: Discretization, observation: Observation, *, unknown: str,
+                    alpha: float, regularization: str | Regularizer = "h1",
+                    known: np.ndarray | float | None = None, truth: np.ndarray | None = None,
+                    bounds: tuple[float, float] | None = None) -> InverseProblem:
+    """Assemble an :class:`InverseProblem` on ``disc`` (checks sizes at the edge).
+
+    ``unknown="source"``: ``f`` nodal in the solution space, ``known`` is ``kappa`` in the
+    kappa space (default 1). ``unknown="log_kappa"``: ``m = log kappa`` in the kappa space,
+    ``known`` is the nodal source ``f`` (default 0).
+    """
+    parameterization = Parameterization(unknown, bounds)
+    n_param = parameter_basis(disc, unknown).N
+    if not (np.isfinite(alpha) and alpha >= 0):
+        raise PrdpFemError(f"alpha={alpha!r}: expected a finite number >= 0")
+    if observation.operator.shape[1] != disc.n_dofs:
+        raise PrdpFemError(f"observation: operator acts on {observation.operator.shape[1]} "
+                           f"dofs, expected {disc.n_dofs} (built on another discretisation?)")
+    n_known = disc.n_kappa if unknown == "source" else disc.n_dofs
+    default = 1.0 if unknown == "source" else 0.0
+    known = np.broadcast_to(np.asarray(default if known is None else known, float),
+                            (n_known,)).copy()
+    if not np.isfinite(known).all() or (unknown == "source" and (known <= 0).any()):
+        raise PrdpFemError(f"known: expected {n_known} finite values (kappa > 0)")
+    if truth is not None:
+        truth = np.asarray(truth, dtype=float)
+        if truth.shape != (n_param,) or not np.isfinite(truth).all():
+            raise PrdpFemError(f"truth: expected {n_param} finite values of the {unknown} "
+                               f"field, got shape {truth.shape}")
+        truth = jnp.asarray(truth)
+    if isinstance(regularization, str):
+        regularization = regularizer(disc, unknown, regularization)
+    if regularization.reference.shape != (n_param,):
+        raise PrdpFemError(f"regularization: built for {regularization.reference.shape[0]} "
+                           f"parameters, expected {n_param}")
+    return InverseProblem(disc.system, parameterization, observation, regularization,
+                          jnp.asarray(float(alpha)), jnp.asarray(known), truth,
+                          SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
+
+
+# --------------------------------------------------------------------------------------
+# the optimisation loop
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Validation:
+    """Monitor the misfit of a converged solve (``rtol``) every ``every`` steps.
+
+    PRDP's preferred signal: unlike the training loss it does not move when K changes. Its
+    solves count as run time and as ``validation_iterations``.
+    """
+
+    every: int = 1
+    rtol: float = 1e-10
+
+    def __post_init__(self):
+        if not (isinstance(self.every, int) and self.every >= 1 and 0 < self.rtol < 1):
+            raise SolverConfigError(f"{self!r}: expected every >= 1 and 0 < rtol < 1")
+
+
+class Inversion(NamedTuple):
+    """What :func:`invert` returns."""
+
+    params: jax.Array          # the optimisation vector z
+    field: jax.Array           # the recovered field (source or log kappa)
+    refinement: RefinementState
+    optimizer_state: Any
+    history: History
+
+
+def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner):
+    if tolerance_mode:
+        return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
+    if gradient == "unrolled":
+        return TruncatedCG(K, preconditioner, gradient="unrolled")
+    return TruncatedCG(K, preconditioner, gradient="implicit", adjoint_iterations=K_adj)
+
+
+def _uses_stored_value(opt_state) -> bool:
+    return otu.tree_get(opt_state, "value") is not None
+
+
+def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
+    """One optimiser step, (K, K_adj, rtol) as arguments (K static in unrolled mode)."""
+
+    def step(problem, z, opt_state, K, K_adj, rtol):
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
+
+        def value_fn(params):
+            return problem.loss(params, solver, counter=counter)[0]
+
+        if _uses_stored_value(opt_state):
+            value, grad = optax.value_and_grad_from_state(value_fn)(z, state=opt_state)
+        else:
+            value, grad = jax.value_and_grad(value_fn)(z)
+        updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                              value_fn=value_fn)
+        z_next = optax.apply_updates(z, updates)
+        misfit = value - problem.alpha * problem.regularizer(problem.field(z))
+        return (z_next, opt_state, value, misfit, problem.parameter_error(z_next),
+                optax.tree.norm(grad))
+
+    return step
+
+
+def _make_validation(rtol, preconditioner, counter):
+    def misfit(problem, z):
+        return problem.loss(z, ConvergedCG(rtol=rtol, preconditioner=preconditioner),
+                            counter=counter)[1].misfit
+    return jax.jit(misfit)
+
+
+class _Compiled:
+    """Compile once per configuration (per ``K`` when it is static), timing compilation apart."""
+
+    def __init__(self, fn, static_iterations: bool):
+        self._fn, self._static, self._cache, self.seconds = fn, static_iterations, {}, 0.0
+
+    def __call__(self, problem, z, opt_state, K, K_adj, rtol):
+        key = int(K) if self._static else None
+        if key not in self._cache:
+            start = time.perf_counter()
+            if self._static:
+                lowered = jax.jit(self._fn, static_argnums=(3,)).lower(
+                    problem, z, opt_state, key, K_adj, rtol)
+            else:
+                lowered = jax.jit(self._fn).lower(problem, z, opt_state, K, K_adj, rtol)
+            self._cache[key] = lowered.compile()
+            self.seconds += time.perf_counter() - start
+        if self._static:  # the static K is baked into the executable
+            return self._cache[key](problem, z, opt_state, K_adj, rtol)
+        return self._cache[key](problem, z, opt_state, K, K_adj, rtol)
+
+
+def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
+           refinement: Refinement | None = None, gradient: str = "implicit", steps: int = 100,
+           init: np.ndarray | None = None, preconditioner: Any = "jacobi",
+           monitor: str | Validation = "loss", reference_every: int = 0,
+           callback: Callable[[StepRecord, jax.Array], bool | None] | None = None) -> Inversion:
+    """Minimise ``J`` for ``steps`` optimiser steps while ``refinement`` picks the CG work.
+
+    Parameters
+    ----------
+    optimizer
+        Any optax ``GradientTransformation``; default ``optax.lbfgs()`` (zoom line search).
+    refinement
+        A :mod:`prdp_fem.prdp` controller; default :func:`~prdp_fem.prdp.prdp` (reference
+        defaults). Use :func:`~prdp_fem.prdp.converged` for the converged baseline and
+        :func:`~prdp_fem.prdp.fixed` for a fixed ``K``.
+    gradient
+        ``"implicit"`` (truncated adjoint solve; ``K`` traced, one compile) or ``"unrolled"``
+        (reverse mode through the ``K`` iterations; one compile per distinct ``K``).
+    init
+        Initial *field* (source or log kappa); default zeros (kappa = 1).
+    monitor
+        What the controller watches: ``"loss"`` (the objective each step), ``"gradient"``
+        (the norm of the computed gradient: no floor, unlike a misfit with noise or
+        unreachable data, and it stalls exactly when truncated gradients stop the optimiser)
+        or a :class:`Validation`.
+    reference_every
+        Every that many steps record ``state_error`` against a pyamg solve (not timed).
+    callback
+        ``callback(record, params)`` after every step; returning ``True`` stops the run.
+
+    Raises
+    ------
+    InversionError
+        When a step produces non-finite parameters (with the step and the solver settings).
+    """
+    if gradient not in ("implicit", "unrolled"):
+        raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
+    if not (isinstance(steps, int) and steps >= 0):
+        raise SolverConfigError(f"steps={steps!r}: expected an integer >= 0")
+    if not (monitor in ("loss", "gradient") or isinstance(monitor, Validation)):
+        raise SolverConfigError(
+            f"monitor={monitor!r}: expected 'loss', 'gradient' or a Validation")
+    refinement = prdp() if refinement is None else refinement
+    if refinement.tolerance_mode and gradient == "unrolled":
+        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
+                                "mode cannot run through a loop of unknown length)")
+    optimizer = optax.with_extra_args_support(optax.lbfgs() if optimizer is None else optimizer)
+
+    z = _initial_params(problem, init)
+    opt_state = optimizer.init(z)
+    control = refinement.init()
+    update_control = jax.jit(refinement.update)  # one dispatch per step, not dozens
+    counter, validation_counter = IterationCounter(), IterationCounter()
+    step = _Compiled(_make_step(optimizer, gradient, refinement.tolerance_mode, preconditioner,
+                                counter), static_iterations=gradient == "unrolled")
+    if gradient == "unrolled":
+        _check_unrolled_start(problem, z)
+    validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol, preconditioner,
+                                                               validation_counter)
+    history, run_time, evaluations = History(), 0.0, 0
+    for k in range(1, steps + 1):
+        K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
+        start = time.perf_counter()
+        compile_before = step.seconds
+        z_next, opt_state, value, misfit, error, grad_norm = jax.block_until_ready(
+            step(problem, z, opt_state, K, K_adj, rtol))
+        monitored = grad_norm if monitor == "gradient" else value
+        if validate is not None and k % monitor.every == 0:
+            monitored = jax.block_until_ready(validate(problem, z_next))
+        previous_K = (int(control.iterations), int(control.adjoint_iterations),
+                      float(control.rtol))
+        if validate is None or k % monitor.every == 0:
+            control = update_control(control, monitored)
+        run_time += time.perf_counter() - start - (step.seconds - compile_before)
+        if not bool(jnp.all(jnp.isfinite(z_next))):
+            raise InversionError(
+                f"step {k}: the optimiser produced non-finite parameters (loss {float(value)!r}, "
+                f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
+                "smaller step, more CG iterations or another gradient mode")
+        z = z_next
+        changed = (int(control.iterations), int(control.adjoint_iterations),
+                   float(control.rtol)) != previous_K
+        if changed and _uses_stored_value(opt_state):
+            # the stored value/gradient belong to the old solver: recompute them next step
+            opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+        evaluations = counter.primal_solves
+        state_error = _state_error(problem, z, gradient, refinement.tolerance_mode, K, K_adj,
+                                   rtol, preconditioner) \
+            if reference_every and k % reference_every == 0 else math.nan
+        record = StepRecord(
+            step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
+            rtol=previous_K[2], refinements=int(control.refinements),
+            primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
+            validation_iterations=validation_counter.primal, evaluations=evaluations,
+            time=run_time, compile_time=step.seconds, loss=float(value), misfit=float(misfit),
+            parameter_error=float(error), state_error=state_error)
+        history = history.append(record)
+        if callback is not None and callback(record, z):
+            break
+    return Inversion(z, problem.field(z), control, opt_state, history)
+
+
+def _check_unrolled_start(problem: InverseProblem, z: jax.Array) -> None:
+    kappa, f = problem.parameterization.coefficients(z, problem.known)
+    if not bool(jnp.any(problem.system.rhs(kappa, f) != 0)):
+        raise SolverConfigError(
+            "gradient='unrolled' at a zero right-hand side: the K-iteration map is not "
+            "differentiable there (its gradient is zero and the optimiser would not move); "
+            "start from a non-zero source (init=) or use gradient='implicit'")
+
+
+def _initial_params(problem: InverseProblem, init) -> jax.Array:
+    n = problem.n_parameters
+    if init is None:
+        field = np.zeros(n)
+        if problem.parameterization.bounds is not None:
+            field = np.full(n, 0.5 * sum(problem.parameterization.bounds))
+    else:
+        field = np.broadcast_to(np.asarray(init, dtype=float), (n,))
+        if not np.isfinite(field).all():
+            raise PrdpFemError(f"init: expected {n} finite values of the field")
+    return problem.parameterization.from_field(field)
+
+
+def _state_error(problem, z, gradient, tolerance_mode, K, K_adj, rtol, preconditioner) -> float:
+    """Relative nodal l2 error of the step's truncated state against a pyamg solve."""
+    solver = _solver(gradient, tolerance_mode, int(K), int(K_adj), float(rtol), preconditioner)
+    u = np.asarray(problem.state(z, solver).x)
+    kappa, f = problem.parameterization.coefficients(z, problem.known)
+    A = problem.system.operator(kappa).to_scipy()
+    reference = amg_solve(A, np.asarray(problem.system.rhs(kappa, f))).x
+    return float(np.linalg.norm(u - reference) / max(np.linalg.norm(reference), 1e-300))

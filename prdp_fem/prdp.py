@@ -1,0 +1,275 @@
+r"""Refinement controllers: how many CG iterations the next optimisation step gets.
+
+Optax style: a controller is a pair of pure functions over a small NamedTuple state,
+
+    state = controller.init()
+    state = controller.update(state, monitored_value)   # once per step or epoch
+    state.iterations, state.adjoint_iterations, state.rtol
+
+jittable (``jnp`` only, no Python branching on values) and serialisable
+(:func:`state_to_dict` / :func:`state_from_dict`, plain JSON types).
+
+PRDP (Bhatia, Koehler, Thuerey, ICLR 2025) watches a monitored error ``e_1, e_2, ...`` through
+an exponential moving average ``s`` (``a = 2 / (window + 1)``, ``s_1 = e_1``,
+``s_t = a e_t + (1 - a) s_{t-1}``) and after each value decides
+
+.. math::
+
+    r_t = s_t / s_{t-\delta+1}, \qquad
+    \text{refine} \iff t > \delta \;\wedge\; r_t > \tau_\text{step} \;\wedge\;
+    \left(s_t / c < \tau_\text{stop} \;\vee\; s_t / c > 1\right),
+
+where the checkpoint ``c`` (initially ``e_1``) becomes ``s_t`` at every refinement: refine when
+the error has stalled *and* the last refinement bought at least ``1 - tau_stop`` (or things got
+worse); a stall without that gain means "K is enough" (``stopped``). As in the reference code
+the stop is not latched unless ``latch=True``: a later plateau ``>= 10 %`` lower refines again.
+
+Beyond the reference: separate primal and adjoint :class:`Schedule` s, multiplicative growth,
+``K_max`` caps, a latched stop, and a *tolerance mode* in which refinement divides a relative
+residual tolerance instead of raising ``K``. A non-finite monitored value counts as divergence
+(refine) and is kept out of the moving average.
+
+>>> controller = prdp(K0=10, dK=10, K_max=40)
+>>> state = controller.init()
+>>> for error in [1.0] * 4 + [0.5] * 12:     # a plateau, then one 50 % lower
+...     state = controller.update(state, error)
+>>> int(state.iterations), int(state.refinements)
+(20, 1)
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import SolverConfigError
+
+__all__ = [
+    "Refinement",
+    "RefinementState",
+    "Schedule",
+    "converged",
+    "fixed",
+    "prdp",
+    "state_from_dict",
+    "state_to_dict",
+]
+
+
+class Schedule(NamedTuple):
+    """An iteration count and how refinement raises it: ``K <- min(ceil(factor K) + dK, K_max)``.
+
+    Additive (the reference): ``factor = 1``. Multiplicative: ``factor > 1``, ``dK = 0``.
+    """
+
+    K0: int
+    dK: int = 10
+    K_max: int = 600
+    factor: float = 1.0
+
+
+class RefinementState(NamedTuple):
+    """Everything a controller knows; all fields are arrays (jit and serialisation friendly)."""
+
+    iterations: jax.Array          # K for the next primal solves
+    adjoint_iterations: jax.Array  # K_adj for the next adjoint solves
+    rtol: jax.Array                # tolerance mode: relative residual tolerance (else 0)
+    count: jax.Array               # finite monitored values seen (t; since the last
+    #                                refinement with restart=True)
+    ema: jax.Array                 # the last `delta` moving-average values, oldest first
+    checkpoint: jax.Array          # moving average at the last refinement (e_1 at first)
+    refinements: jax.Array         # refinements so far
+    stopped: jax.Array             # the last stall was judged "K is enough"
+
+
+class Refinement(NamedTuple):
+    """A controller: ``init() -> state`` and ``update(state, value) -> state``.
+
+    ``tolerance_mode`` tells the solve loop to read ``state.rtol`` (a converged solve capped at
+    ``state.iterations``) instead of a fixed ``K``.
+    """
+
+    init: Any
+    update: Any
+    tolerance_mode: bool = False
+
+
+def _check_schedule(schedule: Schedule, name: str) -> Schedule:
+    K0, dK, K_max, factor = schedule
+    ints = all(isinstance(v, int | np.integer) and not isinstance(v, bool) for v in (K0, dK, K_max))
+    if not ints or K0 < 0 or dK < 0 or K_max < K0:
+        raise SolverConfigError(
+            f"{name}={schedule!r}: expected integers 0 <= K0 <= K_max and dK >= 0")
+    if not (math.isfinite(factor) and factor >= 1.0):
+        raise SolverConfigError(f"{name}.factor={factor!r}: expected a finite number >= 1")
+    if dK == 0 and factor == 1.0 and K_max > K0:
+        raise SolverConfigError(f"{name}={schedule!r}: dK = 0 and factor = 1 never refine")
+    return Schedule(int(K0), int(dK), int(K_max), float(factor))
+
+
+def _grow(K: jax.Array, schedule: Schedule) -> jax.Array:
+    grown = jnp.ceil(schedule.factor * K.astype(jnp.float64)).astype(K.dtype) + schedule.dK
+    return jnp.minimum(grown, schedule.K_max)
+
+
+def _initial_state(K: int, K_adj: int, rtol: float, delta: int) -> RefinementState:
+    return RefinementState(
+        iterations=jnp.asarray(K, jnp.int32),
+        adjoint_iterations=jnp.asarray(K_adj, jnp.int32),
+        rtol=jnp.asarray(rtol, jnp.float64),
+        count=jnp.asarray(0, jnp.int32),
+        ema=jnp.full(delta, jnp.nan, jnp.float64),
+        checkpoint=jnp.asarray(jnp.nan, jnp.float64),
+        refinements=jnp.asarray(0, jnp.int32),
+        stopped=jnp.asarray(False),
+    )
+
+
+def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
+         adjoint: Schedule | None = None, tau_step: float = 0.98, tau_stop: float = 0.9,
+         ema_window: int = 6, delta: int = 3, latch: bool = False, restart: bool = False,
+         rtol: float | None = None, rtol_factor: float = 0.1,
+         rtol_min: float = 1e-12) -> Refinement:
+    """The PRDP controller (reference defaults; see the module docstring for the rule).
+
+    Parameters
+    ----------
+    K0, dK, K_max, factor
+        The primal :class:`Schedule`.
+    adjoint
+        Its own schedule for ``K_adj`` (refined at the same moments); ``None``: ``K_adj = K``.
+    tau_step, tau_stop, ema_window, delta
+        Stall threshold, minimum gain per refinement, EMA window, look-back window.
+    latch
+        Once a stall is judged "K is enough", never refine again.
+    restart
+        After each refinement, restart the moving average from the next value, so the next
+        decision needs ``delta + 1`` values taken at the new ``K``. Use it when the monitored
+        value is the *training loss*, whose level moves when ``K`` does (a truncated solve
+        changes the objective): without it, a loss that jumps up after a refinement reads as
+        divergence and refines again at once, cascading to ``K_max``.
+    rtol, rtol_factor, rtol_min
+        Tolerance mode when ``rtol`` is given: solves run to ``||r|| <= rtol ||b||`` (capped at
+        ``K_max`` iterations) and refinement multiplies ``rtol`` by ``rtol_factor`` down to
+        ``rtol_min``.
+    """
+    primal = _check_schedule(Schedule(K0, dK, K_max, factor), "schedule")
+    dual = None if adjoint is None else _check_schedule(Schedule(*adjoint), "adjoint")
+    if not (0 < tau_step and 0 < tau_stop <= 1):
+        raise SolverConfigError(
+            f"tau_step={tau_step!r}, tau_stop={tau_stop!r}: expected tau_step > 0 and "
+            "0 < tau_stop <= 1")
+    if not (isinstance(ema_window, int) and ema_window >= 1 and isinstance(delta, int)
+            and delta >= 2):
+        raise SolverConfigError(
+            f"ema_window={ema_window!r}, delta={delta!r}: expected integers >= 1 and >= 2")
+    tolerance_mode = rtol is not None
+    if tolerance_mode and not (0 < rtol_min <= rtol < 1 and 0 < rtol_factor < 1):
+        raise SolverConfigError(
+            f"rtol={rtol!r}, rtol_factor={rtol_factor!r}, rtol_min={rtol_min!r}: expected "
+            "0 < rtol_min <= rtol < 1 and 0 < rtol_factor < 1")
+    a = 2.0 / (ema_window + 1.0)
+
+    def init() -> RefinementState:
+        if tolerance_mode:  # K and K_adj are caps; the tolerance decides
+            return _initial_state(primal.K_max, primal.K_max, rtol, delta)
+        return _initial_state(primal.K0, primal.K0 if dual is None else dual.K0, 0.0, delta)
+
+    def update(state: RefinementState, value) -> RefinementState:
+        value = jnp.asarray(value, jnp.float64)
+        finite = jnp.isfinite(value)
+        first = state.count == 0  # (re)seed the moving average with this value
+        previous = state.ema[-1]
+        smoothed = jnp.where(first, value, a * value + (1.0 - a) * previous)
+        ema = jnp.where(finite, jnp.concatenate([state.ema[1:], smoothed[None]]), state.ema)
+        ema = jnp.where(finite & first, jnp.full_like(ema, value), ema)
+        count = state.count + finite.astype(state.count.dtype)
+        checkpoint = jnp.where(finite & jnp.isnan(state.checkpoint), value, state.checkpoint)
+        s = ema[-1]
+        stalled = (count > delta) & (s / ema[0] > tau_step)
+        gain = s / checkpoint
+        worth_it = (gain < tau_stop) | (gain > 1.0)
+        may_refine = ~(state.stopped & latch)
+        refine = may_refine & ((finite & stalled & worth_it) | ~finite)
+        enough = finite & stalled & ~worth_it
+        if restart:
+            count = jnp.where(refine, 0, count)
+        return _refined(state, refine, enough, ema, count,
+                        jnp.where(refine & finite, s, checkpoint))
+
+    def _refined(state, refine, enough, ema, count, checkpoint) -> RefinementState:
+        K, K_adj, tolerance = state.iterations, state.adjoint_iterations, state.rtol
+        if tolerance_mode:
+            tolerance = jnp.where(refine, jnp.maximum(tolerance * rtol_factor, rtol_min),
+                                  tolerance)
+        else:
+            K = jnp.where(refine, _grow(K, primal), K)
+            K_adj = K if dual is None else jnp.where(refine, _grow(K_adj, dual), K_adj)
+        stopped = state.stopped | enough if latch else jnp.where(
+            refine, False, state.stopped | enough)
+        return RefinementState(
+            iterations=K, adjoint_iterations=K_adj, rtol=tolerance, count=count, ema=ema,
+            checkpoint=checkpoint,
+            refinements=state.refinements + refine.astype(state.refinements.dtype),
+            stopped=stopped)
+
+    return Refinement(init, update, tolerance_mode)
+
+
+def fixed(K: int, K_adj: int | None = None) -> Refinement:
+    """A fixed iteration count (``K_adj = K`` unless given); ``update`` only counts values."""
+    _check_schedule(Schedule(K, 0, K), "schedule")
+    K_adj = K if K_adj is None else K_adj
+    _check_schedule(Schedule(K_adj, 0, K_adj), "adjoint")
+    return Refinement(lambda: _initial_state(K, K_adj, 0.0, 2), _count_only)
+
+
+def converged(rtol: float = 1e-10, max_iterations: int = 100_000) -> Refinement:
+    """Every solve (primal and adjoint) to ``||r|| <= rtol ||b||``; the reference baseline."""
+    if not (0 < rtol < 1) or not (isinstance(max_iterations, int) and max_iterations > 0):
+        raise SolverConfigError(
+            f"rtol={rtol!r}, max_iterations={max_iterations!r}: expected 0 < rtol < 1 and a "
+            "positive integer cap")
+    return Refinement(lambda: _initial_state(max_iterations, max_iterations, rtol, 2),
+                      _count_only, tolerance_mode=True)
+
+
+def _count_only(state: RefinementState, value) -> RefinementState:
+    finite = jnp.isfinite(jnp.asarray(value, jnp.float64))
+    return state._replace(count=state.count + finite.astype(state.count.dtype))
+
+
+def state_to_dict(state: RefinementState) -> dict:
+    """JSON-ready dict of a state (lists and Python scalars; NaN as ``None``)."""
+    def plain(x):
+        x = np.asarray(x)
+        if x.dtype.kind == "f":
+            x = np.where(np.isfinite(x), x, np.nan)
+            return [None if np.isnan(v) else float(v) for v in x.ravel()] if x.ndim else (
+                None if np.isnan(x) else float(x))
+        return x.tolist()
+    return {name: plain(value) for name, value in state._asdict().items()}
+
+
+def state_from_dict(data: dict) -> RefinementState:
+    """Inverse of :func:`state_to_dict`."""
+    missing = set(RefinementState._fields) - set(data)
+    if missing:
+        raise SolverConfigError(
+            f"refinement state: missing fields {sorted(missing)}; expected "
+            f"{list(RefinementState._fields)}")
+    dtypes = {"iterations": jnp.int32, "adjoint_iterations": jnp.int32, "count": jnp.int32,
+              "refinements": jnp.int32, "stopped": jnp.bool_}
+
+    def array(name):
+        value = data[name]
+        if name in dtypes:
+            return jnp.asarray(value, dtypes[name])
+        value = np.asarray([np.nan if v is None else v for v in value] if isinstance(
+            value, list) else (np.nan if value is None else value), dtype=float)
+        return jnp.asarray(value)
+    return RefinementState(**{name: array(name) for name in RefinementState._fields})
