@@ -36,7 +36,8 @@ class AlphaChoice(NamedTuple):
     params: np.ndarray                  # z at the chosen alpha
     misfit_norm: float                  # ||B u - d||_W there
     target: float                       # tau delta (Morozov) or NaN (L-curve)
-    trials: tuple[tuple[float, float, float], ...]  # (alpha, misfit norm, R) per inversion
+    # (alpha, misfit norm, R, parameter error or NaN) per inversion, in the order run
+    trials: tuple[tuple[float, float, float, float], ...]
 
 
 def _default_solve(problem: InverseProblem, init):
@@ -48,12 +49,14 @@ def _converged_misfit(problem: InverseProblem, z) -> jax.Array:
     return problem.loss(z, ConvergedCG(rtol=1e-10))[1].misfit
 
 
-def _evaluate(problem, alpha, init, solve) -> tuple[np.ndarray, float, float]:
-    """Invert at ``alpha``; the misfit norm and ``R`` at the result (converged solve)."""
+def _evaluate(problem, alpha, init, solve) -> tuple[np.ndarray, tuple]:
+    """Invert at ``alpha``: the field and ``(alpha, misfit norm, R, parameter error)``."""
     trial = problem.with_alpha(alpha)
     result = solve(trial, init)
     misfit = float(np.sqrt(2.0 * max(float(_converged_misfit(trial, result.params)), 0.0)))
-    return np.asarray(result.field), misfit, float(trial.regularizer(trial.field(result.params)))
+    reg = float(trial.regularizer(trial.field(result.params)))
+    return np.asarray(result.field), (alpha, misfit, reg,
+                                      float(trial.parameter_error(result.params)))
 
 
 def morozov(problem: InverseProblem, *, alpha0: float = 1e-6, tau: float = 1.0,
@@ -72,10 +75,10 @@ def morozov(problem: InverseProblem, *, alpha0: float = 1e-6, tau: float = 1.0,
     trials, fields = [], {}
 
     def g(log_alpha: float, init) -> float:
-        field, misfit, reg = _evaluate(problem, math.exp(log_alpha), init, solve)
-        trials.append((math.exp(log_alpha), misfit, reg))
+        field, trial = _evaluate(problem, math.exp(log_alpha), init, solve)
+        trials.append(trial)
         fields[log_alpha] = field
-        return math.log(misfit / target)
+        return math.log(trial[1] / target)
 
     def nearest(log_alpha):
         return fields[min(fields, key=lambda a: abs(a - log_alpha))] if fields else None
@@ -102,7 +105,7 @@ def morozov(problem: InverseProblem, *, alpha0: float = 1e-6, tau: float = 1.0,
         lo, g_lo, hi, g_hi = (mid, g_mid, hi, g_hi) if g_mid < 0 else (lo, g_lo, mid, g_mid)
         best = lo if abs(g_lo) < abs(g_hi) else hi
     alpha = math.exp(best)
-    misfit = next(m for a, m, _ in trials if a == alpha)
+    misfit = next(t[1] for t in trials if t[0] == alpha)
     return AlphaChoice(alpha, problem.parameterization.from_field(fields[best]), misfit, target,
                        tuple(trials))
 
@@ -116,13 +119,13 @@ def l_curve(problem: InverseProblem, alphas: Sequence[float], *,
     solve = _default_solve if solve is None else solve
     trials, fields, init = [], [], None
     for alpha in reversed(alphas):  # large to small: each warm-starts the next
-        field, misfit, reg = _evaluate(problem, alpha, init, solve)
-        trials.append((alpha, misfit, reg))
+        field, trial = _evaluate(problem, alpha, init, solve)
+        trials.append(trial)
         fields.append(field)
         init = field
     trials.reverse()
     fields.reverse()
-    points = np.log([[m, max(r, 1e-300)] for _, m, r in trials])
+    points = np.log([[t[1], max(t[2], 1e-300)] for t in trials])
     curvature = [_menger(points[i - 1], points[i], points[i + 1])
                  for i in range(1, len(points) - 1)]
     corner = 1 + int(np.argmax(curvature))

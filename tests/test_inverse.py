@@ -1,0 +1,285 @@
+"""Inverse problems: gradients (Taylor), observations, regularisers, the loop, alpha choice."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+import scipy.sparse.linalg as spla
+
+import prdp_fem as pf
+from prdp_fem.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
+from prdp_fem.comparison import settled
+from prdp_fem.errors import PrdpFemError, SolverConfigError
+from prdp_fem.history import History
+from prdp_fem.inverse import InversionError, Validation, inverse_problem, invert
+from prdp_fem.observations import boundary_values, full_field, point_sensors, with_noise
+from prdp_fem.parameter_choice import l_curve, morozov
+from prdp_fem.prdp import converged, fixed, prdp
+from prdp_fem.regularizers import regularizer
+
+
+def _coefficient_problem(n=10, kappa_space="P1", noise=0.0, alpha=1e-6, reg="h1",
+                         observation="full", bounds=None):
+    disc = pf.discretize(pf.unit_square(n), element="P1", kappa_space=kappa_space,
+                         dirichlet=0.0)
+    m_true = disc.interpolate_kappa(lambda x: 0.5 * np.sin(np.pi * x[0]) * x[1])
+    f = np.ones(disc.n_dofs)
+    kappa = np.exp(m_true)
+    u = disc.expand(pf.direct_solve(disc.stiffness_matrix(kappa), disc.rhs(kappa, f)).x)
+    if observation == "full":
+        obs = full_field(disc, u_true=u)
+    else:
+        pts = np.random.default_rng(0).uniform(0.05, 0.95, (25, 2))
+        obs = point_sensors(disc, pts, u_true=u)
+    if noise:
+        obs = with_noise(obs, noise, seed=3)
+    if reg == "tv":  # smooth enough for finite differences at h ~ 1e-2
+        reg = regularizer(disc, "log_kappa", "tv", epsilon=0.5)
+    problem = inverse_problem(disc, obs, unknown="log_kappa", alpha=alpha, regularization=reg,
+                              known=f, truth=m_true, bounds=bounds)
+    return disc, problem
+
+
+def _source_problem(n=12, alpha=1e-4):
+    disc = pf.discretize(pf.unit_square(n), element="P1", dirichlet=0.0)
+    data = disc.project(lambda x: np.sin(np.pi * x[0]) * np.sin(np.pi * x[1]) / 20)
+    return disc, inverse_problem(disc, full_field(disc, data=data), unknown="source",
+                                 alpha=alpha, regularization="l2")
+
+
+# --- counting CG work -------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("solver, primal, adjoint", [
+    (TruncatedCG(7, gradient="implicit", adjoint_iterations=3), 7, 3),
+    (TruncatedCG(5, gradient="unrolled"), 5, 5),
+])
+def test_counter_tallies_forward_and_backward_iterations(small_problem, solver, primal, adjoint):
+    disc, kappa, f = small_problem
+    system = disc.system
+    counter = IterationCounter()
+
+    @jax.jit
+    def loss(k):
+        return jnp.sum(solve(system.operator(k), system.rhs(k, f), solver, counter=counter).x)
+    jax.block_until_ready(jax.grad(loss)(jnp.asarray(kappa)))
+    assert counter.snapshot() == (primal, adjoint)
+    jax.block_until_ready(loss(jnp.asarray(kappa)))  # forward only: no adjoint solve
+    assert counter.snapshot() == (2 * primal, adjoint)
+
+
+def test_counter_matches_converged_iterations(small_problem):
+    disc, kappa, f = small_problem
+    A, b = disc.system.operator(kappa), disc.system.rhs(kappa, f)
+    counter = IterationCounter()
+    sol = solve(A, b, ConvergedCG(rtol=1e-10), counter=counter)
+    jax.block_until_ready(sol.x)
+    assert counter.primal == int(sol.iterations) > 0 and counter.adjoint == 0
+
+
+# --- gradients of the objective: Taylor tests -------------------------------------------
+
+
+@pytest.mark.parametrize("kappa_space, reg, observation, bounds", [
+    ("P1", "h1", "full", None),
+    ("P0", "tv", "sensors", None),
+    ("P1", "l2", "sensors", (-1.0, 2.0)),
+])
+def test_objective_gradient_taylor(kappa_space, reg, observation, bounds):
+    _, problem = _coefficient_problem(kappa_space=kappa_space, reg=reg, observation=observation,
+                                      alpha=1e-3, bounds=bounds)
+    z = problem.parameterization.from_field(
+        0.2 + 0.1 * np.random.default_rng(1).standard_normal(problem.n_parameters))
+    loss = jax.jit(lambda p: problem.loss(p, ConvergedCG(rtol=1e-13))[0])
+    result = pf.taylor_test(loss, z, gradient=jax.jit(jax.grad(loss))(z))
+    assert result.passed(), result
+
+
+def test_unrolled_gradient_is_exact_for_the_truncated_objective():
+    _, problem = _source_problem()
+    z = jnp.asarray(np.random.default_rng(2).standard_normal(problem.n_parameters))
+    loss = jax.jit(lambda p: problem.loss(p, TruncatedCG(6, gradient="unrolled"))[0])
+    result = pf.taylor_test(loss, z, gradient=jax.jit(jax.grad(loss))(z))
+    assert result.passed(), result
+
+
+# --- observations, noise, regularisers --------------------------------------------------
+
+
+def test_point_sensors_interpolate_linear_states_exactly():
+    disc = pf.discretize(pf.unit_square(6), element="P1", dirichlet=0.0)
+    pts = np.array([[0.13, 0.71], [0.5, 0.5], [0.91, 0.07]])
+    obs = point_sensors(disc, pts, u_true=disc.interpolate(lambda x: 2 * x[0] - x[1]))
+    np.testing.assert_allclose(np.asarray(obs.data), 2 * pts[:, 0] - pts[:, 1], atol=1e-13)
+    with pytest.raises(PrdpFemError, match="inside the mesh|outside"):
+        point_sensors(disc, [[1.5, 0.5]], data=[0.0])
+
+
+def test_boundary_values_select_tagged_dofs():
+    disc = pf.discretize(pf.unit_square(6), element="P1", dirichlet=None)
+    obs = boundary_values(disc, ["left"], u_true=disc.interpolate(lambda x: 1 + x[1]))
+    assert obs.size == 7
+    np.testing.assert_allclose(np.sort(np.asarray(obs.data)), 1 + np.linspace(0, 1, 7))
+    with pytest.raises(PrdpFemError, match="expected names among"):
+        boundary_values(disc, ["nowhere"], data=[0.0])
+
+
+def test_noise_is_seeded_and_at_the_stated_level():
+    disc = pf.discretize(pf.unit_square(16), element="P1", dirichlet=0.0)
+    clean = full_field(disc, u_true=disc.interpolate(lambda x: np.sin(3 * x[0]) + 2),
+                       norm="nodal")
+    a, b = with_noise(clean, 0.05, seed=7), with_noise(clean, 0.05, seed=7)
+    np.testing.assert_array_equal(np.asarray(a.data), np.asarray(b.data))
+    eta = np.asarray(a.data) - np.asarray(clean.data)
+    sigma = 0.05 * np.max(np.abs(np.asarray(clean.data)))
+    assert float(a.noise_std) == pytest.approx(sigma)
+    assert np.std(eta) == pytest.approx(sigma, rel=0.1)
+    # E ||eta||_W = sigma sqrt(tr W); the realised norm is within a few percent at 289 samples
+    assert np.linalg.norm(eta) == pytest.approx(float(a.noise_norm()), rel=0.1)
+
+
+def test_h1_regularizer_equals_the_stiffness_quadratic_form():
+    disc = pf.discretize(pf.unit_square(5), element="P2", dirichlet=0.0)
+    m = np.random.default_rng(0).standard_normal(disc.n_dofs)
+    reg = regularizer(disc, "source", "h1")
+    assert float(reg(m)) == pytest.approx(0.5 * m @ disc.laplace_matrix @ m, rel=1e-12)
+    l2 = regularizer(disc, "source", "l2", reference=1.0)
+    assert float(l2(m)) == pytest.approx(0.5 * (m - 1) @ disc.mass_matrix @ (m - 1), rel=1e-12)
+
+
+def test_tv_of_a_piecewise_constant_field_is_its_jump_length():
+    disc = pf.discretize(pf.unit_square(8), element="P1", kappa_space="P0", dirichlet=0.0)
+    m = disc.interpolate_kappa(lambda x: 3.0 * (x[0] < 0.5))  # jump 3 across x = 1/2
+    tv = regularizer(disc, "log_kappa", "tv", epsilon=1e-9)
+    assert float(tv(m)) == pytest.approx(3.0, rel=1e-6)
+    tv_p1 = regularizer(pf.discretize(pf.unit_square(8), element="P1", kappa_space="P1",
+                                      dirichlet=0.0), "log_kappa", "tv", epsilon=1e-9)
+    linear = pf.discretize(pf.unit_square(8), kappa_space="P1").interpolate_kappa(
+        lambda x: 2 * x[0] + x[1])
+    assert float(tv_p1(linear)) == pytest.approx(math.sqrt(5.0), rel=1e-6)
+
+
+def test_bad_problem_input_is_rejected_at_the_edge():
+    disc, problem = _source_problem()
+    obs = problem.observation
+    with pytest.raises(PrdpFemError, match="truth"):
+        inverse_problem(disc, obs, unknown="source", alpha=1.0, truth=np.ones(3))
+    with pytest.raises(PrdpFemError, match="unknown"):
+        inverse_problem(disc, obs, unknown="velocity", alpha=1.0)
+    with pytest.raises(PrdpFemError, match="alpha"):
+        inverse_problem(disc, obs, unknown="source", alpha=float("nan"))
+    with pytest.raises(PrdpFemError, match="bounds"):
+        inverse_problem(disc, obs, unknown="source", alpha=1.0, bounds=(1.0, 0.0))
+
+
+# --- the loop ---------------------------------------------------------------------------
+
+
+def _discrete_optimum(disc, problem):
+    """Reduced normal equations of the source problem, solved by SciPy (independent path)."""
+    M, S = disc.mass_matrix, disc.source_matrix
+    A = disc.stiffness_matrix(np.ones(disc.n_kappa))
+    lu = spla.splu(A.tocsc())
+    W = disc.mass_matrix[disc.free_dofs][:, disc.free_dofs]
+    alpha, d = float(problem.alpha), np.asarray(problem.observation.data)
+    c = (M @ d)[disc.free_dofs]
+
+    def hessian(f):
+        return S.T @ lu.solve(W @ lu.solve(S @ f)) + alpha * (M @ f)
+    H = spla.LinearOperator((disc.n_dofs,) * 2, matvec=hessian)
+    f, info = spla.cg(H, S.T @ lu.solve(c), rtol=1e-13, maxiter=10_000)
+    assert info == 0
+    return f
+
+
+def test_invert_reaches_the_discrete_optimum_and_records_costs():
+    disc, problem = _source_problem()
+    f_opt = _discrete_optimum(disc, problem)
+    result = invert(problem, refinement=converged(1e-12), steps=150)
+    e = np.asarray(result.field) - f_opt
+    M = disc.mass_matrix
+    assert math.sqrt(e @ M @ e / (f_opt @ M @ f_opt)) < 1e-4
+    h = result.history
+    for name in ("primal_iterations", "adjoint_iterations_total", "time", "evaluations"):
+        assert np.all(np.diff(h.column(name)) >= 0), name
+    assert h[-1].primal_iterations > h[-1].evaluations > len(h) // 2
+
+
+def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
+    disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
+    result = invert(problem, refinement=prdp(K0=2, dK=4, restart=True), steps=40)
+    ks = result.history.column("iterations")
+    assert np.all(np.diff(ks) >= 0) and ks[-1] > ks[0]
+    assert result.history[-1].parameter_error < result.history[0].parameter_error
+    # a fixed K run counts exactly K primal iterations per solve
+    run = invert(problem, refinement=fixed(6, 4), steps=5).history[-1]
+    assert run.primal_iterations == 6 * run.evaluations
+    path = tmp_path / "history.jsonl"
+    result.history.to_jsonl(path)
+    assert History.from_jsonl(path)[-1] == result.history[-1]
+
+
+def test_unrolled_and_validation_monitor_run_and_agree_with_converged():
+    _, problem = _coefficient_problem(n=8, alpha=1e-5)
+    ref = invert(problem, refinement=converged(1e-12), steps=30).history[-1].parameter_error
+    unrolled = invert(problem, refinement=fixed(40), gradient="unrolled", steps=30)
+    validated = invert(problem, refinement=prdp(K0=5, dK=10), steps=30,
+                       monitor=Validation(every=2))
+    assert unrolled.history[-1].parameter_error == pytest.approx(ref, rel=0.02)
+    assert validated.history[-1].validation_iterations > 0
+
+
+def test_loop_configuration_errors():
+    _, problem = _source_problem()
+    with pytest.raises(SolverConfigError, match="gradient"):
+        invert(problem, gradient="adjoint", steps=1)
+    with pytest.raises(SolverConfigError, match="zero right-hand side"):
+        invert(problem, gradient="unrolled", refinement=fixed(3), steps=1)
+    with pytest.raises(SolverConfigError, match="tolerance-mode"):
+        invert(problem, gradient="unrolled", refinement=converged(), steps=1, init=1.0)
+    with pytest.raises(SolverConfigError, match="monitor"):
+        invert(problem, monitor="misfit", steps=1)
+
+
+def test_non_finite_parameters_raise_with_the_step():
+    _, problem = _source_problem()
+    blow_up = optax.scale(float("nan"))
+    with pytest.raises(InversionError, match="step 1: .*non-finite"):
+        invert(problem, optimizer=blow_up, refinement=fixed(3), steps=2)
+
+
+def test_settled_ignores_pass_throughs():
+    from prdp_fem.history import StepRecord
+    errors = [1.0, 0.5, 0.2, 0.31, 0.298, 0.301, 0.3]
+    records = [StepRecord(i + 1, 1, 1, 0.0, 0, 0, 0, 0, 0, float(i), 0.0, 0.0, 0.0, e,
+                          math.nan) for i, e in enumerate(errors)]
+    hit = settled(History(records), 0.3)
+    assert hit.step == 5  # 0.2 passes through the target, 0.31 is outside the 1 % band
+
+
+# --- choosing alpha ---------------------------------------------------------------------
+
+
+def test_morozov_misfit_matches_the_noise_level():
+    _, problem = _coefficient_problem(n=12, noise=0.02, alpha=1.0)
+    choice = morozov(problem, alpha0=1e-6, rtol=0.01)
+    assert choice.misfit_norm == pytest.approx(choice.target, rel=0.05)
+    assert choice.target == pytest.approx(float(problem.observation.noise_norm()))
+
+
+def test_morozov_needs_a_noise_level():
+    _, problem = _coefficient_problem(n=6)
+    with pytest.raises(PrdpFemError, match="noise level"):
+        morozov(problem)
+
+
+def test_l_curve_corner_is_interior_and_near_the_best_alpha():
+    _, problem = _coefficient_problem(n=12, noise=0.02, alpha=1.0)
+    alphas = np.logspace(-10, -3, 8)
+    choice = l_curve(problem, alphas)
+    assert alphas[0] < choice.alpha < alphas[-1]
+    errors = {a: error for a, _, _, error in choice.trials}
+    assert errors[choice.alpha] <= 3 * min(errors.values())
