@@ -11,7 +11,8 @@ if _os.environ.get("PRDP_FEM_KEEP_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 from ._version import __version__
-from .cg import ConvergedCG, Solution, TruncatedCG, solve
+from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, solve
+from .comparison import ComparisonRow, compare, format_table
 from .discretization import Discretization, discretize
 from .errors import (
     DegenerateCellError,
@@ -29,8 +30,17 @@ from .errors import (
     UnusedNodeError,
 )
 from .generators import disk, l_shape, rectangle_with_hole, unit_cube, unit_square
+from .history import History, StepRecord
+from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
+from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
 from .operator import SparseMatrix, diagonal, matvec, rmatvec
+from .parameter_choice import AlphaChoice, l_curve, morozov
+from .parameters import Parameterization
+
+# the controllers themselves stay in their module (prdp_fem.prdp.prdp, .fixed, .converged):
+# a top-level function named prdp would shadow the submodule
+from .prdp import Refinement, RefinementState, Schedule
 from .precond import IdentityPreconditioner, JacobiPreconditioner, jacobi
 from .reference import (
     ReferenceSolution,
@@ -43,17 +53,25 @@ from .reference import (
     relative_h1_error,
     relative_l2_error,
 )
+from .regularizers import Regularizer, regularizer
 from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
 
 __all__ = [
+    "AlphaChoice",
+    "ComparisonRow",
     "ConvergedCG",
     "DegenerateCellError",
     "Discretization",
     "DiscretizationError",
     "DuplicateNodeError",
+    "History",
     "IdentityPreconditioner",
+    "InverseProblem",
+    "Inversion",
+    "InversionError",
     "InvertedCellError",
+    "IterationCounter",
     "JacobiPreconditioner",
     "LinearSystem",
     "MeshError",
@@ -62,32 +80,50 @@ __all__ = [
     "MeshRepairWarning",
     "MixedDimensionError",
     "NonFiniteCoordinatesError",
+    "Observation",
+    "Parameterization",
     "PrdpFemError",
     "ReferenceSolution",
+    "Refinement",
+    "RefinementState",
+    "Regularizer",
+    "Schedule",
     "Solution",
     "SolverConfigError",
     "SparseMatrix",
+    "StepRecord",
     "TaylorResult",
     "TruncatedCG",
     "UnsupportedCellsError",
     "UnusedNodeError",
+    "Validation",
     "__version__",
     "amg_solve",
+    "boundary_values",
+    "compare",
     "diagonal",
     "direct_solve",
     "discretize",
     "disk",
+    "format_table",
+    "full_field",
     "h1_error",
     "h1_seminorm",
+    "inverse_problem",
+    "invert",
     "jacobi",
     "l2_error",
     "l2_norm",
+    "l_curve",
     "l_shape",
     "load_mesh",
     "matvec",
     "mesh_from_arrays",
     "mesh_quality",
+    "morozov",
+    "point_sensors",
     "rectangle_with_hole",
+    "regularizer",
     "relative_h1_error",
     "relative_l2_error",
     "rmatvec",
@@ -96,4 +132,5 @@ __all__ = [
     "taylor_test",
     "unit_cube",
     "unit_square",
+    "with_noise",
 ]

@@ -114,7 +114,7 @@ def test_point_sensors_interpolate_linear_states_exactly():
     pts = np.array([[0.13, 0.71], [0.5, 0.5], [0.91, 0.07]])
     obs = point_sensors(disc, pts, u_true=disc.interpolate(lambda x: 2 * x[0] - x[1]))
     np.testing.assert_allclose(np.asarray(obs.data), 2 * pts[:, 0] - pts[:, 1], atol=1e-13)
-    with pytest.raises(PrdpFemError, match="inside the mesh|outside"):
+    with pytest.raises(PrdpFemError, match=r"inside the mesh|outside"):
         point_sensors(disc, [[1.5, 0.5]], data=[0.0])
 
 
@@ -209,7 +209,7 @@ def test_invert_reaches_the_discrete_optimum_and_records_costs():
 
 
 def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
-    disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
+    _disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
     result = invert(problem, refinement=prdp(K0=2, dK=4, restart=True), steps=40)
     ks = result.history.column("iterations")
     assert np.all(np.diff(ks) >= 0) and ks[-1] > ks[0]
@@ -247,7 +247,7 @@ def test_loop_configuration_errors():
 def test_non_finite_parameters_raise_with_the_step():
     _, problem = _source_problem()
     blow_up = optax.scale(float("nan"))
-    with pytest.raises(InversionError, match="step 1: .*non-finite"):
+    with pytest.raises(InversionError, match=r"step 1: .*non-finite"):
         invert(problem, optimizer=blow_up, refinement=fixed(3), steps=2)
 
 
