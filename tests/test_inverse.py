@@ -283,3 +283,11 @@ def test_l_curve_corner_is_interior_and_near_the_best_alpha():
     assert alphas[0] < choice.alpha < alphas[-1]
     errors = {a: error for a, _, _, error in choice.trials}
     assert errors[choice.alpha] <= 3 * min(errors.values())
+
+
+def test_state_error_against_pyamg_when_asked():
+    _, problem = _coefficient_problem(n=8, alpha=1e-5)
+    truncated = invert(problem, refinement=fixed(2), steps=2, reference_every=1).history
+    exact = invert(problem, refinement=converged(1e-12), steps=2, reference_every=2).history
+    assert truncated[0].state_error > 1e-3 and truncated[1].state_error > 1e-3
+    assert math.isnan(exact[0].state_error) and exact[1].state_error < 1e-8
