@@ -2,31 +2,95 @@
 
 Subcommands
 -----------
-``forward``   truncated-PCG error against K and run time on a built-in scene or a mesh file
-``bench cg``  PCG iteration / SciPy SpMV time ratio (see :mod:`prdp_fem.bench`)
-``mesh``      load and validate a mesh file, print its quality report
+``study``      sweep a scene's configurations: results.jsonl, summary.csv, figures, fields
+``invert``     one inversion with the scene's own settings (same outputs)
+``solve``      forward solve of a scene or a bare mesh file, written as VTU
+``mesh-info``  cells, quality, tags and problems of a mesh file
+``scenes``     list the built-in scenes, or print one
+``forward``    truncated-PCG error against K and run time (a quick forward study)
+``bench cg``   PCG iteration / SciPy SpMV time ratio (see :mod:`prdp_fem.bench`)
 
-Bad input (a mesh file, a scene name, an option) prints one line ``prdp-fem: error: ...`` and
-exits with status 2; no traceback.
+Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
+with status 2, no traceback; Ctrl-C keeps every finished record and exits with 130.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import sys
 from pathlib import Path
 
 from .errors import PrdpFemError
 
 DEFAULT_ITERATIONS = [0, 5, 10, 20, 40, 80, 160, 320, 640]
+MESH_SUFFIXES = (".msh", ".vtu", ".vtk", ".xdmf", ".xmf", ".mesh", ".med", ".inp", ".obj",
+                 ".ply", ".stl", ".off", ".dat", ".su2", ".avs", ".f3grid", ".h5m", ".ugrid")
+
+EXAMPLES = {
+    "study": """examples:
+  prdp-fem study                               # the mother problem, into ./study-mother
+  prdp-fem study inclusion --out runs/incl     # a built-in scene
+  prdp-fem study my_scene.toml --steps 20      # your scene, fewer optimiser steps
+  prdp-fem study my_scene.toml --out runs/a --resume   # continue a killed study""",
+    "invert": """examples:
+  prdp-fem invert plate_hole --out runs/plate
+  prdp-fem invert my_scene.toml --steps 50""",
+    "solve": """examples:
+  prdp-fem solve meshes/plate_hole.msh                # -lap u = 1, u = 0 on the boundary
+  prdp-fem solve poisson_h --reference --out u.vtu    # a scene; error against pyamg""",
+    "mesh-info": """examples:
+  prdp-fem mesh-info meshes/cube_tet.msh""",
+    "scenes": """examples:
+  prdp-fem scenes                 # list
+  prdp-fem scenes mother > my.toml   # copy one to edit""",
+}
+
+
+def _command(sub, name: str, help_text: str, **kwargs) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help_text, description=help_text,
+                          epilog=EXAMPLES.get(name),
+                          formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="prdp-fem", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="prdp-fem", description=__doc__.split("\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="\n".join(__doc__.split("\n")[2:11]))
     sub = parser.add_subparsers(dest="command", required=True)
 
-    forward = sub.add_parser("forward", help="error of truncated PCG against K and time")
+    study = _command(sub, "study", "sweep a scene's configurations; tables and figures of "
+                     "error against run time and CG iterations")
+    study.add_argument("scene", nargs="?", default="mother",
+                       help="a scene .toml file or a built-in scene name (default: mother)")
+    study.add_argument("--out", type=Path, help="output directory (default: ./study-SCENE, "
+                       "numbered when it exists)")
+    study.add_argument("--resume", action="store_true",
+                       help="continue the study in --out, skipping finished configurations")
+    study.add_argument("--steps", type=int, help="optimiser steps (overrides the scene)")
+
+    invert = _command(sub, "invert", "one inversion with the scene's settings")
+    invert.add_argument("scene", help="a scene .toml file or a built-in scene name")
+    invert.add_argument("--out", type=Path, help="output directory (default: ./invert-SCENE)")
+    invert.add_argument("--steps", type=int, help="optimiser steps (overrides the scene)")
+
+    solve = _command(sub, "solve", "forward solve of a scene or a mesh file, written as VTU")
+    solve.add_argument("input", help="a scene (.toml or built-in name) or a mesh file")
+    solve.add_argument("--out", type=Path, help="VTU file (default: ./NAME-solution.vtu)")
+    solve.add_argument("--iterations", type=int, help="truncate PCG at K iterations")
+    solve.add_argument("--reference", action="store_true",
+                       help="also solve with pyamg and report the relative error")
+
+    info = _command(sub, "mesh-info", "cells, quality, tags and problems of a mesh file",
+                    aliases=["mesh"])
+    info.add_argument("path", type=Path)
+
+    scenes = _command(sub, "scenes", "list the built-in scenes, or print one as TOML")
+    scenes.add_argument("name", nargs="?")
+
+    forward = _command(sub, "forward", "error of truncated PCG against K and time")
     forward.add_argument("--scene", default="square", help="square | hole | lshape | cube")
     forward.add_argument("--mesh", help="a mesh file instead of a built-in scene")
     forward.add_argument("--n", type=int, default=128, help="resolution of the scene")
@@ -36,21 +100,223 @@ def _parser() -> argparse.ArgumentParser:
     forward.add_argument("--preconditioner", default="jacobi", help="jacobi | identity")
     forward.add_argument("--out", type=Path, help="append records as JSON lines here")
 
-    bench = sub.add_parser("bench", help="benchmarks")
+    bench = _command(sub, "bench", "benchmarks")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
     cg = bench_sub.add_parser("cg", help="PCG iteration time / SciPy SpMV time")
     cg.add_argument("--sides", type=int, nargs="+", default=[256, 512],
                     help="unit-square cells per side ((n-1)^2 dofs: 256 -> 65k, 512 -> 261k)")
     cg.add_argument("--iterations", type=int, default=100)
     cg.add_argument("--repeats", type=int, default=7)
-
-    mesh = sub.add_parser("mesh", help="validate a mesh file and print its quality report")
-    mesh.add_argument("path", type=Path)
     return parser
 
 
+# --------------------------------------------------------------------------------------
+# progress bars (quiet when stderr is not a terminal)
+# --------------------------------------------------------------------------------------
+
+
+class _Interrupted(Exception):
+    """Ctrl-C during a study: the message says where the finished records are."""
+
+
+class _Bars:
+    """tqdm bars over configurations and optimiser steps (:class:`prdp_fem.study.Progress`)."""
+
+    def __init__(self, total: int):
+        from tqdm import tqdm
+
+        self._tqdm = tqdm
+        self._quiet = not sys.stderr.isatty()
+        self._outer = tqdm(total=total, desc="configurations", position=0,
+                           disable=self._quiet, leave=True)
+        self._inner = None
+
+    def run_started(self, name: str, steps: int) -> None:
+        self._inner = self._tqdm(total=steps, desc=name[:28], position=1, leave=False,
+                                 disable=self._quiet)
+
+    def step(self) -> None:
+        if self._inner is not None:
+            self._inner.update()
+
+    def run_finished(self, name: str, skipped: bool) -> None:
+        if self._inner is not None:
+            self._inner.close()
+            self._inner = None
+        self._outer.update()
+        if skipped:
+            self._outer.write(f"{name}: done already, skipped")
+
+    def close(self) -> None:
+        self._outer.close()
+
+
+# --------------------------------------------------------------------------------------
+# commands
+# --------------------------------------------------------------------------------------
+
+
+def _scene(name_or_path: str, steps: int | None):
+    from .scene import load_scene, with_overrides
+
+    scene = load_scene(name_or_path)
+    if steps is not None:
+        if steps < 0:
+            raise PrdpFemError(f"--steps {steps}: expected an integer >= 0")
+        scene = with_overrides(scene, {"optimizer": {"steps": steps}})
+    return scene
+
+
+def _fresh_directory(stem: str) -> Path:
+    path, number = Path(stem), 2
+    while path.exists() and any(path.iterdir()):
+        path, number = Path(f"{stem}-{number}"), number + 1
+    return path
+
+
+def _format(value) -> str:
+    if isinstance(value, float):
+        return "-" if math.isnan(value) else f"{value:.4g}"
+    return str(value)
+
+
+def _print_table(rows: list[dict], columns: list[str]) -> None:
+    cells = [[_format(row.get(c, "")) for c in columns] for row in rows]
+    widths = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(columns)]
+    print("  ".join(c.rjust(w) for c, w in zip(columns, widths, strict=True)))
+    for row in cells:
+        print("  ".join(v.rjust(w) for v, w in zip(row, widths, strict=True)))
+
+
+SUMMARY_COLUMNS = {
+    "inverse": ["run", "final_error", "final_K", "time_s", "cg_iterations", "reached_step",
+                "time_to_target_s", "time_saving", "iteration_saving"],
+    "forward": ["run", "requested_iterations", "iterations", "wall_time_s",
+                "relative_l2_error", "relative_energy_error"],
+    "h": ["element", "level", "dofs", "l2_error", "rate", "cg_iterations", "cg_time",
+          "amg_time"],
+}
+
+
+def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
+    from .study import RESULTS, SUMMARY, configurations, run_study
+
+    if out is None:
+        out = Path(f"{prefix}-{scene.name}") if resume else _fresh_directory(
+            f"{prefix}-{scene.name}")
+    print(f"{scene.name} ({scene.source}): {scene.study.kind} study of "
+          f"{len(configurations(scene))} configuration(s) into {out}/", flush=True)
+    bars = _Bars(len(configurations(scene)))
+    try:
+        result = run_study(scene, out, resume=resume, progress=bars)
+    except KeyboardInterrupt:
+        bars.close()
+        raise _Interrupted(f"interrupted; finished records are kept in {out}/{RESULTS} "
+                           f"(continue with: prdp-fem study {scene.source} --out {out} "
+                           "--resume)") from None
+    bars.close()
+    _print_table(result.summary, SUMMARY_COLUMNS[scene.study.kind])
+    figures = ", ".join(str(p.relative_to(out)) for p in result.figures)
+    print(f"\nwrote {out}/: {RESULTS}, {SUMMARY}, {figures}"
+          + (", fields/*.vtu" if scene.study.kind == "inverse" else ""))
+
+
+def _study(args) -> None:
+    _run_study(_scene(args.scene, args.steps), args.out, args.resume, "study")
+
+
+def _invert(args) -> None:
+    scene = _scene(args.scene, args.steps)
+    if scene.inverse is None:
+        raise PrdpFemError(f"{scene.source}: no [inverse] section; expected one to invert")
+    own = json.dumps({}, sort_keys=True)
+    study = dataclasses.replace(scene.study, kind="inverse", runs=((scene.name, own),))
+    _run_study(dataclasses.replace(scene, study=study), args.out, False, "invert")
+
+
+def _is_mesh_file(text: str) -> bool:
+    return Path(text).suffix.lower() in MESH_SUFFIXES
+
+
+def _solve(args) -> None:
+    from .build import forward_solve
+    from .scene import load_scene, mesh_scene, with_overrides
+    from .vtu import write_vtu
+
+    scene = mesh_scene(args.input) if _is_mesh_file(args.input) else load_scene(args.input)
+    if args.iterations is not None:
+        if args.iterations < 0:
+            raise PrdpFemError(f"--iterations {args.iterations}: expected an integer >= 0")
+        scene = with_overrides(scene, {"solver": {"iterations": [args.iterations]}})
+    result = forward_solve(scene, reference=args.reference)
+    out = args.out or Path(f"{scene.name}-solution.vtu")
+    write_vtu(result.disc.mesh, out, {"u": ("nodal", result.u),
+                                      "kappa": (scene.pde.kappa_space, result.kappa)})
+    sol = result.solution
+    print(f"{scene.name}: {result.disc.n_free} free dofs, {scene.pde.element}, "
+          f"{scene.solver.preconditioner}-PCG {int(sol.iterations)} iterations, residual "
+          f"{float(sol.residual_norm):.3e} (initial {float(sol.initial_residual_norm):.3e}), "
+          f"{result.solve_time:.4f} s")
+    if args.reference:
+        print(f"relative l2 error against pyamg (rtol 1e-12): {result.relative_error:.3e}")
+    print(f"wrote {out}")
+
+
+def _mesh_info(args) -> None:
+    import warnings
+
+    from .errors import MeshError, MeshRepairWarning
+    from .mesh import load_mesh, mesh_quality
+
+    problems = []
+    try:
+        mesh = load_mesh(args.path)
+    except MeshError as error:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", MeshRepairWarning)
+            try:
+                mesh = load_mesh(args.path, repair=True)
+            except MeshError:
+                raise error from None
+        problems.append(f"{error.problem} (repairable: load_mesh(repair=True) or "
+                        "mesh.repair = true in a scene)")
+        problems += [str(w.message) for w in caught]
+    quality = mesh_quality(mesh)
+    print(f"{args.path}")
+    for field, value in quality._asdict().items():
+        print(f"{field:>14}: {_format(value) if isinstance(value, float) else value}")
+    for kind, groups in (("boundary", mesh.boundaries), ("subdomain", mesh.subdomains)):
+        for name, members in (groups or {}).items():
+            print(f"{kind:>14}: {name} ({len(members)})")
+    if not mesh.boundaries:
+        problems.append("no tagged boundaries: Dirichlet data can only be given for the "
+                        "whole boundary")
+    if quality.quality_min < 0.1:
+        problems.append(f"poorly shaped cells: minimum quality {quality.quality_min:.3g} "
+                        "(1 = equilateral); expect slow CG convergence")
+    if quality.h_max / quality.h_min > 100:
+        problems.append(f"strongly graded: longest / shortest edge = "
+                        f"{quality.h_max / quality.h_min:.3g}")
+    if quality.n_inverted:
+        problems.append(f"{quality.n_inverted} cells numbered clockwise (valid as they are)")
+    print(f"{'problems':>14}: {'none found' if not problems else len(problems)}")
+    for problem in problems:
+        print(f"{'':>14}  - {problem}")
+
+
+def _scenes(args) -> None:
+    from .scene import BUILTIN_SCENES, builtin_scene_path, load_scene
+
+    if args.name is not None:
+        print(builtin_scene_path(args.name).read_text(), end="")
+        return
+    for name in BUILTIN_SCENES:
+        scene = load_scene(name)
+        print(f"{name:<12} {scene.study.kind:<8} {scene.description}")
+
+
 def _forward(args) -> None:
-    from .study import build_scene, forward_convergence
+    from .forward import build_scene, forward_convergence
 
     if any(k < 0 for k in args.iterations):
         raise PrdpFemError(f"--iterations {args.iterations}: expected integers >= 0")
@@ -86,29 +352,23 @@ def _bench_cg(args) -> None:
               flush=True)
 
 
-def _mesh(args) -> None:
-    from .mesh import load_mesh, mesh_quality
-
-    mesh = load_mesh(args.path)
-    for field, value in mesh_quality(mesh)._asdict().items():
-        print(f"{field:>14}: {value}")
-    for kind, groups in (("boundary", mesh.boundaries), ("subdomain", mesh.subdomains)):
-        for name, members in (groups or {}).items():
-            print(f"{kind:>14}: {name} ({len(members)})")
+COMMANDS = {"study": _study, "invert": _invert, "solve": _solve, "mesh-info": _mesh_info,
+            "mesh": _mesh_info, "scenes": _scenes, "forward": _forward, "bench": _bench_cg}
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        if args.command == "forward":
-            _forward(args)
-        elif args.command == "bench":
-            _bench_cg(args)
-        elif args.command == "mesh":
-            _mesh(args)
+        COMMANDS[args.command](args)
     except PrdpFemError as error:
         print(f"prdp-fem: error: {error}", file=sys.stderr)
         return 2
+    except _Interrupted as message:
+        print(f"prdp-fem: {message}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print("prdp-fem: interrupted", file=sys.stderr)
+        return 130
     return 0
 
 

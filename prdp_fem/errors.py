@@ -67,5 +67,9 @@ class SolverConfigError(PrdpFemError):
     """A solver was constructed with an invalid option."""
 
 
+class SceneError(PrdpFemError):
+    """A scene file or table that cannot be used (names the file, the key and the expectation)."""
+
+
 class MeshRepairWarning(UserWarning):
     """A mesh was changed on load (orientation fixed, nodes merged or dropped)."""

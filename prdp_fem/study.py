@@ -1,130 +1,453 @@
-"""Forward convergence studies: error of the truncated PCG solve against K and run time.
+"""Convergence studies: sweep a scene's configurations, record every step, resume, summarise.
 
-One compiled solve serves every K (implicit mode traces K), so the sweep measures solve time,
-not compilation; the compile time of the first solve is reported separately. Errors are taken
-against a pyamg smoothed-aggregation solve to ``rtol = 1e-12`` of the same system.
+A study directory holds
 
-Scenes are small named recipes (mesh, element, coefficient, source, boundary data) built only
-when asked for.
+* ``study.json``     what was run (scene name, file, fingerprint, kind, configurations);
+* ``results.jsonl``  one JSON object per optimiser step / solve, appended, flushed and fsynced
+  as it lands; a configuration ends with a ``{"type": "done"}`` record;
+* ``summary.csv``    one row per configuration (rewritten atomically from the records);
+* ``figures/*.png``  and ``fields/*.vtu``.
+
+Everything after the records is derived from ``results.jsonl`` alone, so a killed study loses
+at most the configuration in flight: ``resume=True`` skips the configurations with a ``done``
+record and reruns the others as a new *attempt* (the records of an unfinished attempt stay in
+the file and are ignored). A torn last line (a kill mid-write) is skipped.
+
+Study kinds: ``"inverse"`` (inversions with error, time and CG iterations per step),
+``"forward"`` (truncated-PCG error against K and time) and ``"h"`` (discretisation error
+against h and run time for each element, with pyamg timed beside).
 """
 
 from __future__ import annotations
 
+import csv
+import json
+import math
+import os
+import re
 import time
-from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cg import TruncatedCG, solve
-from .discretization import Discretization, discretize
+from . import plots
+from .build import (
+    build_discretization,
+    build_inverse,
+    build_mesh,
+    coefficient,
+    field_function,
+    invert_options,
+)
+from .cg import ConvergedCG, solve
+from .comparison import settled
 from .errors import PrdpFemError
-from .generators import l_shape, rectangle_with_hole, unit_cube, unit_square
-from .mesh import load_mesh
-from .reference import amg_solve
+from .forward import Scene as ForwardScene
+from .forward import forward_convergence
+from .history import History, StepRecord
+from .inverse import invert
+from .operator import SparseMatrix
+from .reference import amg_solve, l2_error
+from .scene import Scene
+from .vtu import write_vtu
 
-__all__ = ["SCENES", "ForwardRecord", "ForwardStudy", "build_scene", "forward_convergence"]
+__all__ = [
+    "DEFAULT_FORWARD_ITERATIONS",
+    "Progress",
+    "ResultsLog",
+    "StudyError",
+    "StudyOutput",
+    "run_study",
+    "summarize",
+]
 
-
-class ForwardRecord(NamedTuple):
-    """One K of a forward study."""
-
-    requested_iterations: int
-    iterations: int
-    wall_time_s: float
-    relative_l2_error: float
-    relative_energy_error: float
-    residual_norm: float
-
-
-class ForwardStudy(NamedTuple):
-    n_dofs: int
-    setup_time_s: float  # discretisation + reference solve
-    compile_time_s: float  # first solve minus a steady solve
-    records: list[ForwardRecord]
+RESULTS, SUMMARY, MANIFEST = "results.jsonl", "summary.csv", "study.json"
+DEFAULT_FORWARD_ITERATIONS = (0, 5, 10, 20, 40, 80, 160, 320, 640)
 
 
-class Scene(NamedTuple):
-    disc: Discretization
-    kappa: np.ndarray
-    source: np.ndarray
+class StudyError(PrdpFemError):
+    """A study directory that cannot be (re)used as asked."""
 
 
-def _smooth_kappa(x):
-    return 1.0 + 0.5 * np.sin(2 * np.pi * x[0]) * np.cos(np.pi * x[1])
+class Progress(Protocol):
+    """What a study reports while it runs (the CLI draws bars; the default does nothing)."""
+
+    def run_started(self, name: str, steps: int) -> None: ...
+    def step(self) -> None: ...
+    def run_finished(self, name: str, skipped: bool) -> None: ...
 
 
-def _bump_source(x):
-    return 10.0 * np.exp(-20.0 * ((x[0] - 0.3) ** 2 + (x[1] - 0.6) ** 2))
+class _Silent:
+    def run_started(self, name: str, steps: int) -> None:
+        pass
+
+    def step(self) -> None:
+        pass
+
+    def run_finished(self, name: str, skipped: bool) -> None:
+        pass
 
 
-def _scene(mesh, element: str, dirichlet) -> Scene:
-    disc = discretize(mesh, element=element, kappa_space="P0", dirichlet=dirichlet)
-    return Scene(disc, disc.interpolate_kappa(_smooth_kappa), disc.interpolate(_bump_source))
+# --------------------------------------------------------------------------------------
+# the append-only record file
+# --------------------------------------------------------------------------------------
 
 
-SCENES: dict[str, Callable[[int, str], Scene]] = {
-    "square": lambda n, el: _scene(unit_square(n), el, 0.0),
-    "hole": lambda n, el: _scene(rectangle_with_hole(n), el, {"left": 0.0, "hole": 1.0}),
-    # l_shape(r) has 2^(r+1) cells across its side of length 2: r = log2(n) - 1 gives n
-    "lshape": lambda n, el: _scene(l_shape(max(int(np.log2(max(n, 2))) - 1, 0)), el, 0.0),
-    "cube": lambda n, el: _scene(unit_cube(n), el, 0.0),
-}
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, np.generic):
+        return _json_safe(value.item())
+    return value
 
 
-def build_scene(name: str | None = None, *, n: int = 64, element: str = "P1",
-                mesh_path: str | None = None) -> Scene:
-    """A named built-in scene, or the default problem on a user's mesh file."""
-    if mesh_path is not None:
-        return _scene(load_mesh(mesh_path), element, 0.0)
-    if name not in SCENES:
-        raise PrdpFemError(f"scene {name!r}: expected one of {sorted(SCENES)}")
-    return SCENES[name](n, element)
+class ResultsLog:
+    """Append-only JSON lines; every record is one ``write`` of a whole line, then fsync."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._checked_tail = False
+
+    def records(self) -> list[dict]:
+        """Every complete record; a torn (unterminated or unparsable) line is skipped."""
+        if not self.path.exists():
+            return []
+        records = []
+        for line in self.path.read_text().split("\n")[:-1]:
+            try:
+                record = json.loads(line)
+            except json.JSONDecodeError:
+                continue
+            if isinstance(record, dict):
+                records.append(record)
+        return records
+
+    def append(self, record: dict) -> None:
+        line = json.dumps({k: _json_safe(v) for k, v in record.items()}) + "\n"
+        with open(self.path, "ab") as stream:
+            if not self._checked_tail:  # a torn last line must not swallow this record
+                self._checked_tail = True
+                if stream.tell() > 0:
+                    with open(self.path, "rb") as tail:
+                        tail.seek(-1, os.SEEK_END)
+                        if tail.read(1) != b"\n":
+                            stream.write(b"\n")
+            stream.write(line.encode())
+            stream.flush()
+            os.fsync(stream.fileno())
 
 
-def forward_convergence(scene: Scene, iterations: Sequence[int], *,
-                        preconditioner: str = "jacobi",
-                        on_record: Callable[[ForwardRecord], None] | None = None) -> ForwardStudy:
-    """Solve ``scene`` with K PCG iterations for each K; errors against pyamg."""
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _slug(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "run"
+
+
+def _field_file(out: Path, run: str) -> Path:
+    return out / "fields" / f"{_slug(run)}.vtu"
+
+
+def completed(records: list[dict]) -> dict[str, int]:
+    """``{run name: attempt}`` of the configurations that finished."""
+    return {r["run"]: r["attempt"] for r in records if r.get("type") == "done"}
+
+
+def _next_attempt(records: list[dict], name: str) -> int:
+    return 1 + max((r.get("attempt", 0) for r in records if r.get("run") == name), default=0)
+
+
+# --------------------------------------------------------------------------------------
+# configurations
+# --------------------------------------------------------------------------------------
+
+
+def configurations(scene: Scene) -> list[tuple[str, Any]]:
+    """``(name, what to run)``: scene variants, or ``(element, level)`` for h-studies."""
+    if scene.study.kind == "h":
+        return [(f"{element} level {level}", (element, level))
+                for element in scene.study.elements for level in scene.study.levels]
+    return scene.runs()
+
+
+def _manifest(scene: Scene) -> dict:
+    return {"scene": scene.name, "file": scene.source, "fingerprint": scene.fingerprint,
+            "kind": scene.study.kind, "configurations": [n for n, _ in configurations(scene)],
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
+def _open(scene: Scene, out: Path, resume: bool) -> ResultsLog:
+    out.mkdir(parents=True, exist_ok=True)
+    log = ResultsLog(out / RESULTS)
+    manifest = out / MANIFEST
+    started = log.path.exists() and log.path.stat().st_size > 0
+    if started and not resume:
+        raise StudyError(f"{out}: holds a study already ({RESULTS}); pass --resume to continue "
+                         "it or choose another output directory")
+    if started or (resume and manifest.exists()):
+        try:
+            previous = json.loads(manifest.read_text())
+        except (OSError, json.JSONDecodeError):
+            raise StudyError(f"{manifest}: missing or unreadable; expected the manifest of the "
+                             "study to resume") from None
+        if previous.get("fingerprint") != scene.fingerprint:
+            raise StudyError(
+                f"{out}: was started from another scene or settings ({previous.get('file')}, "
+                f"fingerprint {previous.get('fingerprint')}); expected {scene.source} as it was "
+                f"(fingerprint {scene.fingerprint})")
+    else:
+        _atomic_write(manifest, json.dumps(_manifest(scene), indent=2) + "\n")
+    return log
+
+
+# --------------------------------------------------------------------------------------
+# runners: one configuration each, appending records as they land
+# --------------------------------------------------------------------------------------
+
+
+class _Setups:
+    """Inverse problems shared by configurations that differ only in solver settings."""
+
+    def __init__(self):
+        self._cache: dict = {}
+
+    def __call__(self, variant: Scene):
+        key = (variant.mesh, variant.pde, variant.inverse, variant.directory)
+        if key not in self._cache:
+            self._cache[key] = build_inverse(variant)
+        return self._cache[key]
+
+
+def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
+    setup = setups(variant)
+    progress.run_started(name, variant.optimizer.steps)
+
+    def record_step(record: StepRecord, params) -> None:
+        log.append({"type": "step", "run": name, "attempt": attempt, **record._asdict()})
+        progress.step()
+
+    result = invert(setup.problem, callback=record_step, **invert_options(variant, setup.disc))
+    space = "nodal" if variant.inverse.unknown == "source" else variant.pde.kappa_space
+    fields = {"recovered": (space, np.asarray(result.field))}
+    if setup.truth is not None:
+        fields["truth"] = (space, setup.truth)
+        fields["error"] = (space, np.asarray(result.field) - setup.truth)
+    write_vtu(setup.disc.mesh, _field_file(out, name), fields)
+
+
+def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setups) -> None:
+    disc = build_discretization(variant)
+    dim = disc.mesh.dim()
+    source = disc.interpolate(field_function(variant, "pde.source", variant.pde.source, dim))
+    scene = ForwardScene(disc, coefficient(variant, disc), source)
+    iterations = variant.solver.iterations or DEFAULT_FORWARD_ITERATIONS
+    progress.run_started(name, len(iterations))
+
+    def record(r) -> None:
+        log.append({"type": "forward", "run": name, "attempt": attempt,
+                    "dofs": disc.n_free, **r._asdict()})
+        progress.step()
+
+    study = forward_convergence(scene, iterations, preconditioner=variant.solver.preconditioner,
+                                on_record=record)
+    del study
+
+
+def _timed(fn: Callable, *args):
     start = time.perf_counter()
-    disc = scene.disc
-    A_ref = disc.stiffness_matrix(scene.kappa)
-    b_ref = disc.rhs(scene.kappa, scene.source)
-    x_ref = amg_solve(A_ref, b_ref, rtol=1e-12).x
-    energy_ref = np.sqrt(x_ref @ (A_ref @ x_ref))
-    mass_free = disc.source_matrix[:, disc.free_dofs]
-    l2_ref = np.sqrt(x_ref @ (mass_free @ x_ref))
-    system = disc.system
-    kappa = jnp.asarray(scene.kappa)
-    op = system.operator(kappa)
-    b = system.rhs(kappa, jnp.asarray(scene.source))
-    setup = time.perf_counter() - start
+    value = jax.block_until_ready(fn(*args))
+    return value, time.perf_counter() - start
 
-    @jax.jit
-    def run(op, b, k):
-        return solve(op, b, TruncatedCG(k, preconditioner, gradient="implicit"))
 
-    first = time.perf_counter()
-    jax.block_until_ready(run(op, b, 1))
-    first = time.perf_counter() - first
-    steady = time.perf_counter()
-    jax.block_until_ready(run(op, b, 1))
-    compile_time = max(first - (time.perf_counter() - steady), 0.0)
+def _run_level(name, config, attempt, log, progress, out: Path, scene: Scene) -> None:
+    element, level = config
+    progress.run_started(name, 1)
+    mesh = build_mesh(scene, level)
+    disc = build_discretization(scene, mesh, element)
+    dim = mesh.dim()
+    exact = field_function(scene, "pde.exact", scene.pde.exact, dim)
+    kappa = coefficient(scene, disc)
+    A = disc.stiffness_matrix(kappa)
+    b = disc.rhs(kappa) + disc.load_vector(
+        field_function(scene, "pde.source", scene.pde.source, dim))
+    solver = ConvergedCG(rtol=scene.solver.rtol, preconditioner=scene.solver.preconditioner)
+    run = jax.jit(lambda A, b: solve(A, b, solver))
+    A_jax, b_jax = SparseMatrix.from_scipy(A), jnp.asarray(b)
+    _, compile_time = _timed(run, A_jax, b_jax)
+    solution, cg_time = _timed(run, A_jax, b_jax)
+    reference, amg_time = _timed(lambda: amg_solve(A, b, rtol=scene.solver.rtol))
+    x = np.asarray(solution.x)
+    log.append({
+        "type": "level", "run": name, "attempt": attempt, "element": element, "level": level,
+        "h": float(mesh.param()), "dofs": disc.n_free,
+        "l2_error": l2_error(disc, disc.expand(x), exact),
+        "cg_iterations": int(solution.iterations), "cg_time": cg_time,
+        "compile_time": max(compile_time - cg_time, 0.0),
+        "amg_iterations": reference.iterations, "amg_time": amg_time,
+        "algebraic_error": float(np.linalg.norm(x - reference.x)
+                                 / max(np.linalg.norm(reference.x), 1e-300))})
+    progress.step()
 
-    records = []
-    for k in iterations:
-        tic = time.perf_counter()
-        sol = jax.block_until_ready(run(op, b, int(k)))
-        elapsed = time.perf_counter() - tic
-        error = np.asarray(sol.x) - x_ref
-        record = ForwardRecord(
-            requested_iterations=int(k), iterations=int(sol.iterations), wall_time_s=elapsed,
-            relative_l2_error=float(np.sqrt(error @ (mass_free @ error)) / l2_ref),
-            relative_energy_error=float(np.sqrt(error @ (A_ref @ error)) / energy_ref),
-            residual_norm=float(sol.residual_norm))
-        records.append(record)
-        if on_record is not None:
-            on_record(record)
-    return ForwardStudy(disc.n_free, setup, compile_time, records)
+
+# --------------------------------------------------------------------------------------
+# the study
+# --------------------------------------------------------------------------------------
+
+
+class StudyOutput(NamedTuple):
+    directory: Path
+    summary: list[dict]      # the rows of summary.csv
+    figures: list[Path]
+    ran: list[str]           # configurations run now (the others were done already)
+
+
+def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
+              progress: Progress | None = None) -> StudyOutput:
+    """Run every configuration of ``scene`` not yet done in ``out``; summarise and plot."""
+    out = Path(out)
+    progress = _Silent() if progress is None else progress
+    if scene.study.kind == "h" and scene.pde.exact is None:
+        raise StudyError(f"{scene.source}: study.kind = 'h' needs pde.exact (the exact "
+                         "solution to measure the error against)")
+    log = _open(scene, out, resume)
+    records = log.records()
+    done = completed(records)
+    runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level}[
+        scene.study.kind]
+    context = scene if scene.study.kind == "h" else _Setups()
+    ran = []
+    for name, config in configurations(scene):
+        if name in done:
+            progress.run_finished(name, skipped=True)
+            continue
+        attempt = _next_attempt(records, name)
+        runner(name, config, attempt, log, progress, out, context)
+        log.append({"type": "done", "run": name, "attempt": attempt})
+        progress.run_finished(name, skipped=False)
+        ran.append(name)
+    summary, figures = summarize(scene, out)
+    return StudyOutput(out, summary, figures, ran)
+
+
+def _finished_records(scene: Scene, records: list[dict]) -> dict[str, list[dict]]:
+    done = completed(records)
+    by_run: dict[str, list[dict]] = {name: [] for name, _ in configurations(scene)
+                                     if name in done}
+    for r in records:
+        if r.get("type") != "done" and r.get("run") in by_run and \
+                r.get("attempt") == done[r["run"]]:
+            by_run[r["run"]].append(r)
+    return by_run
+
+
+def _history(rows: list[dict]) -> History:
+    fields = StepRecord._fields
+    return History(StepRecord(**{k: (math.nan if r[k] is None else r[k]) for k in fields})
+                   for r in rows)
+
+
+def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
+    """Write ``summary.csv`` and the figures from ``results.jsonl``; return the rows."""
+    out = Path(out)
+    by_run = _finished_records(scene, ResultsLog(out / RESULTS).records())
+    kind = scene.study.kind
+    if kind == "inverse":
+        histories = {n: _history(r) for n, r in by_run.items()}
+        rows = _inverse_summary(scene, histories)
+        figures = plots.inverse_figures(scene.name, histories, _metric(by_run), out,
+                                        {n: _field_file(out, n) for n in histories})
+    elif kind == "forward":
+        rows = [{"run": name, **{k: v for k, v in r.items() if k not in ("type", "run")}}
+                for name, records in by_run.items() for r in records]
+        figures = plots.forward_figures(by_run, out)
+    else:
+        rows = _h_summary(by_run)
+        figures = plots.h_figures(rows, out)
+    _write_csv(out / SUMMARY, rows)
+    return rows, figures
+
+
+def _metric(by_run: dict[str, list[dict]]) -> str:
+    """The parameter error when a truth is known, else the misfit."""
+    last = [r[-1].get("parameter_error") for r in by_run.values() if r]
+    return "parameter_error" if any(v is not None for v in last) else "misfit"
+
+
+def _inverse_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
+    metric = _metric({n: [h[-1]._asdict()] if len(h) else [] for n, h in histories.items()})
+    finals = {n: getattr(h[-1], metric) for n, h in histories.items() if len(h)}
+    reference = histories.get(scene.study.reference)
+    if scene.study.target_error is not None:
+        target = scene.study.target_error
+    elif reference is not None and len(reference):
+        target = getattr(reference[-1], metric)
+    else:
+        target = min(finals.values(), default=math.nan)
+    base = reference[-1] if reference is not None and len(reference) else None
+    rows = []
+    for name, history in histories.items():
+        if not len(history):
+            continue
+        last = history[-1]
+        hit = _settled(history, target, scene.study.band, metric)
+        iterations = last.primal_iterations + last.adjoint_iterations_total
+        hit_iterations = hit.primal_iterations + hit.adjoint_iterations_total if hit \
+            else math.nan
+        rows.append({
+            "run": name, "steps": last.step, "metric": metric,
+            "final_error": getattr(last, metric), "final_loss": last.loss,
+            "final_K": "tol" if last.rtol > 0 else last.iterations,
+            "refinements": last.refinements, "time_s": last.time,
+            "compile_s": last.compile_time, "cg_iterations": iterations,
+            "evaluations": last.evaluations, "target_error": target,
+            "reached_step": hit.step if hit else "",
+            "time_to_target_s": hit.time if hit else math.nan,
+            "iterations_to_target": hit_iterations,
+            "time_saving": 1 - (hit.time if hit else math.nan) / base.time if base
+            else math.nan,
+            "iteration_saving": 1 - hit_iterations / (base.primal_iterations
+                                                      + base.adjoint_iterations_total)
+            if base else math.nan})
+    return rows
+
+
+def _settled(history: History, target: float, band: float, metric: str):
+    if metric != "parameter_error":  # settled() reads parameter_error: give it the metric
+        history = History(r._replace(parameter_error=getattr(r, metric)) for r in history)
+    return settled(history, target, band)
+
+
+def _h_summary(by_run: dict[str, list[dict]]) -> list[dict]:
+    rows = sorted((r for records in by_run.values() for r in records),
+                  key=lambda r: (r["element"], r["level"]))
+    out, previous = [], None
+    for r in rows:
+        rate = math.nan
+        if previous is not None and previous["element"] == r["element"]:
+            rate = math.log(previous["l2_error"] / r["l2_error"]) / math.log(
+                previous["h"] / r["h"])
+        out.append({"run": r["run"], **{k: r[k] for k in (
+            "element", "level", "h", "dofs", "l2_error")}, "rate": rate,
+            **{k: r[k] for k in ("cg_iterations", "cg_time", "amg_iterations", "amg_time",
+                                 "algebraic_error")},
+            "cg_over_amg_time": r["cg_time"] / r["amg_time"]})
+        previous = r
+    return out
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as stream:
+        if rows:
+            writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
+    os.replace(tmp, path)

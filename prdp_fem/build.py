@@ -1,0 +1,230 @@
+"""Turn a :class:`~prdp_fem.scene.Scene` into numerics, building only what the scene uses.
+
+* :func:`build_mesh` / :func:`build_discretization`: the mesh and the condensed system maps.
+* :func:`forward_solve`: one (truncated) PCG solve of the scene's PDE. Its right-hand side is
+  the exact load of the source formula, so no mass matrix is assembled; no AMG hierarchy or
+  reference solve is made unless ``reference=True``; nothing is differentiated.
+* :func:`build_inverse`: the :class:`~prdp_fem.inverse.InverseProblem` (synthetic data come from
+  one direct solve of the truth).
+* :func:`controller`, :func:`optimizer`, :func:`invert_options`: the refinement controller, the
+  optax optimiser and the keyword arguments of :func:`~prdp_fem.inverse.invert`.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import skfem
+
+from . import generators
+from .cg import ConvergedCG, Solution, TruncatedCG, solve
+from .discretization import Discretization, discretize
+from .errors import PrdpFemError
+from .expressions import compile_field
+from .inverse import InverseProblem, Validation, inverse_problem
+from .mesh import load_mesh
+from .observations import boundary_values, full_field, point_sensors, with_noise
+from .operator import SparseMatrix
+from .prdp import Refinement, converged, fixed, prdp
+from .reference import amg_solve, direct_solve
+from .scene import Scene
+
+__all__ = [
+    "ForwardResult",
+    "build_discretization",
+    "build_inverse",
+    "build_mesh",
+    "controller",
+    "field_function",
+    "forward_solve",
+    "invert_options",
+    "optimizer",
+]
+
+DIRECT_SOLVE_LIMIT = 200_000  # free dofs up to which synthetic data use SuperLU (else pyamg)
+
+
+def build_mesh(scene: Scene, level: int | None = None) -> skfem.Mesh:
+    """The scene's mesh; ``level`` overrides ``n`` (generators) or ``refine`` (files)."""
+    spec = scene.mesh
+    path = scene.mesh_path()
+    if path is not None:
+        mesh = load_mesh(path, repair=spec.repair)
+        refinements = spec.refine if level is None else level
+    else:
+        n = spec.n if level is None else level
+        make = getattr(generators, spec.generator)
+        mesh = make(n, spec.cell) if spec.cell is not None else make(n)
+        refinements = spec.refine
+    return mesh.refined(refinements) if refinements else mesh  # tags are refined too
+
+
+def field_function(scene: Scene, key: str, value, dim: int):
+    return compile_field(value, where=f"{scene.source}: {key}", dim=dim)
+
+
+def _boundary_data(scene: Scene, key: str, value, dim: int):
+    if isinstance(value, tuple):  # {boundary = field}
+        return {name: field_function(scene, f"{key}.{name}", v, dim) for name, v in value}
+    return field_function(scene, key, value, dim)
+
+
+def build_discretization(scene: Scene, mesh: skfem.Mesh | None = None,
+                         element: str | None = None) -> Discretization:
+    mesh = build_mesh(scene) if mesh is None else mesh
+    dim = mesh.dim()
+    neumann = _boundary_data(scene, "pde.neumann", scene.pde.neumann, dim) \
+        if scene.pde.neumann else None
+    return discretize(mesh, element=element or scene.pde.element,
+                      kappa_space=scene.pde.kappa_space,
+                      dirichlet=_boundary_data(scene, "pde.dirichlet", scene.pde.dirichlet, dim),
+                      neumann=neumann)
+
+
+def coefficient(scene: Scene, disc: Discretization) -> np.ndarray:
+    kappa = disc.interpolate_kappa(field_function(scene, "pde.kappa", scene.pde.kappa,
+                                                  disc.mesh.dim()))
+    if not (kappa > 0).all():
+        raise PrdpFemError(f"{scene.source}: pde.kappa = {scene.pde.kappa!r}: expected values "
+                           f"> 0 on the mesh, found min {kappa.min():.3g}")
+    return kappa
+
+
+class ForwardResult(NamedTuple):
+    disc: Discretization
+    kappa: np.ndarray
+    u: np.ndarray              # all dofs (Dirichlet data included)
+    solution: Solution         # the CG diagnostics (free dofs)
+    solve_time: float          # compiled solve, seconds
+    relative_error: float      # nodal l2 against pyamg (NaN unless reference=True)
+
+
+def forward_solve(scene: Scene, *, reference: bool = False,
+                  disc: Discretization | None = None) -> ForwardResult:
+    """Solve the scene's PDE with PCG: ``solver.iterations[0]`` iterations, else to ``rtol``."""
+    disc = build_discretization(scene) if disc is None else disc
+    kappa = coefficient(scene, disc)
+    load = disc.load_vector(field_function(scene, "pde.source", scene.pde.source,
+                                           disc.mesh.dim()))
+    A = disc.stiffness_matrix(kappa)
+    b = disc.rhs(kappa) + load
+    spec = scene.solver
+    solver = TruncatedCG(spec.iterations[0], spec.preconditioner, gradient="implicit") \
+        if spec.iterations else ConvergedCG(rtol=spec.rtol, preconditioner=spec.preconditioner)
+    run = jax.jit(lambda A, b: solve(A, b, solver))
+    A_jax, b_jax = SparseMatrix.from_scipy(A), jnp.asarray(b)
+    jax.block_until_ready(run(A_jax, b_jax))  # compile
+    start = time.perf_counter()
+    solution = jax.block_until_ready(run(A_jax, b_jax))
+    elapsed = time.perf_counter() - start
+    x = np.asarray(solution.x)
+    error = float("nan")
+    if reference:
+        x_ref = amg_solve(A, b, rtol=1e-12).x
+        error = float(np.linalg.norm(x - x_ref) / max(np.linalg.norm(x_ref), 1e-300))
+    return ForwardResult(disc, kappa, disc.expand(x), solution, elapsed, error)
+
+
+def _true_state(disc: Discretization, kappa: np.ndarray, f: np.ndarray) -> np.ndarray:
+    A, b = disc.stiffness_matrix(kappa), disc.rhs(kappa, f)
+    x = direct_solve(A, b).x if disc.n_free <= DIRECT_SOLVE_LIMIT else amg_solve(A, b).x
+    return disc.expand(x)
+
+
+def _sensor_points(scene: Scene, disc: Discretization) -> np.ndarray:
+    sensors = scene.inverse.sensors
+    if not isinstance(sensors, int):
+        return np.asarray(sensors, dtype=float)
+    mesh = disc.mesh
+    interior = np.setdiff1d(np.arange(mesh.p.shape[1]), mesh.boundary_nodes())
+    if sensors > len(interior):
+        raise PrdpFemError(f"{scene.source}: inverse.sensors = {sensors}: the mesh has only "
+                           f"{len(interior)} interior vertices")
+    picked = np.random.default_rng(scene.inverse.seed).choice(interior, sensors, replace=False)
+    return mesh.p[:, np.sort(picked)].T
+
+
+class InverseSetup(NamedTuple):
+    disc: Discretization
+    problem: InverseProblem
+    truth: np.ndarray | None   # the unknown field (nodal source or log kappa), if known
+
+
+def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSetup:
+    """The inverse problem of the scene (data synthetic from ``truth`` unless ``data`` given)."""
+    spec = scene.inverse
+    if spec is None:
+        raise PrdpFemError(f"{scene.source}: no [inverse] section; expected one to invert")
+    disc = build_discretization(scene) if disc is None else disc
+    dim = disc.mesh.dim()
+    source_unknown = spec.unknown == "source"
+    to_field = disc.interpolate if source_unknown else disc.interpolate_kappa
+    truth = None if spec.truth is None else to_field(
+        field_function(scene, "inverse.truth", spec.truth, dim))
+    if source_unknown:
+        known = coefficient(scene, disc)
+    else:
+        known = disc.interpolate(field_function(scene, "pde.source", scene.pde.source, dim))
+    if spec.data is not None:
+        observation = full_field(disc, norm=spec.norm, data=disc.project(
+            field_function(scene, "inverse.data", spec.data, dim)))
+    else:
+        kappa, f = (known, truth) if source_unknown else (np.exp(truth), known)
+        u_true = _true_state(disc, kappa, f)
+        if spec.observations == "full_field":
+            observation = full_field(disc, norm=spec.norm, u_true=u_true)
+        elif spec.observations == "sensors":
+            observation = point_sensors(disc, _sensor_points(scene, disc), u_true=u_true)
+        else:
+            observation = boundary_values(disc, spec.boundaries, u_true=u_true)
+        if spec.noise > 0:
+            observation = with_noise(observation, spec.noise, spec.seed)
+    problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
+                              regularization=spec.regularization, known=known, truth=truth,
+                              bounds=spec.bounds)
+    return InverseSetup(disc, problem, truth)
+
+
+def initial_field(scene: Scene, disc: Discretization) -> np.ndarray | None:
+    if scene.inverse.init is None:
+        return None
+    fn = field_function(scene, "inverse.init", scene.inverse.init, disc.mesh.dim())
+    return disc.interpolate(fn) if scene.inverse.unknown == "source" \
+        else disc.interpolate_kappa(fn)
+
+
+def controller(scene: Scene) -> Refinement:
+    spec = scene.refinement
+    if spec.kind == "fixed":
+        return fixed(spec.K, spec.K_adj)
+    if spec.kind == "converged":
+        return converged(spec.rtol)
+    adjoint = None if spec.adjoint_K0 is None else (
+        spec.adjoint_K0, spec.adjoint_dK, spec.adjoint_K_max, spec.adjoint_factor)
+    return prdp(spec.K0, spec.dK, spec.K_max, factor=spec.factor, adjoint=adjoint,
+                tau_step=spec.tau_step, tau_stop=spec.tau_stop, ema_window=spec.ema_window,
+                delta=spec.delta, latch=spec.latch, restart=spec.restart, rtol=spec.rtol)
+
+
+def optimizer(scene: Scene) -> optax.GradientTransformation:
+    spec = scene.optimizer
+    if spec.name == "lbfgs":
+        return optax.lbfgs(memory_size=spec.memory_size)
+    return getattr(optax, spec.name)(spec.learning_rate)
+
+
+def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:
+    """Keyword arguments of :func:`~prdp_fem.inverse.invert` for this scene."""
+    spec = scene.refinement
+    monitor: str | Validation = spec.monitor
+    if monitor == "validation":
+        monitor = Validation(spec.validation_every, spec.validation_rtol)
+    return dict(optimizer=optimizer(scene), refinement=controller(scene),
+                gradient=scene.solver.gradient, steps=scene.optimizer.steps,
+                init=initial_field(scene, disc), preconditioner=scene.solver.preconditioner,
+                monitor=monitor)

@@ -1,0 +1,587 @@
+"""Scene files: TOML -> frozen, validated dataclasses (no numerics here; see :mod:`.build`).
+
+A scene says what a problem needs and nothing else. Sections (all optional; everything unsaid
+takes the default written in the dataclass below):
+
+``[mesh]``        ``generator`` (unit_square | unit_cube | l_shape | disk | rectangle_with_hole)
+                  with ``n`` and ``cell``, *or* ``file`` (relative to the scene file;
+                  ``"@meshes/NAME"`` is a mesh shipped with the package); ``refine``, ``repair``
+``[pde]``         ``element``, ``kappa_space``, ``kappa``, ``source`` (numbers or formulas in
+                  x, y, z, see :mod:`.expressions`), ``dirichlet`` (a value for the whole
+                  boundary or a table ``{boundary = value}``), ``neumann`` (a table), ``exact``
+``[inverse]``     ``unknown`` (source | log_kappa), ``truth``, ``data``, ``observations``
+                  (full_field | sensors | boundary), ``norm``, ``sensors``, ``boundaries``,
+                  ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
+``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
+``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
+``[optimizer]``   ``name`` (lbfgs | adam | sgd), ``steps``, ``learning_rate``, ``memory_size``
+``[study]``       ``kind`` (inverse | forward | h), ``[[study.runs]]`` (``name`` plus tables
+                  that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
+                  ``solver``, ``optimizer`` merge key by key), ``reference``, ``target_error``,
+                  ``band``, ``levels``, ``elements``
+
+Unknown keys and bad values raise :class:`SceneError` naming the file, the key and what is
+allowed.
+
+>>> scene = parse_scene({"mesh": {"n": 8}, "pde": {"source": "sin(pi*x)"}})
+>>> scene.mesh.n, scene.pde.element, scene.inverse is None, scene.study.kind
+(8, 'P1', True, 'forward')
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from .errors import SceneError
+from .expressions import compile_field
+
+__all__ = [
+    "BUILTIN_SCENES",
+    "InverseSpec",
+    "MeshSpec",
+    "OptimizerSpec",
+    "PdeSpec",
+    "RefinementSpec",
+    "Scene",
+    "SceneError",
+    "SolverSpec",
+    "StudySpec",
+    "builtin_scene_path",
+    "load_scene",
+    "mesh_scene",
+    "parse_scene",
+    "with_overrides",
+]
+
+BUILTIN_SCENES = ("mother", "inclusion", "plate_hole", "cube", "poisson_h")
+GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
+PACKAGE_MESH_PREFIX = "@meshes/"
+
+Field = float | str  # a number or a formula, validated by expressions.compile_field
+
+
+class _Table:
+    """Reads one TOML table key by key; whatever is left unread is an unknown key."""
+
+    def __init__(self, data: Any, section: str, source: str):
+        if not isinstance(data, dict):
+            raise SceneError(f"{source}: [{section}] must be a table, got {data!r}")
+        self.data, self.section, self.source = dict(data), section, source
+        self.read: list[str] = []
+
+    def where(self, key: str) -> str:
+        return f"{self.section}.{key}" if self.section else key
+
+    def fail(self, key: str, expected: str) -> SceneError:
+        return SceneError(f"{self.source}: {self.where(key)} = {self.data.get(key)!r}: "
+                          f"expected {expected}")
+
+    def get(self, key: str, default: Any, check, expected: str) -> Any:
+        self.read.append(key)
+        if key not in self.data:
+            return default
+        value = self.data[key]
+        if not check(value):
+            raise self.fail(key, expected)
+        return value
+
+    def integer(self, key: str, default: int | None, minimum: int = 0) -> int | None:
+        return self.get(key, default, lambda v: _is_int(v) and v >= minimum,
+                        f"an integer >= {minimum}")
+
+    def number(self, key: str, default: float | None, *, low: float = float("-inf"),
+               high: float = float("inf"), open_low: bool = False) -> float | None:
+        def check(v):
+            ok_low = v > low if open_low else v >= low
+            return _is_number(v) and ok_low and v <= high
+        bound = f"> {low}" if open_low else f">= {low}"
+        value = self.get(key, default, check, f"a finite number {bound} and <= {high}")
+        return None if value is None else float(value)
+
+    def choice(self, key: str, default: str | None, choices: tuple[str, ...]) -> str | None:
+        return self.get(key, default, lambda v: v in choices, f"one of {list(choices)}")
+
+    def boolean(self, key: str, default: bool) -> bool:
+        return self.get(key, default, lambda v: isinstance(v, bool), "true or false")
+
+    def field(self, key: str, default: Field | None, dim: int = 3) -> Field | None:
+        value = self.get(key, default, lambda v: True, "")
+        if value is not None:
+            compile_field(value, where=f"{self.source}: {self.where(key)}", dim=dim)
+        return value if not _is_number(value) else float(value)
+
+    def field_table(self, key: str) -> tuple[tuple[str, Field], ...]:
+        table = self.get(key, {}, lambda v: isinstance(v, dict), "a table {boundary = value}")
+        for name, value in table.items():
+            compile_field(value, where=f"{self.source}: {self.where(key)}.{name}")
+        return tuple(sorted(table.items()))
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.data) - set(self.read))
+        if unknown:
+            raise SceneError(f"{self.source}: unknown key {self.where(unknown[0])!r}; allowed "
+                             f"in [{self.section or 'top level'}]: {sorted(set(self.read))}")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) \
+        and abs(value) != float("inf") and value == value
+
+
+# --------------------------------------------------------------------------------------
+# sections
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshSpec:
+    """Where the mesh comes from. ``n``: cells per unit length (squares, cubes, the holed
+    rectangle) or refinement level (L-shape, disk). ``file`` is resolved against the scene."""
+
+    generator: str | None = "unit_square"
+    file: str | None = None
+    n: int = 32
+    cell: str | None = None  # triangle | quad (2-D generators), tetra | hexahedron (unit_cube)
+    refine: int = 0          # uniform refinements after generation or loading
+    repair: bool = False     # merge duplicate nodes, drop unused ones (load_mesh(repair=True))
+
+
+@dataclasses.dataclass(frozen=True)
+class PdeSpec:
+    """``-div(kappa grad u) = source`` with Dirichlet / Neumann data; ``exact`` for h-studies."""
+
+    element: str = "P1"
+    kappa_space: str = "P0"
+    kappa: Field = 1.0
+    source: Field = 1.0
+    dirichlet: Field | tuple[tuple[str, Field], ...] = 0.0
+    neumann: tuple[tuple[str, Field], ...] = ()
+    exact: Field | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class InverseSpec:
+    """What is unknown, what is observed and how the misfit is regularised.
+
+    Data are ``data`` (a field observed in full: the misfit is against its L2 projection) or,
+    when absent, synthetic: the state of ``truth`` (solved once, directly), observed, plus
+    Gaussian noise ``noise * max|d|`` seeded with ``seed``. ``sensors``: a count of random
+    interior mesh vertices, or a list of coordinates.
+    """
+
+    unknown: str = "source"
+    truth: Field | None = None
+    data: Field | None = None
+    observations: str = "full_field"
+    norm: str = "l2"
+    sensors: int | tuple[tuple[float, ...], ...] = 50
+    boundaries: tuple[str, ...] = ()
+    noise: float = 0.0
+    seed: int = 0
+    alpha: float = 1e-6
+    regularization: str = "h1"
+    bounds: tuple[float, float] | None = None
+    init: Field | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverSpec:
+    """The CG solve. ``iterations``: the K list of forward studies and ``prdp-fem solve``'s
+    truncation (its first entry; none: solve to ``rtol``)."""
+
+    preconditioner: str = "jacobi"
+    gradient: str = "implicit"
+    iterations: tuple[int, ...] = ()
+    rtol: float = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class RefinementSpec:
+    """How the CG iterations are chosen during an inversion (see :mod:`prdp_fem.prdp`).
+
+    ``kind = "prdp"`` uses ``K0, dK, K_max, factor, adjoint_K0, adjoint_dK, adjoint_K_max,
+    adjoint_factor, tau_step, tau_stop, ema_window, delta, latch, restart, rtol``;
+    ``"fixed"`` uses ``K, K_adj``; ``"converged"`` uses ``rtol``. ``monitor``: loss |
+    gradient | validation (``validation_every``, ``validation_rtol``).
+    """
+
+    kind: str = "prdp"
+    K0: int = 25
+    dK: int = 10
+    K_max: int = 600
+    factor: float = 1.0
+    adjoint_K0: int | None = None
+    adjoint_dK: int = 10
+    adjoint_K_max: int = 600
+    adjoint_factor: float = 1.0
+    tau_step: float = 0.98
+    tau_stop: float = 0.9
+    ema_window: int = 6
+    delta: int = 3
+    latch: bool = False
+    restart: bool = True
+    rtol: float | None = None
+    K: int = 20
+    K_adj: int | None = None
+    monitor: str = "loss"
+    validation_every: int = 1
+    validation_rtol: float = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizerSpec:
+    name: str = "lbfgs"
+    steps: int = 100
+    learning_rate: float = 1e-2   # adam, sgd
+    memory_size: int = 10         # lbfgs
+
+
+@dataclasses.dataclass(frozen=True)
+class StudySpec:
+    """What ``prdp-fem study`` sweeps. ``runs``: ``(name, overrides as canonical JSON)``."""
+
+    kind: str = "inverse"
+    runs: tuple[tuple[str, str], ...] = ()
+    reference: str = "converged"
+    target_error: float | None = None
+    band: float = 0.01
+    levels: tuple[int, ...] = (4, 8, 16, 32)
+    elements: tuple[str, ...] = ("P1", "P2")
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    name: str
+    description: str
+    source: str               # the file (or "<table>") for messages
+    directory: str | None     # for relative mesh paths
+    mesh: MeshSpec
+    pde: PdeSpec
+    inverse: InverseSpec | None
+    solver: SolverSpec
+    refinement: RefinementSpec
+    optimizer: OptimizerSpec
+    study: StudySpec
+    raw: str                  # canonical JSON of the table it came from (for variants)
+
+    @property
+    def fingerprint(self) -> str:
+        """Hash of everything that changes results (not the name or the description)."""
+        table = json.loads(self.raw)
+        for key in ("name", "description"):
+            table.pop(key, None)
+        text = json.dumps([table, self.directory], sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def mesh_path(self) -> Path | None:
+        """The mesh file, resolved (relative paths against the scene's directory)."""
+        if self.mesh.file is None:
+            return None
+        if self.mesh.file.startswith(PACKAGE_MESH_PREFIX):
+            name = self.mesh.file[len(PACKAGE_MESH_PREFIX):]
+            return Path(str(resources.files("prdp_fem") / "data" / "meshes" / name))
+        path = Path(self.mesh.file).expanduser()
+        if not path.is_absolute() and self.directory is not None:
+            path = Path(self.directory) / path
+        return path
+
+    def runs(self) -> list[tuple[str, Scene]]:
+        """The study's configurations as scenes.
+
+        With no ``[[study.runs]]``: an inverse study runs the scene's own configuration and a
+        ``"converged"`` baseline (``rtol = 1e-10``); other studies run the scene as it is.
+        """
+        if not self.study.runs:
+            if self.study.kind != "inverse" or self.refinement.kind == "converged":
+                return [(self.name, self)]
+            baseline = _variant(self, {"refinement": {"kind": "converged"}}, "converged")
+            return [("converged", baseline), (self.name, self)]
+        return [(name, _variant(self, json.loads(overrides), name))
+                for name, overrides in self.study.runs]
+
+
+# --------------------------------------------------------------------------------------
+# parsing
+# --------------------------------------------------------------------------------------
+
+
+def _mesh(t: _Table) -> MeshSpec:
+    file = t.get("file", None, lambda v: isinstance(v, str) and v, "a mesh file path")
+    generator = t.choice("generator", None if file else "unit_square", GENERATORS)
+    if file is not None and generator is not None:
+        raise SceneError(f"{t.source}: mesh.file and mesh.generator both given; expected one")
+    default_n = 3 if generator in ("l_shape", "disk") else 32
+    n = t.integer("n", default_n, minimum=0 if generator in ("l_shape", "disk") else 1)
+    cells = {"unit_square": ("triangle", "quad"), "unit_cube": ("tetra", "hexahedron")}
+    cell = t.choice("cell", None, cells.get(generator, ()))
+    spec = MeshSpec(generator, file, n, cell, t.integer("refine", 0), t.boolean("repair", False))
+    t.finish()
+    return spec
+
+
+def _pde(t: _Table) -> PdeSpec:
+    element = t.choice("element", "P1", ("P1", "P2", "Q1", "Q2"))
+    kappa_space = t.choice("kappa_space", "P0", ("P0", "P1"))
+    kappa, source = t.field("kappa", 1.0), t.field("source", 1.0)
+    if isinstance(t.data.get("dirichlet"), dict):
+        dirichlet = t.field_table("dirichlet")
+    else:
+        dirichlet = t.field("dirichlet", 0.0)
+    spec = PdeSpec(element, kappa_space, kappa, source, dirichlet, t.field_table("neumann"),
+                   t.field("exact", None))
+    t.finish()
+    return spec
+
+
+def _sensors(t: _Table):
+    def check(v):
+        if _is_int(v):
+            return v >= 1
+        return isinstance(v, list) and len(v) > 0 and all(
+            isinstance(p, list) and len(p) in (2, 3) and all(_is_number(c) for c in p)
+            for p in v)
+    value = t.get("sensors", 50, check, "a positive count or a non-empty list of [x, y(, z)] "
+                  "points")
+    return value if _is_int(value) else tuple(tuple(float(c) for c in p) for p in value)
+
+
+def _inverse(t: _Table) -> InverseSpec:
+    unknown = t.choice("unknown", "source", ("source", "log_kappa"))
+    truth, data = t.field("truth", None), t.field("data", None)
+    observations = t.choice("observations", "full_field", ("full_field", "sensors", "boundary"))
+    norm = t.choice("norm", "l2", ("l2", "nodal"))
+    sensors = _sensors(t)
+    boundaries = tuple(t.get("boundaries", [], lambda v: isinstance(v, list) and all(
+        isinstance(b, str) for b in v), "a list of boundary names"))
+    noise = t.number("noise", 0.0, low=0.0)
+    seed = t.integer("seed", 0)
+    alpha = t.number("alpha", 1e-6, low=0.0)
+    regularization = t.choice("regularization", "h1", ("l2", "h1", "tv"))
+    bounds = t.get("bounds", None, lambda v: isinstance(v, list) and len(v) == 2 and all(
+        _is_number(b) for b in v) and v[0] < v[1], "[lower, upper] with lower < upper")
+    spec = InverseSpec(unknown, truth, data, observations, norm, sensors, boundaries, noise,
+                       seed, alpha, regularization,
+                       None if bounds is None else (float(bounds[0]), float(bounds[1])),
+                       t.field("init", None))
+    t.finish()
+    if data is None and truth is None:
+        raise SceneError(f"{t.source}: [inverse] needs 'truth' (synthetic data) or 'data'")
+    if data is not None and observations != "full_field":
+        raise SceneError(f"{t.source}: inverse.data is a field observed everywhere; expected "
+                         f"observations = 'full_field', got {observations!r}")
+    if observations == "boundary" and not boundaries:
+        raise SceneError(f"{t.source}: inverse.boundaries: expected a non-empty list of "
+                         "boundary names for observations = 'boundary'")
+    return spec
+
+
+def _solver(t: _Table) -> SolverSpec:
+    spec = SolverSpec(
+        t.choice("preconditioner", "jacobi", ("jacobi", "identity")),
+        t.choice("gradient", "implicit", ("implicit", "unrolled")),
+        tuple(t.get("iterations", [], lambda v: isinstance(v, list) and all(
+            _is_int(k) and k >= 0 for k in v), "a list of integers >= 0")),
+        t.number("rtol", 1e-10, low=0.0, high=0.5, open_low=True))
+    t.finish()
+    return spec
+
+
+_REFINEMENT_KEYS = {
+    "prdp": ("K0", "dK", "K_max", "factor", "adjoint_K0", "adjoint_dK", "adjoint_K_max",
+             "adjoint_factor", "tau_step", "tau_stop", "ema_window", "delta", "latch",
+             "restart", "rtol"),
+    "fixed": ("K", "K_adj"),
+    "converged": ("rtol",),
+}
+
+
+def _refinement(t: _Table) -> RefinementSpec:
+    kind = t.choice("kind", "prdp", tuple(_REFINEMENT_KEYS))
+    defaults = RefinementSpec()
+    values: dict[str, Any] = {"kind": kind}
+    readers = {
+        "K0": lambda k: t.integer(k, defaults.K0, 1),
+        "dK": lambda k: t.integer(k, defaults.dK, 0),
+        "K_max": lambda k: t.integer(k, defaults.K_max, 1),
+        "factor": lambda k: t.number(k, 1.0, low=1.0),
+        "adjoint_K0": lambda k: t.integer(k, None, 1),
+        "adjoint_dK": lambda k: t.integer(k, defaults.adjoint_dK, 0),
+        "adjoint_K_max": lambda k: t.integer(k, defaults.adjoint_K_max, 1),
+        "adjoint_factor": lambda k: t.number(k, 1.0, low=1.0),
+        "tau_step": lambda k: t.number(k, defaults.tau_step, low=0.0, open_low=True),
+        "tau_stop": lambda k: t.number(k, defaults.tau_stop, low=0.0, high=1.0, open_low=True),
+        "ema_window": lambda k: t.integer(k, defaults.ema_window, 1),
+        "delta": lambda k: t.integer(k, defaults.delta, 2),
+        "latch": lambda k: t.boolean(k, defaults.latch),
+        "restart": lambda k: t.boolean(k, defaults.restart),
+        "rtol": lambda k: t.number(k, 1e-10 if kind == "converged" else None, low=0.0,
+                                   high=0.5, open_low=True),
+        "K": lambda k: t.integer(k, defaults.K, 0),
+        "K_adj": lambda k: t.integer(k, None, 0),
+    }
+    for key in _REFINEMENT_KEYS[kind]:
+        values[key] = readers[key](key)
+    values["monitor"] = t.choice("monitor", "loss", ("loss", "gradient", "validation"))
+    values["validation_every"] = t.integer("validation_every", 1, 1)
+    values["validation_rtol"] = t.number("validation_rtol", 1e-10, low=0.0, high=0.5,
+                                         open_low=True)
+    t.finish()
+    spec = RefinementSpec(**values)
+    if kind == "prdp" and spec.K0 > spec.K_max:
+        raise SceneError(f"{t.source}: refinement.K0 = {spec.K0} exceeds K_max = {spec.K_max}")
+    return spec
+
+
+def _optimizer(t: _Table) -> OptimizerSpec:
+    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd")),
+                         t.integer("steps", 100, 0),
+                         t.number("learning_rate", 1e-2, low=0.0, open_low=True),
+                         t.integer("memory_size", 10, 1))
+    t.finish()
+    return spec
+
+
+def _runs(t: _Table) -> tuple[tuple[str, str], ...]:
+    runs = t.get("runs", [], lambda v: isinstance(v, list) and all(
+        isinstance(r, dict) for r in v), "a list of [[study.runs]] tables")
+    parsed, seen = [], set()
+    for index, run in enumerate(runs):
+        where = f"study.runs[{index}]"
+        name = run.get("name")
+        if not (isinstance(name, str) and name.strip()):
+            raise SceneError(f"{t.source}: {where}.name = {name!r}: expected a non-empty string")
+        if name in seen:
+            raise SceneError(f"{t.source}: {where}.name = {name!r}: run names must be unique")
+        seen.add(name)
+        extra = sorted(set(run) - {"name", *_RUN_SECTIONS})
+        if extra:
+            raise SceneError(f"{t.source}: unknown key '{where}.{extra[0]}'; allowed: "
+                             f"{['name', *_RUN_SECTIONS]}")
+        overrides = {k: v for k, v in run.items() if k != "name"}
+        parsed.append((name, json.dumps(overrides, sort_keys=True)))
+    return tuple(parsed)
+
+
+_RUN_SECTIONS = ("mesh", "pde", "solver", "refinement", "optimizer")
+
+
+def _study(t: _Table, has_inverse: bool) -> StudySpec:
+    kind = t.choice("kind", "inverse" if has_inverse else "forward", ("inverse", "forward", "h"))
+    spec = StudySpec(
+        kind, _runs(t), t.get("reference", "converged", lambda v: isinstance(v, str),
+                              "the name of a run"),
+        t.number("target_error", None, low=0.0, open_low=True),
+        t.number("band", 0.01, low=0.0, high=1.0, open_low=True),
+        tuple(t.get("levels", [4, 8, 16, 32], lambda v: isinstance(v, list) and len(v) >= 2
+                    and all(_is_int(n) and n >= 0 for n in v) and v == sorted(set(v)),
+                    "an increasing list of at least two mesh levels (n, or refinements "
+                    "of a mesh file)")),
+        tuple(t.get("elements", ["P1", "P2"], lambda v: isinstance(v, list) and v and all(
+            e in ("P1", "P2", "Q1", "Q2") for e in v), "a list of P1, P2, Q1, Q2")))
+    t.finish()
+    if kind == "inverse" and not has_inverse:
+        raise SceneError(f"{t.source}: study.kind = 'inverse' needs an [inverse] section")
+    return spec
+
+
+_SECTIONS = ("mesh", "pde", "inverse", "solver", "refinement", "optimizer", "study")
+
+
+def parse_scene(table: dict, *, source: str = "<table>", directory: str | None = None,
+                default_name: str = "scene", _with_runs: bool = True) -> Scene:
+    """Validate a scene table (as :func:`tomllib.loads` returns it) into a :class:`Scene`."""
+    top = _Table(table, "", source)
+    name = top.get("name", default_name, lambda v: isinstance(v, str) and v.strip(),
+                   "a non-empty string")
+    description = top.get("description", "", lambda v: isinstance(v, str), "a string")
+    sections = {key: top.get(key, {}, lambda v: isinstance(v, dict), f"a [{key}] table")
+                for key in _SECTIONS}
+    top.finish()
+    has_inverse = "inverse" in table
+    if "study" in table and not _with_runs:
+        raise SceneError(f"{source}: a study run cannot contain a [study] section")
+    scene = Scene(
+        name=name, description=description, source=source, directory=directory,
+        mesh=_mesh(_Table(sections["mesh"], "mesh", source)),
+        pde=_pde(_Table(sections["pde"], "pde", source)),
+        inverse=_inverse(_Table(sections["inverse"], "inverse", source)) if has_inverse
+        else None,
+        solver=_solver(_Table(sections["solver"], "solver", source)),
+        refinement=_refinement(_Table(sections["refinement"], "refinement", source)),
+        optimizer=_optimizer(_Table(sections["optimizer"], "optimizer", source)),
+        study=_study(_Table(sections["study"], "study", source), has_inverse),
+        raw=json.dumps(table, sort_keys=True))
+    if _with_runs:
+        scene.runs()  # validate every configuration now, not halfway through a study
+        names = [n for n, _ in scene.study.runs]
+        if "reference" in sections["study"] and scene.study.reference not in names:
+            raise SceneError(f"{source}: study.reference = {scene.study.reference!r}: expected "
+                             f"one of the run names {names}")
+    return scene
+
+
+def _variant(scene: Scene, overrides: dict, name: str) -> Scene:
+    table = json.loads(scene.raw)
+    table.pop("study", None)
+    for section, values in overrides.items():
+        if section == "refinement":
+            table["refinement"] = copy.deepcopy(values)
+        else:
+            merged = dict(table.get(section, {}))
+            merged.update(values)
+            table[section] = merged
+    table["name"] = name
+    return parse_scene(table, source=f"{scene.source} (run {name!r})",
+                       directory=scene.directory, _with_runs=False)
+
+
+def builtin_scene_path(name: str) -> Path:
+    """The TOML file of a built-in scene (see :data:`BUILTIN_SCENES`)."""
+    if name not in BUILTIN_SCENES:
+        raise SceneError(f"scene {name!r}: expected a .toml file or a built-in scene "
+                         f"{list(BUILTIN_SCENES)}")
+    return Path(str(resources.files("prdp_fem") / "data" / "scenes" / f"{name}.toml"))
+
+
+def load_scene(path_or_name: str | Path) -> Scene:
+    """Read a scene file, or a built-in scene by name."""
+    text_path = str(path_or_name)
+    path = Path(text_path) if text_path.endswith(".toml") or Path(text_path).exists() \
+        else builtin_scene_path(text_path)
+    if not path.is_file():
+        raise SceneError(f"{path}: scene file does not exist")
+    try:
+        table = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML ({exc})") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{path}: not a text file (expected TOML)") from None
+    return parse_scene(table, source=str(path), directory=str(path.resolve().parent),
+                       default_name=path.stem)
+
+
+def with_overrides(scene: Scene, overrides: dict) -> Scene:
+    """The scene with ``{section: {key: value}}`` merged in (validated again; new fingerprint)."""
+    table = json.loads(scene.raw)
+    for section, values in overrides.items():
+        table[section] = {**table.get(section, {}), **values}
+    return parse_scene(table, source=scene.source, directory=scene.directory,
+                       default_name=scene.name)
+
+
+def mesh_scene(path: str | Path) -> Scene:
+    """The default problem on a bare mesh file: ``-lap u = 1``, ``u = 0`` on the boundary."""
+    path = Path(path)
+    return parse_scene({"name": path.stem, "mesh": {"file": str(path.resolve())}},
+                       source=str(path), directory=str(path.resolve().parent))

@@ -1,0 +1,216 @@
+"""The prdp-fem commands through subprocesses: outputs, exit codes 0 / 2 / 130, kill and resume."""
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+
+from prdp_fem.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+MESHES = sorted((ROOT / "meshes").glob("*.msh"))
+SMALL = """
+name = "small"
+[mesh]
+n = 8
+[inverse]
+unknown = "source"
+data = "sin(pi*x)*sin(pi*y)/(2*pi**2)"
+truth = "sin(pi*x)*sin(pi*y)/(1 + 4e-6*pi**4)"
+alpha = 1e-6
+regularization = "l2"
+[refinement]
+K0 = 2
+dK = 2
+[optimizer]
+steps = STEPS
+[[study.runs]]
+name = "converged"
+refinement = { kind = "converged" }
+[[study.runs]]
+name = "fixed K=3"
+refinement = { kind = "fixed", K = 3 }
+[[study.runs]]
+name = "prdp"
+"""
+DETERMINISTIC = ("run", "final_error", "final_K", "cg_iterations", "evaluations",
+                 "reached_step", "iterations_to_target")
+
+
+def cli(*args, cwd=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def start(*args, cwd=None):
+    return subprocess.Popen([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.fixture
+def scene(tmp_path):
+    path = tmp_path / "small.toml"
+    path.write_text(SMALL.replace("STEPS", "12"))
+    return path
+
+
+def summary(directory: Path) -> list[dict]:
+    with open(directory / "summary.csv") as stream:
+        return [{k: row[k] for k in DETERMINISTIC} for row in csv.DictReader(stream)]
+
+
+def assert_png(path: Path):
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, path
+
+
+def test_study_writes_every_output_and_they_parse(scene, tmp_path):
+    done = cli("study", scene, "--out", tmp_path / "out")
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "out"
+    manifest = json.loads((out / "study.json").read_text())
+    assert manifest["configurations"] == ["converged", "fixed K=3", "prdp"]
+    records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert sum(r["type"] == "step" for r in records) == 36
+    rows = summary(out)
+    assert [r["run"] for r in rows] == manifest["configurations"]
+    assert all(0 < float(r["final_error"]) < 0.3 for r in rows)  # 12 L-BFGS steps, n = 8
+    for name in ("error_vs_time", "error_vs_iterations", "iterations_over_steps", "fields"):
+        assert_png(out / "figures" / f"{name}.png")
+    for run in ("converged", "fixed_K_3", "prdp"):
+        field = meshio.read(out / "fields" / f"{run}.vtu")
+        assert {"recovered", "truth", "error"} <= set(field.point_data)
+        assert np.isfinite(field.point_data["recovered"]).all()
+    assert "converged" in done.stdout and "time_saving" in done.stdout
+    # nothing is overwritten: a second study into the same directory is refused
+    again = cli("study", scene, "--out", out)
+    assert again.returncode == 2 and "pass --resume" in again.stderr
+    assert again.stderr.count("\n") == 1 and "Traceback" not in again.stderr
+
+
+def test_killed_study_resumes_to_the_same_summary(scene, tmp_path):
+    reference = cli("study", scene, "--out", tmp_path / "ref")
+    assert reference.returncode == 0, reference.stderr
+    out = tmp_path / "killed"
+    process = start("study", scene, "--out", out)
+    results = out / "results.jsonl"
+    deadline = time.time() + 240
+    while time.time() < deadline:  # kill once the first configuration has finished
+        if results.exists() and '"type": "done"' in results.read_text():
+            break
+        time.sleep(0.005)
+    process.send_signal(signal.SIGKILL)
+    process.communicate()
+    lines = results.read_text().splitlines()
+    finished = [json.loads(x)["run"] for x in lines if '"type": "done"' in x]
+    assert 1 <= len(finished) < 3, "the kill should land mid-study"
+    resumed = cli("study", scene, "--out", out, "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    assert summary(out) == summary(tmp_path / "ref")
+    records = [json.loads(x) for x in results.read_text().splitlines() if x.startswith("{")]
+    assert sum(r["type"] == "done" for r in records) == 3
+    assert [r["run"] for r in records if r["type"] == "done"][:len(finished)] == finished
+
+
+def test_ctrl_c_keeps_records_and_exits_130(tmp_path):
+    path = tmp_path / "long.toml"
+    path.write_text(SMALL.replace("STEPS", "100000"))
+    out = tmp_path / "out"
+    process = start("study", path, "--out", out)
+    results = out / "results.jsonl"
+    deadline = time.time() + 240
+    while time.time() < deadline and not (results.exists() and results.stat().st_size > 2000):
+        time.sleep(0.02)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130
+    assert "interrupted; finished records are kept in" in err and "--resume" in err
+    assert "Traceback" not in err
+    records = [json.loads(x) for x in results.read_text().splitlines()]
+    assert len(records) >= 5 and all(r["type"] == "step" for r in records)
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["study", "nope.toml"], "nope.toml: scene file does not exist"),
+    (["study", "torus"], "expected a .toml file or a built-in scene"),
+    (["invert", "BAD"], "unknown key 'colour'"),
+    (["solve", "missing.msh"], "missing.msh: file does not exist"),
+    (["solve", "BROKEN"], "could not be read as a mesh"),
+    (["mesh-info", "BROKEN"], "could not be read as a mesh"),
+    (["study", "mother", "--steps", "-1"], "--steps -1: expected an integer >= 0"),
+])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("colour = 'red'\n")
+    broken = tmp_path / "broken.msh"
+    broken.write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2")
+    args = [str(bad) if a == "BAD" else str(broken) if a == "BROKEN" else a for a in args]
+    done = cli(*args, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("prdp-fem: error: ") and message in done.stderr
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+
+
+def test_solve_a_bare_mesh_file_writes_the_solution(tmp_path):
+    out = tmp_path / "u.vtu"
+    done = cli("solve", ROOT / "meshes" / "plate_hole.msh", "--out", out, "--reference")
+    assert done.returncode == 0, done.stderr
+    error = float(done.stdout.split("relative l2 error against pyamg (rtol 1e-12): ")[1].split()[0])
+    assert error < 1e-8
+    field = meshio.read(out)
+    assert field.point_data["u"].min() >= -1e-12 and field.point_data["u"].max() > 0
+
+
+@pytest.mark.parametrize("mesh", MESHES, ids=[m.name for m in MESHES])
+def test_mesh_info_on_each_shipped_mesh(mesh, capsys):
+    assert main(["mesh-info", str(mesh)]) == 0
+    out = capsys.readouterr().out
+    assert "n_cells" in out and "boundary:" in out and "problems:" in out
+
+
+def test_mesh_info_reports_repairable_problems(tmp_path, capsys):
+    points = np.array([[0, 0], [1, 0], [0, 1], [1, 1], [5, 5]], dtype=float)  # node 4 unused
+    path = tmp_path / "extra.vtu"
+    meshio.write(path, meshio.Mesh(points, [("triangle", np.array([[0, 1, 2], [1, 3, 2]]))]))
+    assert main(["mesh-info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "repairable" in out and "unused" in out and "none found" not in out
+    assert "n_nodes: 4" in out  # reported after the repair
+
+
+def test_help_of_every_command_has_examples():
+    for command in ("study", "invert", "solve", "mesh-info", "scenes"):
+        done = cli(command, "--help")
+        assert done.returncode == 0 and "examples:" in done.stdout, command
+
+
+def test_scenes_lists_and_prints(capsys):
+    assert main(["scenes"]) == 0
+    listing = capsys.readouterr().out
+    assert all(name in listing for name in ("mother", "inclusion", "plate_hole", "cube"))
+    assert main(["scenes", "cube"]) == 0
+    assert 'generator = "unit_cube"' in capsys.readouterr().out
+
+
+def test_progress_is_quiet_when_not_a_terminal(scene, tmp_path):
+    done = cli("invert", scene, "--out", tmp_path / "inv", "--steps", "3")
+    assert done.returncode == 0, done.stderr
+    assert "configurations" not in done.stderr and "it/s" not in done.stderr
+    rows = summary(tmp_path / "inv")
+    assert [r["run"] for r in rows] == ["small"]
+
+
+def test_invert_a_builtin_scene_in_3d(tmp_path):
+    done = cli("invert", "cube", "--out", tmp_path / "cube", "--steps", "5")
+    assert done.returncode == 0, done.stderr
+    field = meshio.read(tmp_path / "cube" / "fields" / "cube.vtu")
+    assert field.cells[0].type == "tetra"
+    rows = list(csv.DictReader(open(tmp_path / "cube" / "summary.csv")))
+    assert float(rows[0]["final_error"]) < 1.0

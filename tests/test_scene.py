@@ -1,0 +1,223 @@
+"""Scene files: parsing, defaults, errors naming file/key/expectation, lazy building."""
+
+import filecmp
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import prdp_fem as pf
+from prdp_fem import build
+from prdp_fem.expressions import ExpressionError, compile_field
+from prdp_fem.scene import (
+    BUILTIN_SCENES,
+    SceneError,
+    builtin_scene_path,
+    load_scene,
+    mesh_scene,
+    parse_scene,
+    with_overrides,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def write(tmp_path, text, name="scene.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+# -- built-in scenes and their copies ----------------------------------------------------
+
+
+@pytest.mark.parametrize("name", BUILTIN_SCENES)
+def test_builtin_scenes_parse_and_match_their_example_copies(name):
+    scene = load_scene(name)
+    assert scene.name == name and scene.description
+    assert filecmp.cmp(builtin_scene_path(name), ROOT / "examples" / "scenes" / f"{name}.toml",
+                       shallow=False)
+    copy = load_scene(ROOT / "examples" / "scenes" / f"{name}.toml")
+    assert copy.fingerprint == scene.fingerprint or scene.mesh.file is None or \
+        scene.mesh.file.startswith("@meshes/")
+
+
+@pytest.mark.parametrize("mesh", ["plate_hole.msh", "cube_tet.msh"])
+def test_packaged_meshes_are_the_shipped_ones(mesh):
+    assert filecmp.cmp(ROOT / "prdp_fem" / "data" / "meshes" / mesh, ROOT / "meshes" / mesh,
+                       shallow=False)
+
+
+def test_defaults_are_documented_values():
+    scene = parse_scene({})
+    assert (scene.mesh.generator, scene.mesh.n, scene.pde.element, scene.pde.kappa_space) == \
+        ("unit_square", 32, "P1", "P0")
+    assert (scene.solver.preconditioner, scene.solver.gradient) == ("jacobi", "implicit")
+    assert (scene.refinement.kind, scene.refinement.K0, scene.refinement.dK) == ("prdp", 25, 10)
+    assert (scene.optimizer.name, scene.optimizer.steps) == ("lbfgs", 100)
+    assert scene.inverse is None and scene.study.kind == "forward"
+
+
+def test_runs_merge_sections_and_replace_refinement():
+    scene = parse_scene({
+        "mesh": {"generator": "unit_square", "n": 16, "cell": "quad"},
+        "pde": {"element": "Q1"},
+        "inverse": {"truth": "x"},
+        "refinement": {"kind": "prdp", "K0": 7},
+        "study": {"runs": [{"name": "coarse", "mesh": {"n": 4}},
+                           {"name": "fixed", "refinement": {"kind": "fixed", "K": 3}}]}})
+    (_, coarse), (_, fixed) = scene.runs()
+    assert (coarse.mesh.n, coarse.mesh.cell, coarse.refinement.K0) == (4, "quad", 7)
+    assert (fixed.refinement.kind, fixed.refinement.K, fixed.mesh.n) == ("fixed", 3, 16)
+
+
+def test_inverse_scene_without_runs_adds_the_converged_baseline():
+    scene = parse_scene({"inverse": {"truth": "x"}, "refinement": {"kind": "fixed", "K": 4}},
+                        default_name="mine")
+    names = [(n, s.refinement.kind) for n, s in scene.runs()]
+    assert names == [("converged", "converged"), ("mine", "fixed")]
+
+
+def test_fingerprint_follows_settings_not_names():
+    scene = parse_scene({"name": "a", "description": "x", "mesh": {"n": 4}})
+    renamed = parse_scene({"name": "b", "description": "y", "mesh": {"n": 4}})
+    assert scene.fingerprint == renamed.fingerprint
+    assert with_overrides(scene, {"mesh": {"n": 5}}).fingerprint != scene.fingerprint
+
+
+# -- errors ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("colour = 1", "unknown key 'colour'"),
+    ("[pde]\nelemnt = 'P1'", "unknown key 'pde.elemnt'; allowed in [pde]: ["),
+    ("[pde]\nelement = 'P7'", "pde.element = 'P7': expected one of ['P1', 'P2', 'Q1', 'Q2']"),
+    ("[mesh]\nn = 0", "mesh.n = 0: expected an integer >= 1"),
+    ("[mesh]\nn = 2.5", "mesh.n = 2.5: expected an integer >= 1"),
+    ("[mesh]\nfile = 'a.msh'\ngenerator = 'unit_square'", "both given"),
+    ("[pde]\nsource = 'sin(q)'", "unknown name 'q'"),
+    ("[pde]\nsource = '__import__(\"os\")'", "only the functions"),
+    ("[pde]\nsource = 'x.real'", "Attribute is not allowed"),
+    ("[pde]\nsource = 'sin(x'", "not a formula"),
+    ("[pde]\nsource = 'abc'", "unknown name 'abc'"),
+    ("[pde]\nsource = true", "expected a number or a formula"),
+    ("[inverse]\nunknown = 'source'", "needs 'truth' (synthetic data) or 'data'"),
+    ("[inverse]\ntruth = 'x'\nobservations = 'boundary'", "inverse.boundaries"),
+    ("[inverse]\ntruth = 'x'\nnoise = -1", "inverse.noise = -1: expected a finite number"),
+    ("[refinement]\nkind = 'fixed'\nK0 = 3", "unknown key 'refinement.K0'"),
+    ("[refinement]\nK0 = 700", "refinement.K0 = 700 exceeds K_max = 600"),
+    ("[refinement]\nmonitor = 'misfit'", "refinement.monitor = 'misfit'"),
+    ("[optimizer]\nname = 'newton'", "optimizer.name = 'newton'"),
+    ("[study]\nkind = 'inverse'", "needs an [inverse] section"),
+    ("[study]\nlevels = [8, 4]", "study.levels = [8, 4]: expected an increasing list"),
+    ("[[study.runs]]\nname = 'a'\nsolver = {gradient = 'magic'}", "solver.gradient = 'magic'"),
+    ("[[study.runs]]\nname = 'a'\n[[study.runs]]\nname = 'a'", "must be unique"),
+    ("[[study.runs]]\nname = 'a'\ncolour = 1", "unknown key 'study.runs[0].colour'"),
+    ("[study]\nreference = 'nope'\n[[study.runs]]\nname = 'a'", "expected one of the run names"),
+    ("mesh = 3", "mesh = 3: expected a [mesh] table"),
+])
+def test_bad_scene_names_file_key_and_expectation(tmp_path, text, message):
+    path = write(tmp_path, text)
+    with pytest.raises(SceneError, match=None) as info:
+        load_scene(path)
+    assert str(path) in str(info.value)
+    assert message in str(info.value)
+
+
+def test_bad_toml_and_missing_file(tmp_path):
+    with pytest.raises(SceneError, match="not valid TOML"):
+        load_scene(write(tmp_path, "[mesh\nn = 3"))
+    with pytest.raises(SceneError, match="scene file does not exist"):
+        load_scene(tmp_path / "nope.toml")
+    with pytest.raises(SceneError, match=r"expected a \.toml file or a built-in scene"):
+        load_scene("torus")
+
+
+def test_relative_mesh_file_resolves_against_the_scene(tmp_path):
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "m.msh").write_bytes((ROOT / "meshes" / "square_tri.msh").read_bytes())
+    scene = load_scene(write(tmp_path, "[mesh]\nfile = 'sub/m.msh'"))
+    assert scene.mesh_path() == tmp_path / "sub" / "m.msh"
+    assert build.build_mesh(scene).p.shape[1] > 10
+    missing = load_scene(write(tmp_path, "[mesh]\nfile = 'gone.msh'", "b.toml"))
+    with pytest.raises(pf.MeshFileError, match=r"gone\.msh: file does not exist"):
+        build.build_mesh(missing)
+
+
+def test_non_positive_kappa_is_caught_at_build():
+    scene = parse_scene({"mesh": {"n": 4}, "pde": {"kappa": "x - 0.5"}}, source="k.toml")
+    with pytest.raises(pf.PrdpFemError, match=r"k.toml: pde.kappa = 'x - 0.5': expected values "
+                       r"> 0 on the mesh"):
+        build.forward_solve(scene)
+
+
+def test_non_finite_formula_values_are_caught():
+    scene = parse_scene({"mesh": {"n": 4}, "pde": {"source": "log(x - 0.5)"}}, source="s.toml")
+    with pytest.raises(ExpressionError, match=r"s.toml: pde.source = 'log\(x - 0.5\)': non-finite"):
+        build.forward_solve(scene)
+
+
+def test_expressions_evaluate_like_numpy():
+    x = np.random.default_rng(0).random((2, 7))
+    f = compile_field("where(x > 0.5, exp(-y), hypot(x, y)) + pi", where="t")
+    expected = np.where(x[0] > 0.5, np.exp(-x[1]), np.hypot(x[0], x[1])) + np.pi
+    np.testing.assert_allclose(f(x), expected, rtol=1e-15)
+    np.testing.assert_array_equal(compile_field(3, where="t")(x), np.full(7, 3.0))
+    with pytest.raises(ExpressionError, match="unknown name 'z'"):
+        compile_field("z", where="t", dim=2)
+
+
+# -- building only what the scene uses ---------------------------------------------------
+
+
+@pytest.fixture
+def no_amg(monkeypatch):
+    """pyamg's hierarchy setup (used by every reference solve) raises if called."""
+    import pyamg
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("an AMG hierarchy was built")
+
+    monkeypatch.setattr(pyamg, "smoothed_aggregation_solver", forbidden)
+
+
+def test_forward_solve_builds_no_mass_matrix_amg_reference_or_adjoint(no_amg):
+    scene = parse_scene({"mesh": {"n": 12}, "pde": {"kappa": "1 + x", "source": "sin(pi*y)"}})
+    counter = pf.IterationCounter()
+    result = build.forward_solve(scene)
+    disc = result.disc
+    for lazy in ("mass_matrix", "source_matrix", "system", "laplace_matrix"):
+        assert lazy not in disc.__dict__, lazy
+    assert counter.adjoint == 0 and np.isnan(result.relative_error)
+    # and the solve is right: the direct solve of the same (exact-load) system
+    kappa = disc.interpolate_kappa(lambda x: 1 + x[0])
+    b = disc.rhs(kappa) + disc.load_vector(lambda x: np.sin(np.pi * x[1]))
+    reference = pf.direct_solve(disc.stiffness_matrix(kappa), b).x
+    np.testing.assert_allclose(result.u[disc.free_dofs], reference, rtol=1e-8, atol=1e-12)
+
+
+def test_forward_solve_reference_uses_pyamg_only_when_asked():
+    scene = parse_scene({"mesh": {"n": 12}, "solver": {"iterations": [3]}})
+    truncated = build.forward_solve(scene, reference=True)
+    assert int(truncated.solution.iterations) == 3
+    assert 1e-3 < truncated.relative_error < 1
+
+
+def test_inverse_study_with_jacobi_builds_no_amg(no_amg, tmp_path):
+    from prdp_fem.study import run_study
+
+    scene = parse_scene({
+        "mesh": {"n": 6}, "inverse": {"truth": "sin(pi*x)*sin(pi*y)", "alpha": 1e-4},
+        "refinement": {"kind": "fixed", "K": 4}, "optimizer": {"steps": 3}})
+    result = run_study(scene, tmp_path / "s")
+    assert [row["run"] for row in result.summary] == ["converged", "scene"]
+
+
+def test_mesh_scene_is_the_default_problem_on_a_file():
+    scene = mesh_scene(ROOT / "meshes" / "plate_hole.msh")
+    result = build.forward_solve(scene)
+    assert scene.pde.source == 1.0 and scene.pde.dirichlet == 0.0
+    u = result.u
+    assert u.min() >= -1e-12 and u.max() > 0  # -lap u = 1 >= 0 with u = 0: u >= 0
+    assert json.loads(scene.raw)["mesh"]["file"].endswith("plate_hole.msh")

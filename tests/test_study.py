@@ -1,0 +1,161 @@
+"""Studies in-process: records and summaries against the scripting API, resume, h/forward."""
+
+import csv
+import json
+import math
+
+import meshio
+import numpy as np
+import pytest
+
+import prdp_fem as pf
+from prdp_fem import study as study_module
+from prdp_fem.build import build_inverse, invert_options
+from prdp_fem.scene import load_scene, parse_scene
+from prdp_fem.study import ResultsLog, StudyError, run_study
+
+TINY = """
+name = "tiny"
+[mesh]
+n = 8
+[inverse]
+unknown = "source"
+data = "sin(pi*x)*sin(pi*y)/(2*pi**2)"
+truth = "sin(pi*x)*sin(pi*y)/(1 + 4e-6*pi**4)"
+alpha = 1e-6
+regularization = "l2"
+[refinement]
+kind = "prdp"
+K0 = 2
+dK = 2
+[optimizer]
+steps = 12
+[[study.runs]]
+name = "converged"
+refinement = { kind = "converged" }
+[[study.runs]]
+name = "fixed K=3"
+refinement = { kind = "fixed", K = 3 }
+[[study.runs]]
+name = "prdp"
+"""
+
+
+@pytest.fixture
+def tiny(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY)
+    return load_scene(path)
+
+
+def test_inverse_study_records_every_step_and_matches_the_scripting_api(tiny, tmp_path):
+    result = run_study(tiny, tmp_path / "out")
+    records = ResultsLog(tmp_path / "out" / "results.jsonl").records()
+    steps = [r for r in records if r["type"] == "step"]
+    assert [r["run"] for r in records if r["type"] == "done"] == ["converged", "fixed K=3",
+                                                                  "prdp"]
+    assert len(steps) == 3 * 12
+    # the study's converged run is exactly what invert() gives from a script
+    name, variant = tiny.runs()[0]
+    setup = build_inverse(variant)
+    direct = pf.invert(setup.problem, **invert_options(variant, setup.disc)).history
+    mine = [r for r in steps if r["run"] == name]
+    np.testing.assert_allclose([r["parameter_error"] for r in mine],
+                               direct.column("parameter_error"), rtol=1e-10)
+    assert [r["primal_iterations"] for r in mine] == list(direct.column("primal_iterations"))
+    # summary rows are the last records; savings are measured against the converged run
+    rows = {row["run"]: row for row in result.summary}
+    for run, row in rows.items():
+        last = [r for r in steps if r["run"] == run][-1]
+        assert row["final_error"] == last["parameter_error"]
+        assert row["cg_iterations"] == last["primal_iterations"] + last[
+            "adjoint_iterations_total"]
+    assert rows["converged"]["target_error"] == rows["converged"]["final_error"]
+    assert rows["fixed K=3"]["final_K"] == 3 and rows["converged"]["final_K"] == "tol"
+    reached = rows["converged"]["reached_step"]
+    assert 1 <= reached <= 12
+    assert rows["converged"]["iteration_saving"] == pytest.approx(
+        1 - rows["converged"]["iterations_to_target"] / rows["converged"]["cg_iterations"])
+    with open(tmp_path / "out" / "summary.csv") as stream:
+        table = list(csv.DictReader(stream))
+    assert [t["run"] for t in table] == ["converged", "fixed K=3", "prdp"]
+    assert float(table[1]["final_error"]) == pytest.approx(rows["fixed K=3"]["final_error"],
+                                                           rel=1e-12)
+    # the fields are valid VTU with the recovered field and the truth
+    fields = meshio.read(tmp_path / "out" / "fields" / "converged.vtu")
+    np.testing.assert_allclose(fields.point_data["truth"],
+                               np.asarray(setup.truth)[:fields.points.shape[0]])
+    assert len(result.figures) == 4
+
+
+def test_resume_skips_finished_runs_and_ignores_unfinished_attempts(tiny, tmp_path,
+                                                                    monkeypatch):
+    out = tmp_path / "out"
+    uninterrupted = run_study(tiny, tmp_path / "ref").summary
+    # a study killed during its second configuration: one done run, a half-written attempt
+    full = ResultsLog(tmp_path / "ref" / "results.jsonl").records()
+    first_done = next(i for i, r in enumerate(full) if r["type"] == "done")
+    run_study(tiny, out)  # to get the manifest; then cut the records back
+    kept = full[:first_done + 1] + [r for r in full if r.get("run") == "fixed K=3"][:5]
+    text = "".join(json.dumps(r) + "\n" for r in kept) + '{"type": "step", "run": "fi'
+    (out / "results.jsonl").write_text(text)
+    calls = []
+    original = study_module._run_inverse
+    monkeypatch.setattr(study_module, "_run_inverse",
+                        lambda name, *a: (calls.append(name), original(name, *a)))
+    with pytest.raises(StudyError, match="pass --resume"):
+        run_study(tiny, out)
+    resumed = run_study(tiny, out, resume=True)
+    assert calls == ["fixed K=3", "prdp"] and resumed.ran == ["fixed K=3", "prdp"]
+    records = ResultsLog(out / "results.jsonl").records()
+    assert {r["attempt"] for r in records if r["run"] == "fixed K=3"} == {1, 2}
+    deterministic = ("run", "final_error", "final_K", "cg_iterations", "evaluations",
+                     "reached_step", "iterations_to_target")
+    for a, b in zip(uninterrupted, resumed.summary, strict=True):
+        for key in deterministic:
+            assert a[key] == b[key] or (isinstance(a[key], float) and math.isnan(a[key])
+                                        and math.isnan(b[key])), key
+
+
+def test_resume_refuses_a_changed_scene(tiny, tmp_path):
+    run_study(parse_scene({"mesh": {"n": 4}, "solver": {"iterations": [1]}}), tmp_path / "o")
+    with pytest.raises(StudyError, match="was started from another scene"):
+        run_study(tiny, tmp_path / "o", resume=True)
+
+
+def test_torn_last_line_is_skipped_and_the_next_record_starts_clean(tmp_path):
+    log = ResultsLog(tmp_path / "r.jsonl")
+    log.append({"a": 1, "b": math.nan})
+    with open(log.path, "a") as stream:
+        stream.write('{"a": 2, "b"')  # killed mid-write
+    assert ResultsLog(log.path).records() == [{"a": 1, "b": None}]
+    fresh = ResultsLog(log.path)
+    fresh.append({"a": 3})
+    assert fresh.records() == [{"a": 1, "b": None}, {"a": 3}]
+
+
+def test_h_study_measures_the_p1_and_p2_rates(tmp_path):
+    scene = parse_scene({
+        "pde": {"source": "2*pi**2*sin(pi*x)*sin(pi*y)", "exact": "sin(pi*x)*sin(pi*y)"},
+        "solver": {"rtol": 1e-12}, "study": {"kind": "h", "levels": [4, 8, 16, 32]}})
+    rows = run_study(scene, tmp_path / "h").summary
+    rates = {e: [r["rate"] for r in rows if r["element"] == e][-1] for e in ("P1", "P2")}
+    assert rates["P1"] == pytest.approx(2.0, abs=0.05)
+    assert rates["P2"] == pytest.approx(3.0, abs=0.05)
+    assert all(r["algebraic_error"] < 1e-9 for r in rows)
+
+
+def test_h_study_needs_an_exact_solution(tmp_path):
+    with pytest.raises(StudyError, match=r"needs pde\.exact"):
+        run_study(parse_scene({"study": {"kind": "h"}}), tmp_path / "h")
+
+
+def test_forward_study_errors_fall_with_K(tmp_path):
+    scene = parse_scene({"mesh": {"n": 16}, "solver": {"iterations": [0, 10, 400]},
+                         "study": {"runs": [{"name": "jacobi"},
+                                            {"name": "identity",
+                                             "solver": {"preconditioner": "identity"}}]}})
+    rows = run_study(scene, tmp_path / "f").summary
+    for run in ("jacobi", "identity"):
+        errors = [r["relative_energy_error"] for r in rows if r["run"] == run]
+        assert errors[0] == pytest.approx(1.0) and errors[1] < 0.5 and errors[2] < 1e-10
