@@ -297,11 +297,11 @@ def _mesh_info(args) -> None:
     if quality.h_max / quality.h_min > 100:
         problems.append(f"strongly graded: longest / shortest edge = "
                         f"{quality.h_max / quality.h_min:.3g}")
-    if quality.n_inverted:
-        problems.append(f"{quality.n_inverted} cells numbered clockwise (valid as they are)")
     print(f"{'problems':>14}: {'none found' if not problems else len(problems)}")
     for problem in problems:
         print(f"{'':>14}  - {problem}")
+    if quality.n_inverted:
+        print(f"{'note':>14}: {quality.n_inverted} cells numbered clockwise (valid as they are)")
 
 
 def _scenes(args) -> None:
@@ -362,6 +362,11 @@ def main(argv: list[str] | None = None) -> int:
         COMMANDS[args.command](args)
     except PrdpFemError as error:
         print(f"prdp-fem: error: {error}", file=sys.stderr)
+        return 2
+    except OSError as error:  # an output path that cannot be written, a full disk
+        where = error.filename or "output"
+        print(f"prdp-fem: error: {where}: {error.strerror or error}; expected a writable path",
+              file=sys.stderr)
         return 2
     except _Interrupted as message:
         print(f"prdp-fem: {message}", file=sys.stderr)

@@ -87,8 +87,8 @@ def _field_panel(ax, mesh: meshio.Mesh, name: str, limits) -> object:
             slab = np.abs(centroids[:, 2] - mid) <= 0.1 * np.ptp(z)
             return ax.scatter(centroids[slab, 0], centroids[slab, 1], c=mesh.cell_data[name][0][
                 slab], s=8, vmin=limits[0], vmax=limits[1])
-        return ax.tricontourf(points[slab, 0], points[slab, 1], values[slab], levels=20,
-                              vmin=limits[0], vmax=limits[1])
+        return ax.tricontourf(points[slab, 0], points[slab, 1], values[slab],
+                              levels=np.linspace(limits[0], limits[1], 21))
     triangulation = Triangulation(points[:, 0], points[:, 1], cells)
     if name in mesh.point_data:
         return ax.tripcolor(triangulation, mesh.point_data[name], shading="gouraud",

@@ -145,13 +145,14 @@ def test_ctrl_c_keeps_records_and_exits_130(tmp_path):
     (["solve", "BROKEN"], "could not be read as a mesh"),
     (["mesh-info", "BROKEN"], "could not be read as a mesh"),
     (["study", "mother", "--steps", "-1"], "--steps -1: expected an integer >= 0"),
+    (["solve", "poisson_h", "--out", "BAD/u.vtu"], "expected a writable path"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     bad = tmp_path / "bad.toml"
     bad.write_text("colour = 'red'\n")
     broken = tmp_path / "broken.msh"
     broken.write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2")
-    args = [str(bad) if a == "BAD" else str(broken) if a == "BROKEN" else a for a in args]
+    args = [a.replace("BAD", str(bad)).replace("BROKEN", str(broken)) for a in args]
     done = cli(*args, cwd=tmp_path)
     assert done.returncode == 2, done.stderr
     assert done.stderr.startswith("prdp-fem: error: ") and message in done.stderr
