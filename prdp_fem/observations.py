@@ -136,6 +136,10 @@ def boundary_values(disc: Discretization, boundaries: Sequence[str], *,
                            f"{sorted(names)}")
     facets = np.concatenate([names[b] for b in boundaries])
     dofs = np.unique(disc.basis.get_dofs(facets=facets).all())
+    if np.isin(dofs, disc.dirichlet_dofs).all():
+        raise PrdpFemError(f"boundaries={list(boundaries)!r}: every observed dof carries Dirichlet "
+                           "data, so the observation does not depend on the unknown; expected a "
+                           "boundary with a Neumann or natural condition")
     selection = sp.csr_matrix((np.ones(len(dofs)), (np.arange(len(dofs)), dofs)),
                               shape=(len(dofs), disc.n_dofs))
     return _observation(selection, sp.identity(len(dofs), format="csr"), u_true, data)

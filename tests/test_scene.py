@@ -221,3 +221,14 @@ def test_mesh_scene_is_the_default_problem_on_a_file():
     u = result.u
     assert u.min() >= -1e-12 and u.max() > 0  # -lap u = 1 >= 0 with u = 0: u >= 0
     assert json.loads(scene.raw)["mesh"]["file"].endswith("plate_hole.msh")
+
+
+def test_observing_only_dirichlet_dofs_is_refused():
+    scene = parse_scene({"mesh": {"n": 4}, "inverse": {
+        "truth": "x", "observations": "boundary", "boundaries": ["left"]}}, source="o.toml")
+    with pytest.raises(pf.PrdpFemError, match="every observed dof carries Dirichlet data"):
+        build.build_inverse(scene)
+    natural = parse_scene({"mesh": {"n": 4}, "pde": {"dirichlet": {"right": 0.0}}, "inverse": {
+        "truth": "x", "observations": "boundary", "boundaries": ["left"]}})
+    setup = build.build_inverse(natural)
+    assert setup.problem.observation.operator.shape[0] == 5  # the 5 nodes of the left side
