@@ -229,8 +229,7 @@ def _invert(args) -> None:
     scene = _scene(args.scene, args.steps)
     if scene.inverse is None:
         raise PrdpFemError(f"{scene.source}: no [inverse] section; expected one to invert")
-    own = json.dumps({}, sort_keys=True)
-    study = dataclasses.replace(scene.study, kind="inverse", runs=((scene.name, own),))
+    study = dataclasses.replace(scene.study, kind="inverse", runs=((scene.name, "{}"),))
     _run_study(dataclasses.replace(scene, study=study), args.out, False, "invert")
 
 

@@ -36,17 +36,26 @@ def _positive(values) -> np.ndarray:
     return np.where(values > 0, values, np.nan)
 
 
-def _curves(histories: dict[str, History], x: str, metric: str, xlabel: str, title: str,
-            path: Path) -> Path:
+def _loglog_axes(xlabel: str, ylabel: str, title: str | None = None):
+    """A figure with one log-log axes, labelled and gridded."""
     fig = Figure(figsize=(6.4, 4.4))
     ax = fig.subplots()
-    for name, history in histories.items():
-        ax.loglog(_positive(history.column(x)), _positive(history.column(metric)),
-                  marker=".", markersize=3, label=name)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
     ax.set_xlabel(xlabel)
-    ax.set_ylabel(_METRIC_LABEL.get(metric, metric))
-    ax.set_title(title)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
+    return fig, ax
+
+
+def _curves(histories: dict[str, History], x: str, metric: str, xlabel: str, title: str,
+            path: Path) -> Path:
+    fig, ax = _loglog_axes(xlabel, _METRIC_LABEL.get(metric, metric), title)
+    for name, history in histories.items():
+        ax.plot(_positive(history.column(x)), _positive(history.column(metric)),
+                marker=".", markersize=3, label=name)
     ax.legend(fontsize=8)
     return _save(fig, path)
 
@@ -156,15 +165,11 @@ def forward_figures(by_run: dict[str, list[dict]], out: Path) -> list[Path]:
     made = []
     for x, label, file in (("requested_iterations", "CG iterations K", "error_vs_K.png"),
                            ("wall_time_s", "solve time [s]", "error_vs_time.png")):
-        fig = Figure(figsize=(6.4, 4.4))
-        ax = fig.subplots()
+        fig, ax = _loglog_axes(label, "relative energy-norm error (vs pyamg)")
         for name, records in by_run.items():
-            xs = np.array([r[x] for r in records], dtype=float)
-            ys = _positive([r["relative_energy_error"] for r in records])
-            ax.loglog(np.where(xs > 0, xs, np.nan), ys, marker="o", label=name)
-        ax.set_xlabel(label)
-        ax.set_ylabel("relative energy-norm error (vs pyamg)")
-        ax.grid(True, which="both", alpha=0.3)
+            ax.plot(_positive([r[x] for r in records]),
+                    _positive([r["relative_energy_error"] for r in records]), marker="o",
+                    label=name)
         ax.legend(fontsize=8)
         made.append(_save(fig, figures / file))
     return made
@@ -177,19 +182,15 @@ def h_figures(rows: list[dict], out: Path) -> list[Path]:
     for x, label, file in (("h", "mesh size h (longest edge)", "error_vs_h.png"),
                            ("cg_time", "solve time [s] (solid: PCG, dashed: pyamg)",
                             "error_vs_time.png")):
-        fig = Figure(figsize=(6.4, 4.4))
-        ax = fig.subplots()
+        fig, ax = _loglog_axes(label, "L2 error against the exact solution")
         for element in elements:
             mine = [r for r in rows if r["element"] == element]
-            line, = ax.loglog([r[x] for r in mine], [r["l2_error"] for r in mine], marker="o",
-                              label=element)
+            line, = ax.plot([r[x] for r in mine], [r["l2_error"] for r in mine], marker="o",
+                            label=element)
             if x == "cg_time":
-                ax.loglog([r["amg_time"] for r in mine], [r["l2_error"] for r in mine],
-                          marker="s", linestyle="--", color=line.get_color(),
-                          label=f"{element} pyamg")
-        ax.set_xlabel(label)
-        ax.set_ylabel("L2 error against the exact solution")
-        ax.grid(True, which="both", alpha=0.3)
+                ax.plot([r["amg_time"] for r in mine], [r["l2_error"] for r in mine],
+                        marker="s", linestyle="--", color=line.get_color(),
+                        label=f"{element} pyamg")
         ax.legend(fontsize=8)
         made.append(_save(fig, figures / file))
     return made

@@ -255,9 +255,8 @@ def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setup
                     "dofs": disc.n_free, **r._asdict()})
         progress.step()
 
-    study = forward_convergence(scene, iterations, preconditioner=variant.solver.preconditioner,
-                                on_record=record)
-    del study
+    forward_convergence(scene, iterations, preconditioner=variant.solver.preconditioner,
+                        on_record=record)
 
 
 def _timed(fn: Callable, *args):
@@ -360,8 +359,9 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
     kind = scene.study.kind
     if kind == "inverse":
         histories = {n: _history(r) for n, r in by_run.items()}
-        rows = _inverse_summary(scene, histories)
-        figures = plots.inverse_figures(scene.name, histories, _metric(by_run), out,
+        metric = _metric(by_run)
+        rows = _inverse_summary(scene, histories, metric)
+        figures = plots.inverse_figures(scene.name, histories, metric, out,
                                         {n: _field_file(out, n) for n in histories})
     elif kind == "forward":
         rows = [{"run": name, **{k: v for k, v in r.items() if k not in ("type", "run")}}
@@ -380,8 +380,7 @@ def _metric(by_run: dict[str, list[dict]]) -> str:
     return "parameter_error" if any(v is not None for v in last) else "misfit"
 
 
-def _inverse_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
-    metric = _metric({n: [h[-1]._asdict()] if len(h) else [] for n, h in histories.items()})
+def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -> list[dict]:
     finals = {n: getattr(h[-1], metric) for n, h in histories.items() if len(h)}
     reference = histories.get(scene.study.reference)
     if scene.study.target_error is not None:

@@ -11,6 +11,33 @@ import prdp_fem as pf
 MESH_DIR = Path(__file__).resolve().parent.parent / "meshes"
 SHIPPED_MESHES = sorted(MESH_DIR.glob("*.msh"))
 
+# a three-configuration study of the mother problem on an 8 x 8 mesh (STEPS: optimiser steps)
+SMALL_STUDY = """
+name = "small"
+[mesh]
+n = 8
+[inverse]
+unknown = "source"
+data = "sin(pi*x)*sin(pi*y)/(2*pi**2)"
+truth = "sin(pi*x)*sin(pi*y)/(1 + 4e-6*pi**4)"
+alpha = 1e-6
+regularization = "l2"
+[refinement]
+kind = "prdp"
+K0 = 2
+dK = 2
+[optimizer]
+steps = STEPS
+[[study.runs]]
+name = "converged"
+refinement = { kind = "converged" }
+[[study.runs]]
+name = "fixed K=3"
+refinement = { kind = "fixed", K = 3 }
+[[study.runs]]
+name = "prdp"
+"""
+
 # scikit-fem logs a warning whenever refined() drops named boundaries; the rate tests refine
 logging.getLogger("skfem").setLevel(logging.ERROR)
 

@@ -11,35 +11,12 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
+from conftest import SMALL_STUDY as SMALL
 
 from prdp_fem.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = sorted((ROOT / "meshes").glob("*.msh"))
-SMALL = """
-name = "small"
-[mesh]
-n = 8
-[inverse]
-unknown = "source"
-data = "sin(pi*x)*sin(pi*y)/(2*pi**2)"
-truth = "sin(pi*x)*sin(pi*y)/(1 + 4e-6*pi**4)"
-alpha = 1e-6
-regularization = "l2"
-[refinement]
-K0 = 2
-dK = 2
-[optimizer]
-steps = STEPS
-[[study.runs]]
-name = "converged"
-refinement = { kind = "converged" }
-[[study.runs]]
-name = "fixed K=3"
-refinement = { kind = "fixed", K = 3 }
-[[study.runs]]
-name = "prdp"
-"""
 DETERMINISTIC = ("run", "final_error", "final_K", "cg_iterations", "evaluations",
                  "reached_step", "iterations_to_target")
 

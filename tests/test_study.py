@@ -7,6 +7,7 @@ import math
 import meshio
 import numpy as np
 import pytest
+from conftest import SMALL_STUDY
 
 import prdp_fem as pf
 from prdp_fem import study as study_module
@@ -14,37 +15,11 @@ from prdp_fem.build import build_inverse, invert_options
 from prdp_fem.scene import load_scene, parse_scene
 from prdp_fem.study import ResultsLog, StudyError, run_study
 
-TINY = """
-name = "tiny"
-[mesh]
-n = 8
-[inverse]
-unknown = "source"
-data = "sin(pi*x)*sin(pi*y)/(2*pi**2)"
-truth = "sin(pi*x)*sin(pi*y)/(1 + 4e-6*pi**4)"
-alpha = 1e-6
-regularization = "l2"
-[refinement]
-kind = "prdp"
-K0 = 2
-dK = 2
-[optimizer]
-steps = 12
-[[study.runs]]
-name = "converged"
-refinement = { kind = "converged" }
-[[study.runs]]
-name = "fixed K=3"
-refinement = { kind = "fixed", K = 3 }
-[[study.runs]]
-name = "prdp"
-"""
-
 
 @pytest.fixture
 def tiny(tmp_path):
     path = tmp_path / "tiny.toml"
-    path.write_text(TINY)
+    path.write_text(SMALL_STUDY.replace("STEPS", "12"))
     return load_scene(path)
 
 
