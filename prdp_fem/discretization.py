@@ -11,6 +11,11 @@ for the coefficient basis function ``psi_a`` of a cell, ``coo_data`` of
 ``psi_a grad u . grad v`` gives that cell's entries per unit ``kappa_a``; summing duplicates once
 yields ``G`` with ``values(A) = G @ kappa`` exactly (the quadrature integrates the product).
 
+A tensor coefficient is stored component-major in Voigt order, ``kappa = [K_xx, K_yy, K_xy]``
+in 2-D and ``[K_xx, K_yy, K_zz, K_yz, K_xz, K_xy]`` in 3-D, each block one field of the
+coefficient space; ``A`` stays linear in it (``K grad u . grad v = sum_ij K_ij d_j u d_i v``),
+so every solver and gradient path is the same as for a scalar.
+
 >>> from prdp_fem import unit_square
 >>> disc = discretize(unit_square(4), element="P1", kappa_space="P0")
 >>> disc.system.n_free, disc.system.n_kappa
@@ -30,9 +35,10 @@ import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
 
-from .errors import DiscretizationError
+from .errors import CoefficientError, DataError, DiscretizationError
 from .operator import SparseMatrix
 from .system import LinearSystem
+from .validation import finite_vector, is_traced, positive_coefficient
 
 __all__ = ["Discretization", "discretize"]
 
@@ -51,6 +57,9 @@ _KAPPA_ELEMENTS = {
     skfem.MeshQuad1: {"P0": skfem.ElementQuad0, "P1": skfem.ElementQuad1},
     skfem.MeshHex1: {"P0": skfem.ElementHex0, "P1": skfem.ElementHex1},
 }
+KAPPA_KINDS = ("scalar", "tensor")
+# (i, j) of each stored tensor component, Voigt order
+VOIGT = {2: ((0, 0), (1, 1), (0, 1)), 3: ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))}
 # relative size below which an assembled entry is structurally zero (e.g. right triangles)
 _STRUCTURAL_ZERO = 1e-14
 
@@ -58,6 +67,19 @@ _STRUCTURAL_ZERO = 1e-14
 @skfem.BilinearForm
 def _weighted_laplace(u, v, w):
     return w.kappa * dot(grad(u), grad(v))
+
+
+def _tensor_component_form(i: int, j: int) -> skfem.BilinearForm:
+    """``w.kappa`` times the part of ``K grad u . grad v`` that multiplies ``K_ij = K_ji``."""
+
+    @skfem.BilinearForm
+    def form(u, v, w):
+        gu, gv = grad(u), grad(v)
+        if i == j:
+            return w.kappa * gu[i] * gv[i]
+        return w.kappa * (gu[j] * gv[i] + gu[i] * gv[j])
+
+    return form
 
 
 @skfem.BilinearForm
@@ -81,6 +103,7 @@ class Discretization:
     mesh: skfem.Mesh
     element: str
     kappa_space: str
+    kappa_kind: str
     basis: skfem.CellBasis
     kappa_basis: skfem.CellBasis
     free_dofs: np.ndarray
@@ -101,8 +124,47 @@ class Discretization:
         return len(self.free_dofs)
 
     @property
+    def n_kappa_components(self) -> int:
+        """1 for a scalar ``kappa``; 3 (2-D) or 6 (3-D) symmetric tensor components."""
+        return 1 if self.kappa_kind == "scalar" else len(VOIGT[self.mesh.dim()])
+
+    @property
     def n_kappa(self) -> int:
-        return int(self.kappa_basis.N)
+        return self.n_kappa_components * int(self.kappa_basis.N)
+
+    def check_kappa(self, kappa, name: str = "kappa") -> np.ndarray:
+        """``kappa`` as a NumPy vector, or a :class:`CoefficientError` naming what is wrong.
+
+        A scalar must be finite and ``> 0``; a tensor finite and symmetric positive definite at
+        every point of the coefficient space. A number broadcasts (scalar kind only).
+        """
+        if is_traced(kappa):
+            return kappa
+        if self.kappa_kind == "scalar":
+            return positive_coefficient(kappa, name, self.n_kappa)
+        if np.ndim(kappa) == 0:
+            raise CoefficientError(f"{name}: a single number for a tensor coefficient; expected "
+                                   f"{self.n_kappa} Voigt components (see interpolate_kappa)")
+        kappa = finite_vector(kappa, name, self.n_kappa, error=CoefficientError)
+        smallest = np.linalg.eigvalsh(self.kappa_tensors(kappa)).min(axis=1)
+        largest = np.abs(self.kappa_tensors(kappa)).max(axis=(1, 2))
+        bad = smallest <= 0
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise CoefficientError(
+                f"{name}: the tensor at {int(bad.sum())} point(s) is not positive definite "
+                f"(first: coefficient dof {i}, smallest eigenvalue {smallest[i]:.3g}, largest "
+                f"entry {largest[i]:.3g}); expected a symmetric positive definite kappa")
+        return kappa
+
+    def kappa_tensors(self, kappa: np.ndarray) -> np.ndarray:
+        """Full ``(n, dim, dim)`` tensors from the Voigt components of a tensor ``kappa``."""
+        dim = self.mesh.dim()
+        blocks = np.asarray(kappa, dtype=float).reshape(len(VOIGT[dim]), -1)
+        tensors = np.zeros((blocks.shape[1], dim, dim))
+        for component, (i, j) in enumerate(VOIGT[dim]):
+            tensors[:, i, j] = tensors[:, j, i] = blocks[component]
+        return tensors
 
     @cached_property
     def lifting(self) -> sp.csr_matrix:
@@ -147,20 +209,21 @@ class Discretization:
 
     def stiffness_matrix(self, kappa: np.ndarray) -> sp.csr_matrix:
         """Condensed ``A(kappa)`` as SciPy CSR (reference path, no JAX)."""
-        values = self.assembly @ np.asarray(kappa, dtype=float)
+        values = self.assembly @ self.check_kappa(kappa)
         return sp.csr_matrix((values, self.pattern), shape=(self.n_free, self.n_free))
 
     def rhs(self, kappa: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
         """Condensed right-hand side ``S f + h - L kappa`` (NumPy reference path)."""
-        b = self.neumann - self.lifting @ np.asarray(kappa, dtype=float)
+        b = self.neumann - self.lifting @ self.check_kappa(kappa)
         if f is not None:
-            b = b + self.source_matrix @ np.asarray(f, dtype=float)
+            b = b + self.source_matrix @ finite_vector(f, "f", self.n_dofs)
         return b
 
     def load_vector(self, f: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Free part of ``int f v`` with ``f(x)`` evaluated at quadrature points (exact load)."""
         form = skfem.LinearForm(lambda v, w: f(w.x) * v)
-        return form.assemble(self.basis)[self.free_dofs]
+        return finite_vector(form.assemble(self.basis)[self.free_dofs], "source f",
+                             self.n_free)
 
     def interpolate(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Nodal values of ``fn`` at the dofs of the solution space (all dofs)."""
@@ -176,10 +239,24 @@ class Discretization:
         return spla.spsolve(self.mass_matrix.tocsc(), load)
 
     def interpolate_kappa(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-        """``fn`` as a coefficient vector: cell centroids (P0) or vertices (P1)."""
-        if self.kappa_space == "P0":
-            return np.asarray(fn(self.mesh.p[:, self.mesh.t].mean(axis=1)), dtype=float)
-        return np.asarray(fn(self.kappa_basis.doflocs), dtype=float)
+        """``fn`` as a coefficient vector: cell centroids (P0) or vertices (P1).
+
+        For a tensor coefficient ``fn(x)`` returns ``(dim, dim)`` (constant) or
+        ``(dim, dim, n_points)``; the result holds its Voigt components, component-major.
+        """
+        x = self.mesh.p[:, self.mesh.t].mean(axis=1) if self.kappa_space == "P0" \
+            else self.kappa_basis.doflocs
+        values = np.asarray(fn(x), dtype=float)
+        if self.kappa_kind == "scalar":
+            return np.array(np.broadcast_to(values, x.shape[1:]))
+        dim = self.mesh.dim()
+        if values.shape[:2] != (dim, dim):
+            raise CoefficientError(f"tensor kappa: fn(x) has shape {values.shape}; expected "
+                                   f"({dim}, {dim}) or ({dim}, {dim}, n_points)")
+        values = np.broadcast_to(values.reshape(dim, dim, -1), (dim, dim, x.shape[1]))
+        if not np.allclose(values, values.transpose(1, 0, 2), rtol=1e-12, atol=0.0):
+            raise CoefficientError("tensor kappa: fn(x) is not symmetric; expected K_ij = K_ji")
+        return np.concatenate([values[i, j] for i, j in VOIGT[dim]])
 
     def expand(self, u_free: np.ndarray) -> np.ndarray:
         """Full nodal vector from free values plus the Dirichlet data (NumPy)."""
@@ -194,6 +271,7 @@ def discretize(
     *,
     element: str = "P1",
     kappa_space: str = "P0",
+    kappa_kind: str = "scalar",
     dirichlet: BoundaryData = 0.0,
     neumann: Mapping[str, BoundaryValue] | None = None,
 ) -> Discretization:
@@ -206,6 +284,8 @@ def discretize(
         hexahedra (``"P1"``/``"P2"`` are accepted there as aliases of Q1/Q2).
     kappa_space
         ``"P0"`` (one value per cell) or ``"P1"`` (nodal, linear/multilinear).
+    kappa_kind
+        ``"scalar"`` or ``"tensor"`` (symmetric, Voigt components per point; see the module).
     dirichlet
         ``u = g`` data: a number or callable for the whole boundary, a dict
         ``{boundary name: number | callable}``, or ``None`` for no Dirichlet boundary (the
@@ -221,17 +301,21 @@ def discretize(
             "hexahedron mesh (see prdp_fem.load_mesh)")
     element_cls = _lookup(_ELEMENTS[mesh_type], _alias(element, mesh_type), "element", mesh)
     kappa_cls = _lookup(_KAPPA_ELEMENTS[mesh_type], kappa_space, "kappa_space", mesh)
+    if kappa_kind not in KAPPA_KINDS:
+        raise DiscretizationError(f"kappa_kind={kappa_kind!r}: expected one of {KAPPA_KINDS}")
     basis = skfem.CellBasis(mesh, element_cls())
     kappa_basis = basis.with_element(kappa_cls())
     dirichlet_dofs, dirichlet_values = _dirichlet(basis, mesh, dirichlet)
     free = np.setdiff1d(np.arange(basis.N), dirichlet_dofs)
     if len(free) == 0:
         raise DiscretizationError("dirichlet: every dof is constrained; expected free dofs")
+    forms = [_weighted_laplace] if kappa_kind == "scalar" else \
+        [_tensor_component_form(i, j) for i, j in VOIGT[mesh.dim()]]
     assembly, pattern, lifting_assembly, lifting_pattern = _assembly_maps(basis, kappa_basis,
-                                                                          free)
+                                                                          free, forms)
     neumann_load = _neumann(mesh, basis, neumann)[free]
     return Discretization(
-        mesh=mesh, element=element, kappa_space=kappa_space, basis=basis,
+        mesh=mesh, element=element, kappa_space=kappa_space, kappa_kind=kappa_kind, basis=basis,
         kappa_basis=kappa_basis, free_dofs=free, dirichlet_dofs=dirichlet_dofs,
         dirichlet_values=dirichlet_values, assembly=assembly, pattern=pattern,
         lifting_assembly=lifting_assembly, lifting_pattern=lifting_pattern,
@@ -281,7 +365,7 @@ def _evaluate(value: BoundaryValue, x: np.ndarray, field: str) -> np.ndarray:
     result = np.broadcast_to(np.asarray(value(x) if callable(value) else value, dtype=float),
                              x.shape[1:])
     if not np.isfinite(result).all():
-        raise DiscretizationError(f"{field}: boundary data is NaN/Inf; expected finite values")
+        raise DataError(f"{field}: boundary data is NaN/Inf; expected finite values")
     return np.array(result)
 
 
@@ -295,26 +379,31 @@ def _neumann(mesh, basis, data) -> np.ndarray:
     return load
 
 
-def _assembly_maps(basis, kappa_basis, free):
-    """G and pattern of the condensed operator; G_D and pattern of its Dirichlet columns."""
+def _assembly_maps(basis, kappa_basis, free, forms):
+    """G and pattern of the condensed operator; G_D and pattern of its Dirichlet columns.
+
+    ``forms[c]`` is the bilinear form of coefficient component ``c`` (one for a scalar).
+    """
     n = basis.N
     nt = basis.nelems
     free_index = np.full(n, -1)
     free_index[free] = np.arange(len(free))
     rows, cols, kappa_idx, data = [], [], [], []
-    for a in range(kappa_basis.Nbfun):
-        coo = _weighted_laplace.coo_data(basis, kappa=kappa_basis.basis[a][0])
-        element_of_entry = np.tile(np.arange(nt), coo.data.size // nt)
-        rows.append(coo.indices[0])
-        cols.append(coo.indices[1])
-        kappa_idx.append(kappa_basis.element_dofs[a][element_of_entry])
-        data.append(coo.data)
+    for component, form in enumerate(forms):
+        for a in range(kappa_basis.Nbfun):
+            coo = form.coo_data(basis, kappa=kappa_basis.basis[a][0])
+            element_of_entry = np.tile(np.arange(nt), coo.data.size // nt)
+            rows.append(coo.indices[0])
+            cols.append(coo.indices[1])
+            kappa_idx.append(component * kappa_basis.N
+                             + kappa_basis.element_dofs[a][element_of_entry])
+            data.append(coo.data)
     rows, cols = np.concatenate(rows), np.concatenate(cols)
     kappa_idx, data = np.concatenate(kappa_idx), np.concatenate(data)
     keep = free_index[rows] >= 0
     rows, cols, kappa_idx, data = rows[keep], cols[keep], kappa_idx[keep], data[keep]
     on_free = free_index[cols] >= 0
-    n_free, n_kappa = len(free), kappa_basis.N
+    n_free, n_kappa = len(free), len(forms) * kappa_basis.N
 
     # Dirichlet columns: their own summed pattern (free row, index into the Dirichlet dofs)
     dcols = ~on_free

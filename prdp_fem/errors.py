@@ -67,6 +67,30 @@ class SolverConfigError(PrdpFemError):
     """A solver was constructed with an invalid option."""
 
 
+class CoefficientError(PrdpFemError):
+    """A ``kappa`` that is NaN/Inf, ``<= 0``, or a tensor that is not positive definite."""
+
+
+class DataError(PrdpFemError):
+    """NaN/Inf in data: sources, Dirichlet/Neumann data, observations, initial guesses."""
+
+
+class IncompatibleDataError(DataError):
+    """Pure Neumann data whose net flux is not zero: the singular system has no solution."""
+
+
+class ShapeError(PrdpFemError):
+    """An array whose shape does not match the discretisation it is used with."""
+
+
+class SensorError(PrdpFemError):
+    """An empty sensor set, or sensors that lie outside the mesh."""
+
+
+class SolverBreakdownError(PrdpFemError):
+    """CG met ``p.Ap <= 0`` before converging: the operator is not positive definite."""
+
+
 class SceneError(PrdpFemError):
     """A scene file or table that cannot be used (names the file, the key and the expectation)."""
 

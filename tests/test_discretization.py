@@ -69,7 +69,7 @@ def test_unknown_boundary_and_element_are_named():
         pf.discretize(mesh, element="P3")
     with pytest.raises(pf.DiscretizationError, match="kappa_space='P2'"):
         pf.discretize(mesh, kappa_space="P2")
-    with pytest.raises(pf.DiscretizationError, match="NaN/Inf"):
+    with pytest.raises(pf.DataError, match="NaN/Inf"):
         pf.discretize(mesh, dirichlet=lambda x: np.nan * x[0])
 
 
