@@ -11,7 +11,7 @@ if _os.environ.get("PRDP_FEM_KEEP_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 from ._version import __version__
-from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, solve
+from .cg import ConvergedCG, IterationCounter, Solution, Status, TruncatedCG, solve
 from .comparison import ComparisonRow, compare, format_table
 from .discretization import Discretization, discretize
 from .errors import (
@@ -36,7 +36,15 @@ from .errors import (
     UnsupportedCellsError,
     UnusedNodeError,
 )
-from .generators import disk, l_shape, rectangle_with_hole, unit_cube, unit_square
+from .generators import (
+    disk,
+    geometric_spacing,
+    l_shape,
+    rectangle_with_hole,
+    tensor_mesh,
+    unit_cube,
+    unit_square,
+)
 from .history import History, StepRecord
 from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
@@ -105,6 +113,7 @@ __all__ = [
     "SolverBreakdownError",
     "SolverConfigError",
     "SparseMatrix",
+    "Status",
     "StepRecord",
     "TaylorResult",
     "TruncatedCG",
@@ -121,6 +130,7 @@ __all__ = [
     "disk",
     "format_table",
     "full_field",
+    "geometric_spacing",
     "h1_error",
     "h1_seminorm",
     "inverse_problem",
@@ -144,6 +154,7 @@ __all__ = [
     "save_mesh",
     "solve",
     "taylor_test",
+    "tensor_mesh",
     "unit_cube",
     "unit_square",
     "with_noise",

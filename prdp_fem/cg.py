@@ -34,6 +34,30 @@ Gradient modes
     PRDP approximation when truncated. ``K`` and ``K_adj`` are traced: changing them does not
     recompile, and iterations stop early once the residual reaches round-off.
 
+Status and bad input
+--------------------
+``Solution.status`` says whether the result can be trusted (:class:`Status`): ``SUCCESS``;
+``BREAKDOWN`` (``p.Ap <= 0`` before round-off: the operator is not positive definite, e.g. a
+``kappa <= 0``; ``x`` is the last iterate before it); ``NONFINITE`` (NaN/Inf in the inputs or
+the result); ``INCOMPATIBLE`` (a singular system whose right-hand side has a component in the
+nullspace); ``NOT_CONVERGED`` (:class:`ConvergedCG` ran out of iterations). Called eagerly (no
+tracers), :func:`solve` raises instead: :class:`~prdp_fem.errors.DataError` for non-finite
+inputs before running, :class:`~prdp_fem.errors.SolverBreakdownError` /
+:class:`~prdp_fem.errors.IncompatibleDataError` after. Inside ``jit`` it cannot raise: check
+``status`` (the inverse driver does).
+
+Singular operators
+------------------
+``nullspace=v`` solves a symmetric positive *semi*-definite system with ``null(A) = span(v)``
+(pure Neumann: ``v`` = constants). The right-hand side must be orthogonal to ``v`` up to
+``sqrt(eps)`` relative (else ``INCOMPATIBLE``: the *discrete* data must balance, which
+interpolated or quadrature data of a balanced continuous problem do only up to the
+discretisation error; :meth:`~prdp_fem.discretization.Discretization.balance_source` shifts a
+source so that they do). The component is removed either way; CG then runs on the complement
+of ``v``: the initial residual and every preconditioned residual are projected
+(``z = P M P r``, still symmetric), and the returned ``x`` is orthogonal to ``v``. Both
+gradient modes differentiate ``x = P A^+ P b``.
+
 Limits (by design): implicit mode is first-order reverse mode only (``jax.jvp`` raises; a
 Hessian through it is not exact). In unrolled mode at ``b - A x0 = 0`` the K-iteration map is
 not differentiable (it is positively homogeneous in the residual) and the gradient returned
@@ -44,6 +68,7 @@ gradient at zero residual is the (truncated) adjoint solution as usual.
 from __future__ import annotations
 
 import dataclasses
+import enum
 from functools import partial
 from typing import Any, NamedTuple
 
@@ -52,13 +77,24 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
-from .errors import SolverConfigError
+from .errors import DataError, IncompatibleDataError, SolverBreakdownError, SolverConfigError
 from .operator import SparseMatrix, matvec
 from .precond import PRECONDITIONERS, make_preconditioner
+from .validation import is_traced
 
-__all__ = ["ConvergedCG", "IterationCounter", "Solution", "TruncatedCG", "solve"]
+__all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve"]
 
 GRADIENT_MODES = ("unrolled", "implicit")
+
+
+class Status(enum.IntEnum):
+    """What ``Solution.status`` holds (an int32 array, so that it survives ``jit``)."""
+
+    SUCCESS = 0
+    BREAKDOWN = 1  # p.Ap <= 0 before round-off: the operator is not positive definite
+    NONFINITE = 2  # NaN/Inf in the inputs or in the result
+    INCOMPATIBLE = 3  # b has a component in the nullspace given to solve()
+    NOT_CONVERGED = 4  # ConvergedCG: max_iterations reached above the tolerance
 
 
 class Solution(NamedTuple):
@@ -77,6 +113,8 @@ class Solution(NamedTuple):
     residual_history
         ``||r_k||_2`` for ``k = 0..K`` (unrolled mode); in implicit/converged mode a buffer of
         ``history_size + 1`` entries, padded with the final value.
+    status
+        A :class:`Status` code (int32): ``0`` when ``x`` can be trusted.
     """
 
     x: jax.Array
@@ -84,6 +122,7 @@ class Solution(NamedTuple):
     residual_norm: jax.Array
     initial_residual_norm: jax.Array
     residual_history: jax.Array
+    status: jax.Array
 
 
 class IterationCounter:
@@ -222,17 +261,21 @@ class ConvergedCG:
 
 
 def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
-          x0: jax.Array | None = None, *, counter: IterationCounter | None = None) -> Solution:
+          x0: jax.Array | None = None, *, nullspace: jax.Array | None = None,
+          counter: IterationCounter | None = None) -> Solution:
     """Solve ``A x = b`` (``A`` symmetric positive definite) with ``solver``.
 
-    ``counter`` (an :class:`IterationCounter`) tallies the iterations run forward and backward.
+    ``nullspace`` (a vector ``v``) makes ``A`` positive *semi*-definite with ``A v = 0``: the
+    solution orthogonal to ``v`` is returned (see the module docstring). ``counter`` (an
+    :class:`IterationCounter`) tallies the iterations run forward and backward. Called eagerly,
+    bad input and a breakdown raise typed errors; under ``jit`` they set ``status``.
 
     >>> import numpy as np, scipy.sparse as sp
     >>> from prdp_fem.operator import SparseMatrix
     >>> A = SparseMatrix.from_scipy(sp.diags([4.0, 2.0]) + sp.eye(2, k=1) + sp.eye(2, k=-1))
     >>> sol = solve(A, np.array([1.0, 2.0]), TruncatedCG(iterations=2))
-    >>> np.allclose(A.todense() @ sol.x, [1.0, 2.0]), int(sol.iterations)
-    (True, 2)
+    >>> np.allclose(A.todense() @ sol.x, [1.0, 2.0]), int(sol.iterations), Status(sol.status)
+    (True, 2, <Status.SUCCESS: 0>)
     """
     b = jnp.asarray(b, dtype=matrix.values.dtype)
     x0 = jnp.zeros_like(b) if x0 is None else jnp.asarray(x0, dtype=b.dtype)
@@ -240,29 +283,117 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
         raise SolverConfigError(
             f"b{tuple(b.shape)} / x0{tuple(x0.shape)}: expected vectors of length "
             f"{matrix.shape[0]} to match the operator")
-    if isinstance(solver, TruncatedCG):
-        if solver.gradient == "unrolled":
-            precond = make_preconditioner(solver.preconditioner, matrix)
-            sol = _unrolled(matrix, precond, b, x0, solver.iterations, solver.checkpoint)
-            if counter is not None:
-                sol = sol._replace(x=_adjoint_tap(sol.x, sol.iterations, counter))
-        else:
-            k_adj = solver.iterations if solver.adjoint_iterations is None \
-                else solver.adjoint_iterations
-            sol = _implicit_solve(matrix, b, x0, solver.iterations, k_adj,
-                                  solver.preconditioner, 0.0, 0.0, solver.history_size, counter)
-    elif isinstance(solver, ConvergedCG):
-        max_iterations = 10 * matrix.shape[0] if solver.max_iterations is None \
-            else solver.max_iterations
-        sol = _implicit_solve(matrix, b, x0, max_iterations, max_iterations,
-                              solver.preconditioner, solver.rtol, solver.atol,
+    if not isinstance(solver, TruncatedCG | ConvergedCG):
+        raise SolverConfigError(f"solver={solver!r}: expected TruncatedCG or ConvergedCG")
+    eager = not is_traced(matrix.values, b, x0, nullspace)
+    if eager:
+        _check_finite_inputs(matrix, b, x0)
+    precond = make_preconditioner(solver.preconditioner, matrix)
+    incompatible = jnp.asarray(False)
+    if nullspace is not None:
+        direction = _unit_nullspace(nullspace, b)
+        precond = _Projected(precond, direction)
+        incompatible = _incompatible(direction, b)
+        b, x0 = precond.project(b), precond.project(x0)
+    if isinstance(solver, TruncatedCG) and solver.gradient == "unrolled":
+        sol = _unrolled(matrix, precond, b, x0, solver.iterations, solver.checkpoint)
+        if counter is not None:
+            sol = sol._replace(x=_adjoint_tap(sol.x, sol.iterations, counter))
+    elif isinstance(solver, TruncatedCG):
+        k_adj = solver.iterations if solver.adjoint_iterations is None \
+            else solver.adjoint_iterations
+        sol = _implicit_solve(matrix, b, x0, solver.iterations, k_adj, precond, 0.0, 0.0,
                               solver.history_size, counter)
     else:
-        raise SolverConfigError(f"solver={solver!r}: expected TruncatedCG or ConvergedCG")
+        max_iterations = 10 * matrix.shape[0] if solver.max_iterations is None \
+            else solver.max_iterations
+        sol = _implicit_solve(matrix, b, x0, max_iterations, max_iterations, precond,
+                              solver.rtol, solver.atol, solver.history_size, counter)
+    sol = sol._replace(status=_final_status(sol, incompatible, _all_finite(matrix.values, b, x0)))
     _tap(counter, "primal", sol.iterations)
+    if eager:
+        _raise_on_status(sol)
     return sol
 
 
+# --------------------------------------------------------------------------------------
+# input checks, status, nullspace
+# --------------------------------------------------------------------------------------
+
+
+def _check_finite_inputs(matrix: SparseMatrix, b: jax.Array, x0: jax.Array) -> None:
+    for name, value in (("operator values", matrix.values), ("b", b), ("x0", x0)):
+        bad = ~np.isfinite(np.asarray(value))
+        if bad.any():
+            hint = " (check kappa)" if name == "operator values" else ""
+            raise DataError(f"{name}: {int(bad.sum())} of {bad.size} entries are NaN/Inf "
+                            f"(first: index {int(np.flatnonzero(bad)[0])}){hint}; expected "
+                            "finite values")
+
+
+def _raise_on_status(sol: Solution) -> None:
+    status = Status(int(sol.status))
+    if status == Status.BREAKDOWN:
+        raise SolverBreakdownError(
+            f"CG broke down after {int(sol.iterations)} iterations (p.Ap <= 0 with residual "
+            f"{float(sol.residual_norm):.3g}): the operator is not positive definite; expected "
+            "kappa > 0 (a positive definite tensor) and a Dirichlet boundary or a nullspace")
+    if status == Status.INCOMPATIBLE:
+        raise IncompatibleDataError(
+            "b: has a component along the nullspace, so A x = b has no solution (pure Neumann: "
+            "the discrete int f + int h is not 0); expected balanced data, e.g. "
+            "Discretization.balance_source(f) or b - mean(b)")
+    if status == Status.NONFINITE:
+        raise DataError(f"solution: NaN/Inf after {int(sol.iterations)} iterations from finite "
+                        "inputs (overflow: rescale the problem); expected finite values")
+
+
+def _final_status(sol: Solution, incompatible: jax.Array, inputs_finite: jax.Array) -> jax.Array:
+    """The solver's own status, overridden by non-finite data or results, incompatible data.
+
+    Non-finite inputs must be checked apart: a NaN initial residual freezes CG at ``x0``
+    (``NaN > level`` is false), which would otherwise look like a finite, converged result.
+    """
+    status = jnp.where(incompatible, Status.INCOMPATIBLE, sol.status)
+    finite = jnp.all(jnp.isfinite(jax.lax.stop_gradient(sol.x))) & inputs_finite
+    return jnp.where(finite, status, Status.NONFINITE).astype(jnp.int32)
+
+
+def _all_finite(*arrays: jax.Array) -> jax.Array:
+    # a sum is finite iff every term is (barring overflow, which is a failure too)
+    return jax.lax.stop_gradient(
+        jnp.all(jnp.asarray([jnp.isfinite(jnp.sum(a)) for a in arrays])))
+
+
+def _unit_nullspace(nullspace: jax.Array, b: jax.Array) -> jax.Array:
+    v = jnp.asarray(nullspace, dtype=b.dtype)
+    if v.shape != b.shape:
+        raise SolverConfigError(f"nullspace{tuple(v.shape)}: expected a vector of length "
+                                f"{b.shape[0]} spanning the operator's nullspace")
+    if not is_traced(v) and not (np.isfinite(np.asarray(v)).all() and np.any(np.asarray(v))):
+        raise SolverConfigError("nullspace: expected a finite, non-zero vector")
+    return v / _norm(v)
+
+
+def _incompatible(direction: jax.Array, b: jax.Array) -> jax.Array:
+    """``|v.b| > sqrt(eps) ||b||``: ``b`` is not in the range of ``A`` (to round-off)."""
+    along = jnp.abs(jnp.vdot(direction, b))
+    return jax.lax.stop_gradient(along > jnp.sqrt(jnp.finfo(b.dtype).eps) * _norm(b))
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["inner", "direction"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class _Projected:
+    """``z = P M P r`` with ``P = I - v v'``: a preconditioner on the complement of ``v``."""
+
+    inner: Any
+    direction: jax.Array
+
+    def project(self, vector: jax.Array) -> jax.Array:
+        return vector - jnp.vdot(self.direction, vector) * self.direction
+
+    def __call__(self, r: jax.Array) -> jax.Array:
+        return self.project(self.inner(self.project(r)))
 
 
 # --------------------------------------------------------------------------------------
@@ -278,6 +409,7 @@ class _CGState(NamedTuple):
     p: jax.Array
     rz: jax.Array
     freeze_level: jax.Array  # eps^2 * r0.z0: below it r.z is round-off and CG stops moving
+    broken: jax.Array  # p.Ap <= 0 was met while still active: A is not positive definite
 
 
 def _safe_ratio(num: jax.Array, den: jax.Array, ok: jax.Array) -> jax.Array:
@@ -293,13 +425,16 @@ def _init(matrix, precond, b, x0) -> tuple[_CGState, jax.Array, jax.Array]:
     (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides.
     """
     r0 = b - matvec(matrix, x0)
+    if isinstance(precond, _Projected):  # round-off or a cotangent may leave a v component
+        r0 = precond.project(r0)
     r0_norm = _norm(r0)
     scale = jnp.where(r0_norm > 0, r0_norm, 1.0)
     r = r0 / scale
     z = precond(r)
     rz = jnp.vdot(r, z)
     eps = jnp.finfo(r.dtype).eps
-    return _CGState(jnp.zeros_like(r), r, z, rz, eps * eps * rz), r0_norm, scale
+    return (_CGState(jnp.zeros_like(r), r, z, rz, eps * eps * rz, jnp.asarray(False)),
+            r0_norm, scale)
 
 
 def _norm(v: jax.Array) -> jax.Array:
@@ -317,7 +452,8 @@ def _step(matrix, precond, state: _CGState) -> tuple[_CGState, jax.Array]:
     """One PCG iteration; returns the new state and whether it moved ``x``."""
     q = matvec(matrix, state.p)
     pq = jnp.vdot(state.p, q)
-    moving = _active(state) & (pq > 0)
+    active = _active(state)
+    moving = active & (pq > 0)
     alpha = _safe_ratio(state.rz, pq, moving)
     d = state.d + alpha * state.p
     r = state.r - alpha * q
@@ -326,7 +462,13 @@ def _step(matrix, precond, state: _CGState) -> tuple[_CGState, jax.Array]:
     beta = _safe_ratio(rz_new, state.rz, moving)
     p = jnp.where(moving, z + beta * state.p, state.p)
     rz_new = jnp.where(moving, rz_new, state.rz)
-    return _CGState(d, r, p, rz_new, state.freeze_level), moving
+    broken = state.broken | (active & ~moving)
+    return _CGState(d, r, p, rz_new, state.freeze_level, broken), moving
+
+
+def _solver_status(broken: jax.Array, not_converged: jax.Array) -> jax.Array:
+    status = jnp.where(not_converged, Status.NOT_CONVERGED, Status.SUCCESS)
+    return jax.lax.stop_gradient(jnp.where(broken, Status.BREAKDOWN, status).astype(jnp.int32))
 
 
 # --------------------------------------------------------------------------------------
@@ -345,8 +487,33 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solu
         body = jax.checkpoint(body)
     state, (moved, norms) = jax.lax.scan(body, state, None, length=iterations)
     history = jax.lax.stop_gradient(scale * jnp.concatenate([jnp.ones(1, norms.dtype), norms]))
-    return Solution(x0 + scale * state.d, jnp.sum(moved).astype(jnp.int32), history[-1],
-                    jax.lax.stop_gradient(r0_norm), history)
+    x = x0 + scale * state.d
+    # frozen at round-off before K: the K-iteration map *is* the solution map to working
+    # precision, but the reverse sweep through the frozen iterations would return the
+    # derivative of the last moving Krylov iterate, which lags the exact one (the CG
+    # polynomial is small on the spectrum, its slope is not): differentiate implicitly there
+    converged = jax.lax.stop_gradient(~_active(state) & ~state.broken)
+    x = jax.lax.cond(converged, lambda: _solution_map(matrix, precond, b, iterations),
+                     lambda: x)
+    return Solution(x, jnp.sum(moved).astype(jnp.int32), history[-1],
+                    jax.lax.stop_gradient(r0_norm), history,
+                    _solver_status(state.broken, jnp.asarray(False)))
+
+
+def _solution_map(matrix, precond, b, max_iterations: int) -> jax.Array:
+    """``A^+ b`` by PCG to round-off, with exact implicit derivatives in both modes.
+
+    ``lax.custom_linear_solve`` differentiates ``x = A^{-1} b`` through ``A``'s matvec and
+    solves the tangent/adjoint systems with the same (symmetric) solver.
+    """
+    precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
+    no_tolerance = jnp.zeros(2, b.dtype)
+
+    def pcg(_, rhs):
+        return _while_solve(jax.lax.stop_gradient(matrix), precond, rhs, jnp.zeros_like(rhs),
+                            max_iterations, no_tolerance, 0).x
+
+    return jax.lax.custom_linear_solve(partial(matvec, matrix), b, pcg, symmetric=True)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(2,))
@@ -393,12 +560,14 @@ def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_siz
     init = (jnp.zeros((), jnp.int32), state, unit, jnp.full(history_size + 1, unit),
             jnp.asarray(True))
     k, state, norm, history, _ = jax.lax.while_loop(cond, body, init)
-    return Solution(x0 + scale * state.d, k, scale * norm, r0_norm, scale * history)
+    # a tolerance was asked for (ConvergedCG) and not met: say so
+    not_converged = (target > 0) & (norm > target)
+    return Solution(x0 + scale * state.d, k, scale * norm, r0_norm, scale * history,
+                    _solver_status(state.broken, not_converged))
 
 
-def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond_spec, rtol, atol,
+def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond, rtol, atol,
                     history_size, counter=None) -> Solution:
-    precond = make_preconditioner(precond_spec, matrix)
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
@@ -426,6 +595,7 @@ def _implicit_bwd(shape, history_size, counter, residuals, cotangent: Solution):
     values, x, adjoint_iterations, rows, cols, precond, tolerances = residuals
     matrix = SparseMatrix(rows, cols, values, shape)
     # A is symmetric: the adjoint system is A lambda = x_bar, solved the same (truncated) way
+    # (with a nullspace, _init projects x_bar: lambda = P A^+ P x_bar)
     adjoint_solution = _while_solve(matrix, precond, cotangent.x, jnp.zeros_like(cotangent.x),
                                     adjoint_iterations, tolerances, 0)
     _tap(counter, "adjoint", adjoint_solution.iterations)

@@ -8,6 +8,7 @@ Subcommands
 ``mesh-info``  cells, quality, tags and problems of a mesh file
 ``scenes``     list the built-in scenes, or print one
 ``forward``    truncated-PCG error against K and run time (a quick forward study)
+``stability``  the stiff/extreme-case suite: a Markdown + CSV table; exit 1 on any failure
 ``bench cg``   PCG iteration / SciPy SpMV time ratio (see :mod:`prdp_fem.bench`)
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
@@ -43,6 +44,10 @@ EXAMPLES = {
   prdp-fem solve poisson_h --reference --out u.vtu    # a scene; error against pyamg""",
     "mesh-info": """examples:
   prdp-fem mesh-info meshes/cube_tet.msh""",
+    "stability": """examples:
+  prdp-fem stability                          # all cases, into ./stability
+  prdp-fem stability --fast --out runs/stab   # the subset the default tests run
+  prdp-fem stability --case inclusion_1e10 aspect_1e4""",
     "scenes": """examples:
   prdp-fem scenes                 # list
   prdp-fem scenes mother > my.toml   # copy one to edit""",
@@ -99,6 +104,14 @@ def _parser() -> argparse.ArgumentParser:
                          metavar="K", help="the K values to run")
     forward.add_argument("--preconditioner", default="jacobi", help="jacobi | identity")
     forward.add_argument("--out", type=Path, help="append records as JSON lines here")
+
+    stability = _command(sub, "stability", "run the stability suite (contrast, anisotropy, "
+                         "bad meshes, scales, pure Neumann, K extremes, float32)")
+    stability.add_argument("--out", type=Path, default=Path("stability"),
+                           help="directory for stability.md and stability.csv "
+                           "(default: ./stability)")
+    stability.add_argument("--case", nargs="+", metavar="NAME", help="only these cases")
+    stability.add_argument("--fast", action="store_true", help="only the fast subset")
 
     bench = _command(sub, "bench", "benchmarks")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
@@ -351,14 +364,52 @@ def _bench_cg(args) -> None:
               flush=True)
 
 
+def _stability(args) -> int:
+    from .stability import format_markdown, run_case, suite_passed, write_csv
+    from .stability_cases import CASES, case_named
+
+    cases = [case_named(name) for name in args.case] if args.case else \
+        [c for c in CASES if c.fast or not args.fast]
+    args.out.mkdir(parents=True, exist_ok=True)
+    markdown, table = args.out / "stability.md", args.out / "stability.csv"
+    results = []
+    with _progress(len(cases), "cases") as bar:
+        for case in cases:
+            bar.set_postfix_str(case.name)
+            results.append(run_case(case))
+            write_csv(results, table)  # after every case: an interrupted run keeps its rows
+            _write_atomic(markdown, format_markdown(results))
+            bar.update()
+    print(format_markdown(results), end="")
+    passed = suite_passed(results)
+    failed = [r.case for r in results if r.verdict == "FAIL" or r.nonfinite]
+    print(f"{len(results)} cases: {sum(r.verdict == 'ok' for r in results)} ok, "
+          f"{sum(r.verdict == 'flagged' for r in results)} flagged, {len(failed)} failed"
+          + (f" ({', '.join(failed)})" if failed else "") + f"; tables in {markdown}, {table}")
+    return 0 if passed else 1
+
+
+def _progress(total: int, unit: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, disable=not sys.stderr.isatty(), leave=False)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text)
+    partial.replace(path)
+
+
 COMMANDS = {"study": _study, "invert": _invert, "solve": _solve, "mesh-info": _mesh_info,
-            "mesh": _mesh_info, "scenes": _scenes, "forward": _forward, "bench": _bench_cg}
+            "mesh": _mesh_info, "scenes": _scenes, "forward": _forward, "bench": _bench_cg,
+            "stability": _stability}
 
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        COMMANDS[args.command](args)
+        code = COMMANDS[args.command](args)
     except PrdpFemError as error:
         print(f"prdp-fem: error: {error}", file=sys.stderr)
         return 2
@@ -373,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("prdp-fem: interrupted", file=sys.stderr)
         return 130
-    return 0
+    return code or 0
 
 
 if __name__ == "__main__":

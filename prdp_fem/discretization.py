@@ -31,6 +31,7 @@ from functools import cached_property
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
@@ -205,7 +206,13 @@ class Discretization:
             dirichlet_dofs=jnp.asarray(self.dirichlet_dofs, dtype=jnp.int32),
             dirichlet_values=jnp.asarray(self.dirichlet_values),
             n_dofs=self.n_dofs,
+            nullspace=None if self.nullspace is None else jnp.asarray(self.nullspace),
         )
+
+    @property
+    def nullspace(self) -> np.ndarray | None:
+        """Constants on the free dofs for a pure Neumann problem (no Dirichlet dofs), else None."""
+        return np.ones(self.n_free) if len(self.dirichlet_dofs) == 0 else None
 
     def stiffness_matrix(self, kappa: np.ndarray) -> sp.csr_matrix:
         """Condensed ``A(kappa)`` as SciPy CSR (reference path, no JAX)."""
@@ -218,6 +225,18 @@ class Discretization:
         if f is not None:
             b = b + self.source_matrix @ finite_vector(f, "f", self.n_dofs)
         return b
+
+    def balance_source(self, f: np.ndarray) -> np.ndarray:
+        """Nodal ``f`` shifted by a constant so that pure Neumann data balance discretely.
+
+        The discrete system is solvable iff ``1' (M f + h) = 0``; interpolating a balanced
+        continuous source meets that only up to the interpolation error.
+        """
+        f = finite_vector(f, "f", self.n_dofs)
+        ones = np.ones(self.n_dofs)
+        mass_of_ones = self.mass_matrix @ ones
+        imbalance = mass_of_ones @ f + self.neumann.sum()
+        return f - imbalance / mass_of_ones.sum()
 
     def load_vector(self, f: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Free part of ``int f v`` with ``f(x)`` evaluated at quadrature points (exact load)."""
@@ -288,8 +307,9 @@ def discretize(
         ``"scalar"`` or ``"tensor"`` (symmetric, Voigt components per point; see the module).
     dirichlet
         ``u = g`` data: a number or callable for the whole boundary, a dict
-        ``{boundary name: number | callable}``, or ``None`` for no Dirichlet boundary (the
-        operator is then singular unless Neumann data alone pins nothing: use with care).
+        ``{boundary name: number | callable}``, or ``None`` for a pure Neumann problem: the
+        operator is then singular with the constants as nullspace (``Discretization.nullspace``,
+        handled by ``system.solve``; the data must balance, ``int f + int h = 0``).
     neumann
         ``kappa du/dn = h`` data as ``{boundary name: number | callable}``; boundaries in
         neither dict are natural (``h = 0``).
@@ -309,6 +329,7 @@ def discretize(
     free = np.setdiff1d(np.arange(basis.N), dirichlet_dofs)
     if len(free) == 0:
         raise DiscretizationError("dirichlet: every dof is constrained; expected free dofs")
+    _check_pinned(basis, dirichlet_dofs)
     forms = [_weighted_laplace] if kappa_kind == "scalar" else \
         [_tensor_component_form(i, j) for i, j in VOIGT[mesh.dim()]]
     assembly, pattern, lifting_assembly, lifting_pattern = _assembly_maps(basis, kappa_basis,
@@ -320,6 +341,31 @@ def discretize(
         dirichlet_values=dirichlet_values, assembly=assembly, pattern=pattern,
         lifting_assembly=lifting_assembly, lifting_pattern=lifting_pattern,
         neumann=neumann_load)
+
+
+def _check_pinned(basis, dirichlet_dofs: np.ndarray) -> None:
+    """Each connected part of the mesh needs Dirichlet data, or be the only part (pure Neumann).
+
+    Otherwise the operator has a nullspace of constants per floating part, which CG cannot
+    handle from one nullspace vector.
+    """
+    dofs = basis.element_dofs
+    edges = np.stack([np.repeat(dofs[:1], dofs.shape[0] - 1, axis=0).ravel(),
+                      dofs[1:].ravel()])
+    graph = sp.coo_matrix((np.ones(edges.shape[1]), edges), shape=(basis.N, basis.N))
+    n_parts, part = csgraph.connected_components(graph, directed=False)
+    if len(dirichlet_dofs) == 0:
+        if n_parts > 1:
+            raise DiscretizationError(
+                f"dirichlet=None on a mesh of {n_parts} disconnected parts: the operator has "
+                f"{n_parts} constant modes; expected one connected mesh, or Dirichlet data on "
+                "every part")
+        return
+    floating = np.setdiff1d(np.arange(n_parts), part[dirichlet_dofs])
+    if floating.size:
+        raise DiscretizationError(
+            f"dirichlet: {floating.size} of the mesh's {n_parts} disconnected parts carry no "
+            "Dirichlet data, so the operator is singular; expected Dirichlet data on every part")
 
 
 def _alias(element: str, mesh_type) -> str:

@@ -18,7 +18,8 @@ import skfem
 from .errors import DiscretizationError
 from .mesh import mesh_from_arrays
 
-__all__ = ["disk", "l_shape", "rectangle_with_hole", "unit_cube", "unit_square"]
+__all__ = ["disk", "geometric_spacing", "l_shape", "rectangle_with_hole", "tensor_mesh",
+           "unit_cube", "unit_square"]
 
 _TOL = 1e-10
 
@@ -28,8 +29,9 @@ def _sides(dim: int, lower=(0.0, 0.0, 0.0), upper=(1.0, 1.0, 1.0)):
     sides = {}
     for axis in range(dim):
         lo, hi = lower[axis], upper[axis]
-        sides[names[axis][0]] = lambda x, a=axis, v=lo: np.abs(x[a] - v) < _TOL
-        sides[names[axis][1]] = lambda x, a=axis, v=hi: np.abs(x[a] - v) < _TOL
+        tol = _TOL * max(hi - lo, abs(lo), abs(hi))  # relative: domains of any scale
+        sides[names[axis][0]] = lambda x, a=axis, v=lo, t=tol: np.abs(x[a] - v) < t
+        sides[names[axis][1]] = lambda x, a=axis, v=hi, t=tol: np.abs(x[a] - v) < t
     return sides
 
 
@@ -63,6 +65,52 @@ def unit_cube(n: int, cell: str = "tetra") -> skfem.Mesh:
     else:
         raise DiscretizationError(f"cell={cell!r}: expected 'tetra' or 'hexahedron'")
     return mesh.with_boundaries(_sides(3))
+
+
+def tensor_mesh(*coordinates: np.ndarray, cell: str = "triangle") -> skfem.Mesh:
+    """Structured mesh on the grid ``coordinates[0] x coordinates[1] (x coordinates[2])``.
+
+    Each array must be finite and strictly increasing; the spacing may vary, so this builds
+    stretched (aspect ratio ``dy/dx``), graded (:func:`geometric_spacing`) and scaled meshes.
+    ``cell``: ``triangle``/``quad`` in 2-D, ``tetra``/``hexahedron`` in 3-D. Boundaries are
+    named as for :func:`unit_square`.
+
+    >>> mesh = tensor_mesh(np.linspace(0, 1, 5), np.linspace(0, 1e-4, 5))
+    >>> float(mesh.p[1].max()), sorted(mesh.boundaries)
+    (0.0001, ['bottom', 'left', 'right', 'top'])
+    """
+    cells = {2: {"triangle": skfem.MeshTri1, "quad": skfem.MeshQuad1},
+             3: {"tetra": skfem.MeshTet1, "hexahedron": skfem.MeshHex1}}
+    if len(coordinates) not in cells:
+        raise DiscretizationError(f"tensor_mesh: {len(coordinates)} coordinate arrays; "
+                                  "expected 2 or 3")
+    arrays = [np.asarray(c, dtype=float) for c in coordinates]
+    for axis, c in enumerate(arrays):
+        if c.ndim != 1 or c.size < 2 or not np.isfinite(c).all() or not (np.diff(c) > 0).all():
+            raise DiscretizationError(f"tensor_mesh: coordinates[{axis}] must be a finite, "
+                                      "strictly increasing 1-D array of at least 2 values")
+    dim = len(arrays)
+    if cell not in cells[dim]:
+        raise DiscretizationError(f"cell={cell!r}: expected one of {sorted(cells[dim])}")
+    mesh = cells[dim][cell].init_tensor(*arrays)
+    return mesh.with_boundaries(_sides(dim, [c[0] for c in arrays], [c[-1] for c in arrays]))
+
+
+def geometric_spacing(n: int, ratio: float, length: float = 1.0) -> np.ndarray:
+    """``n + 1`` points on ``[0, length]``; cells grow geometrically to ``h_max/h_min = ratio``.
+
+    >>> x = geometric_spacing(4, 8.0)
+    >>> float(np.diff(x).max() / np.diff(x).min())
+    8.0
+    """
+    n = _check_n(n)
+    if not (np.isfinite(ratio) and ratio >= 1 and np.isfinite(length) and length > 0):
+        raise DiscretizationError(f"geometric_spacing: ratio={ratio!r}, length={length!r}; "
+                                  "expected ratio >= 1 and length > 0")
+    growth = float(ratio) ** (1.0 / max(n - 1, 1))
+    cells = growth ** np.arange(n)
+    x = np.concatenate([[0.0], np.cumsum(cells)])
+    return length * x / x[-1]
 
 
 def l_shape(refinements: int = 3) -> skfem.Mesh:

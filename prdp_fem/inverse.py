@@ -29,7 +29,7 @@ import numpy as np
 import optax
 import optax.tree_utils as otu
 
-from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, solve
+from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG
 from .discretization import Discretization
 from .errors import PrdpFemError, SolverConfigError
 from .history import History, StepRecord
@@ -97,8 +97,7 @@ class InverseProblem:
               counter: IterationCounter | None = None) -> Solution:
         """The (truncated) solve at ``z``; ``Solution.x`` on the free dofs."""
         kappa, f = self.parameterization.coefficients(z, self.known)
-        A = self.system.operator(kappa)
-        return solve(A, self.system.rhs(kappa, f), solver, x0, counter=counter)
+        return self.system.solve(kappa, f, solver, x0, counter=counter)
 
     def loss(self, z: jax.Array, solver, x0: jax.Array | None = None,
              counter: IterationCounter | None = None) -> tuple[jax.Array, LossParts]:
@@ -325,9 +324,11 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         if validate is None or k % monitor.every == 0:
             control = update_control(control, monitored)
         run_time += time.perf_counter() - start - (step.seconds - compile_before)
-        if not bool(jnp.all(jnp.isfinite(z_next))):
+        if not (np.isfinite(float(value)) and np.isfinite(float(grad_norm))
+                and bool(jnp.all(jnp.isfinite(z_next)))):
             raise InversionError(
-                f"step {k}: the optimiser produced non-finite parameters (loss {float(value)!r}, "
+                f"step {k}: non-finite loss, gradient or parameters (loss {float(value)!r}, "
+                f"gradient norm {float(grad_norm)!r}, "
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
         z = z_next

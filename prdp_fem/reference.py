@@ -52,9 +52,23 @@ def amg_solve(matrix: sp.spmatrix, b: np.ndarray, *, rtol: float = 1e-12,
     return ReferenceSolution(x, max(len(residuals) - 1, 0), float(np.linalg.norm(b - matrix @ x)))
 
 
-def direct_solve(matrix: sp.spmatrix, b: np.ndarray) -> ReferenceSolution:
-    """Sparse LU (SciPy SuperLU); for small systems."""
-    x = spla.splu(sp.csc_matrix(matrix)).solve(np.asarray(b, dtype=float))
+def direct_solve(matrix: sp.spmatrix, b: np.ndarray, *,
+                 nullspace: np.ndarray | None = None) -> ReferenceSolution:
+    """Sparse LU (SciPy SuperLU); for small systems.
+
+    With ``nullspace=v`` (``A v = 0``), the bordered system ``[[A, v], [v', 0]]`` gives the
+    solution orthogonal to ``v`` of the projected system ``A x = P b`` (as :func:`~prdp_fem.solve`).
+    """
+    b = np.asarray(b, dtype=float)
+    if nullspace is None:
+        x = spla.splu(sp.csc_matrix(matrix)).solve(b)
+        return ReferenceSolution(x, 0, float(np.linalg.norm(b - matrix @ x)))
+    v = np.asarray(nullspace, dtype=float)
+    v = v / np.linalg.norm(v)
+    column = sp.csr_matrix(v[:, None])
+    bordered = sp.bmat([[matrix, column], [column.T, None]], format="csc")
+    b = b - (v @ b) * v
+    x = spla.splu(bordered).solve(np.append(b, 0.0))[:-1]
     return ReferenceSolution(x, 0, float(np.linalg.norm(b - matrix @ x)))
 
 

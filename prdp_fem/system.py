@@ -24,14 +24,18 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 
+from . import cg
+from .errors import CoefficientError
 from .operator import SparseMatrix, matvec
+from .validation import finite_vector
 
 __all__ = ["LinearSystem"]
 
 
 @partial(jax.tree_util.register_dataclass,
          data_fields=["assembly", "rows", "cols", "lifting", "lifting_rows", "lifting_cols",
-                      "source", "neumann", "free_dofs", "dirichlet_dofs", "dirichlet_values"],
+                      "source", "neumann", "free_dofs", "dirichlet_dofs", "dirichlet_values",
+                      "nullspace"],
          meta_fields=["n_dofs"])
 @dataclasses.dataclass(frozen=True)
 class LinearSystem:
@@ -39,7 +43,9 @@ class LinearSystem:
 
     ``rows``/``cols`` are the (row-sorted) sparsity pattern of ``A``; ``assembly`` is ``G``;
     ``lifting`` is ``G_D`` on the pattern ``(lifting_rows, lifting_cols)`` of the Dirichlet
-    columns (``lifting_cols`` index ``dirichlet_values``).
+    columns (``lifting_cols`` index ``dirichlet_values``). ``nullspace`` is ``None``, or the
+    constants when there is no Dirichlet boundary (pure Neumann: pass it to
+    :func:`~prdp_fem.cg.solve`, as :meth:`solve` does).
     """
 
     assembly: SparseMatrix
@@ -54,6 +60,7 @@ class LinearSystem:
     dirichlet_dofs: jax.Array
     dirichlet_values: jax.Array
     n_dofs: int
+    nullspace: jax.Array | None = None
 
     @property
     def n_free(self) -> int:
@@ -81,6 +88,17 @@ class LinearSystem:
         if f is not None:
             b = b + matvec(self.source, f)
         return b
+
+    def solve(self, kappa: jax.Array, f: jax.Array | None, solver, x0: jax.Array | None = None,
+              counter=None):
+        """:func:`~prdp_fem.cg.solve` of ``A(kappa) u = b(kappa, f)``, nullspace included.
+
+        Called eagerly, a non-finite ``kappa`` raises :class:`~prdp_fem.errors.CoefficientError`
+        (even where it would not reach the free dofs).
+        """
+        kappa = finite_vector(kappa, "kappa", self.n_kappa, error=CoefficientError)
+        return cg.solve(self.operator(kappa), self.rhs(kappa, f), solver, x0,
+                        nullspace=self.nullspace, counter=counter)
 
     def expand(self, u_free: jax.Array) -> jax.Array:
         """Full nodal vector: free values plus the Dirichlet data."""

@@ -1,0 +1,285 @@
+"""Stiff and singular inputs to the solver: status codes, pure Neumann nullspace, tensor
+coefficients, condition estimates and extreme meshes, grouped by what they check."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import prdp_fem as pf
+from prdp_fem.cg import ConvergedCG, Status, TruncatedCG, solve
+from prdp_fem.conditioning import condition_estimate
+
+MODES = ("unrolled", "implicit")
+
+
+def square(n=8, **options):
+    return pf.discretize(pf.unit_square(n), **options)
+
+
+# ------------------------------------------------------------------------------------------
+# status: eager calls raise typed errors, jitted calls report them
+# ------------------------------------------------------------------------------------------
+
+
+def test_negative_kappa_breaks_down_eagerly_and_is_flagged_under_jit():
+    disc = square()
+    system, f = disc.system, np.ones(disc.n_dofs)
+    with pytest.raises(pf.SolverBreakdownError, match="not positive definite"):
+        system.solve(-np.ones(disc.n_kappa), f, ConvergedCG())
+    for solver in (ConvergedCG(), TruncatedCG(20), TruncatedCG(20, gradient="implicit")):
+        sol = jax.jit(lambda k, s=solver: system.solve(k, f, s))(-jnp.ones(disc.n_kappa))
+        assert int(sol.status) == Status.BREAKDOWN
+        assert np.isfinite(sol.x).all()
+
+
+def test_nan_inputs_are_refused_eagerly_and_flagged_under_jit():
+    disc = square()
+    system = disc.system
+    A = system.operator(jnp.ones(disc.n_kappa))
+    b = np.ones(disc.n_free)
+    bad_b = b.copy()
+    bad_b[3] = np.nan
+    with pytest.raises(pf.DataError, match=r"b: 1 of \d+ entries are NaN/Inf \(first: index 3\)"):
+        solve(A, bad_b, TruncatedCG(5))
+    with pytest.raises(pf.DataError, match=r"x0: .*NaN/Inf"):
+        solve(A, b, TruncatedCG(5), x0=bad_b)
+    bad_kappa = np.ones(disc.n_kappa)
+    bad_kappa[40] = np.inf
+    with pytest.raises(pf.CoefficientError, match="kappa: 1 value"):
+        system.solve(bad_kappa, np.ones(disc.n_dofs), TruncatedCG(5))
+    with pytest.raises(pf.DataError, match="operator values"):
+        solve(system.operator(jnp.asarray(bad_kappa)), b, TruncatedCG(5))
+    for solver in (ConvergedCG(), TruncatedCG(5), TruncatedCG(5, gradient="implicit")):
+        sol = jax.jit(lambda b, s=solver: solve(A, b, s))(jnp.asarray(bad_b))
+        assert int(sol.status) == Status.NONFINITE
+
+
+def test_converged_cg_out_of_iterations_says_so():
+    disc = square()
+    kappa, f = np.ones(disc.n_kappa), np.ones(disc.n_dofs)
+    short = disc.system.solve(kappa, f, ConvergedCG(rtol=1e-12, max_iterations=2))
+    assert int(short.status) == Status.NOT_CONVERGED
+    assert int(disc.system.solve(kappa, f, ConvergedCG(rtol=1e-12)).status) == Status.SUCCESS
+    # a truncated solve stops at K by design: that is success
+    assert int(disc.system.solve(kappa, f, TruncatedCG(2)).status) == Status.SUCCESS
+
+
+# ------------------------------------------------------------------------------------------
+# pure Neumann: nullspace handled, unbalanced data refused
+# ------------------------------------------------------------------------------------------
+
+
+def neumann_problem(n=12):
+    disc = pf.discretize(pf.unit_square(n), dirichlet=None)
+    f = disc.balance_source(disc.interpolate(lambda x: np.cos(np.pi * x[0]) + x[1] ** 2))
+    return disc, np.ones(disc.n_kappa), f
+
+
+def test_balance_source_makes_the_discrete_data_sum_to_zero():
+    disc, kappa, f = neumann_problem()
+    b = disc.rhs(kappa, f)
+    assert abs(b.sum()) < 1e-14 * np.abs(b).sum()
+    assert disc.nullspace is not None and square().nullspace is None
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_pure_neumann_matches_the_bordered_direct_solve(mode):
+    disc, kappa, f = neumann_problem()
+    reference = pf.direct_solve(disc.stiffness_matrix(kappa), disc.rhs(kappa, f),
+                                nullspace=disc.nullspace).x
+    sol = disc.system.solve(kappa, f, TruncatedCG(10 * disc.n_free, gradient=mode))
+    assert int(sol.status) == Status.SUCCESS
+    np.testing.assert_allclose(sol.x, reference, atol=1e-11 * abs(reference).max())
+    assert abs(np.sum(sol.x)) < 1e-10 * abs(reference).max()  # the mean-free solution
+
+
+def test_pure_neumann_converges_to_the_manufactured_solution():
+    """u = cos(pi x) cos(pi y) / (2 pi^2) solves -lap u = cos cos with du/dn = 0: rate 2."""
+    errors = []
+    for n in (8, 16, 32):
+        disc = pf.discretize(pf.unit_square(n), dirichlet=None)
+        f = disc.balance_source(disc.interpolate(
+            lambda x: np.cos(np.pi * x[0]) * np.cos(np.pi * x[1])))
+        u = disc.system.solve(np.ones(disc.n_kappa), f, ConvergedCG(rtol=1e-12)).x
+        errors.append(pf.l2_error(disc, np.asarray(u), lambda x: np.cos(np.pi * x[0])
+                                  * np.cos(np.pi * x[1]) / (2 * np.pi ** 2)))
+    rates = np.log2(np.array(errors[:-1]) / errors[1:])
+    assert rates[-1] == pytest.approx(2.0, abs=0.1)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_pure_neumann_gradient_passes_taylor_test(mode):
+    disc, _, f = neumann_problem(6)
+    solver = TruncatedCG(10 * disc.n_free, gradient=mode)
+    weights = jnp.asarray(np.random.default_rng(0).standard_normal(disc.n_free))
+
+    def loss(log_kappa):
+        x = disc.system.solve(jnp.exp(log_kappa), f, solver).x
+        return jnp.vdot(weights, x) + 0.5 * jnp.sum(x ** 2)
+
+    result = pf.taylor_test(loss, jnp.zeros(disc.n_kappa))
+    assert result.passed(), result.rates
+
+
+def test_unbalanced_neumann_data_are_refused_and_flagged():
+    disc, kappa, f = neumann_problem()
+    with pytest.raises(pf.IncompatibleDataError, match="balance_source"):
+        disc.system.solve(kappa, f + 1.0, TruncatedCG(10))
+    sol = jax.jit(lambda f: disc.system.solve(kappa, f, ConvergedCG()))(jnp.asarray(f + 1.0))
+    assert int(sol.status) == Status.INCOMPATIBLE
+    assert np.isfinite(sol.x).all()
+
+
+def test_disconnected_meshes_need_dirichlet_data_on_every_part():
+    left = pf.unit_square(2)
+    points = np.vstack([left.p.T, left.p.T + np.array([2.0, 0.0])])
+    cells = np.vstack([left.t.T, left.t.T + left.p.shape[1]])
+    mesh = pf.mesh_from_arrays(points, cells, "triangle")
+    with pytest.raises(pf.DiscretizationError, match="2 disconnected parts"):
+        pf.discretize(mesh, dirichlet=None)
+    pinned_left = mesh.with_boundaries({"left": lambda x: np.abs(x[0]) < 1e-12})
+    with pytest.raises(pf.DiscretizationError, match="1 of the mesh's 2 disconnected parts"):
+        pf.discretize(pinned_left, dirichlet={"left": 0.0})
+
+
+# ------------------------------------------------------------------------------------------
+# tensor coefficient
+# ------------------------------------------------------------------------------------------
+
+
+def test_isotropic_tensor_equals_the_scalar_coefficient():
+    for space in ("P0", "P1"):
+        scalar = square(kappa_space=space)
+        tensor = square(kappa_space=space, kappa_kind="tensor")
+        k = scalar.interpolate_kappa(lambda x: 1.0 + x[0] ** 2)
+        kt = tensor.interpolate_kappa(
+            lambda x: np.eye(2)[:, :, None] * (1.0 + x[0] ** 2))
+        assert tensor.n_kappa == 3 * scalar.n_kappa
+        diff = scalar.stiffness_matrix(k) - tensor.stiffness_matrix(kt)
+        assert abs(diff).max() < 1e-14
+
+
+def test_full_tensor_converges_at_rate_two():
+    """K = [[a, c], [c, b]], u = sin(pi x) sin(pi y): f = pi^2 (a + b) u - 2 c pi^2 cos cos."""
+    a, b, c = 2.0, 0.5, 0.7
+    tensor = np.array([[a, c], [c, b]])
+
+    def exact(x):
+        return np.sin(np.pi * x[0]) * np.sin(np.pi * x[1])
+
+    def source(x):
+        return (np.pi ** 2 * (a + b) * exact(x)
+                - 2 * c * np.pi ** 2 * np.cos(np.pi * x[0]) * np.cos(np.pi * x[1]))
+
+    errors = []
+    for n in (8, 16, 32):
+        disc = square(n, kappa_kind="tensor")
+        kappa = disc.interpolate_kappa(lambda x: tensor)
+        u = pf.direct_solve(disc.stiffness_matrix(kappa),
+                            disc.load_vector(source) + disc.rhs(kappa)).x
+        errors.append(pf.l2_error(disc, disc.expand(u), exact))
+    rates = np.log2(np.array(errors[:-1]) / errors[1:])
+    assert rates[-1] == pytest.approx(2.0, abs=0.1)
+    assert errors[-1] < 2e-3
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_gradient_with_respect_to_tensor_components_passes_taylor_test(mode):
+    disc = square(6, kappa_kind="tensor")
+    kappa = jnp.asarray(disc.interpolate_kappa(lambda x: np.array([[1.0, 0.3], [0.3, 0.5]])))
+    f = jnp.ones(disc.n_dofs)
+    solver = TruncatedCG(10 * disc.n_free, gradient=mode)
+    result = pf.taylor_test(lambda k: jnp.sum(disc.system.solve(k, f, solver).x ** 2), kappa)
+    assert result.passed(), result.rates
+
+
+def test_tensor_coefficients_are_checked():
+    disc = square(4, kappa_kind="tensor")
+    n = disc.kappa_basis.N
+    indefinite = np.concatenate([np.ones(n), np.ones(n), 2.0 * np.ones(n)])  # c^2 > ab
+    with pytest.raises(pf.CoefficientError, match=r"not positive definite.*smallest eigenvalue"):
+        disc.stiffness_matrix(indefinite)
+    with pytest.raises(pf.CoefficientError, match="a single number for a tensor"):
+        disc.stiffness_matrix(1.0)
+    with pytest.raises(pf.ShapeError, match=f"expected a vector of {3 * n} values"):
+        disc.stiffness_matrix(np.ones(n))
+    with pytest.raises(pf.CoefficientError, match="not symmetric"):
+        disc.interpolate_kappa(lambda x: np.array([[1.0, 0.1], [0.2, 1.0]]))
+    with pytest.raises(pf.DiscretizationError, match="kappa_kind='matrix'"):
+        pf.discretize(pf.unit_square(2), kappa_kind="matrix")
+
+
+def test_scalar_coefficients_are_checked():
+    disc = square(4)
+    for bad, message in ((0.0, r"<= 0 \(first: index 0, value 0.0\)"),
+                         (-1.0, "<= 0"), (np.nan, "NaN/Inf")):
+        with pytest.raises(pf.CoefficientError, match=message):
+            disc.stiffness_matrix(np.full(disc.n_kappa, bad))
+
+
+# ------------------------------------------------------------------------------------------
+# condition estimates from CG's Lanczos coefficients
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preconditioner", ["identity", "jacobi"])
+def test_condition_estimate_matches_dense_eigenvalues(preconditioner):
+    disc = square(10)
+    rng = np.random.default_rng(1)
+    kappa = np.exp(3.0 * rng.standard_normal(disc.n_kappa))
+    A = disc.stiffness_matrix(kappa)
+    dense = A.toarray()
+    if preconditioner == "jacobi":
+        scale = 1.0 / np.sqrt(np.diag(dense))
+        dense = scale[:, None] * dense * scale[None, :]
+    eigenvalues = np.linalg.eigvalsh(dense)
+    estimate = condition_estimate(A, preconditioner=preconditioner)
+    assert estimate.condition == pytest.approx(eigenvalues[-1] / eigenvalues[0], rel=1e-6)
+    assert estimate.largest == pytest.approx(eigenvalues[-1], rel=1e-8)
+
+
+def test_condition_estimate_on_the_complement_of_a_nullspace():
+    disc, kappa, _ = neumann_problem(8)
+    A = disc.stiffness_matrix(kappa)
+    eigenvalues = np.linalg.eigvalsh(A.toarray())  # eigenvalue 0 first: the constants
+    estimate = condition_estimate(A, preconditioner="identity", nullspace=disc.nullspace)
+    assert estimate.condition == pytest.approx(eigenvalues[-1] / eigenvalues[1], rel=1e-6)
+    singular = condition_estimate(A, preconditioner="identity")
+    assert singular.condition > 1e6 * estimate.condition or not np.isfinite(singular.condition)
+
+
+def test_direct_solve_with_nullspace_is_orthogonal_to_it():
+    A = sp.csr_matrix(np.array([[1.0, -1.0], [-1.0, 1.0]]))
+    x = pf.direct_solve(A, np.array([1.0, -1.0]), nullspace=np.ones(2)).x
+    np.testing.assert_allclose(x, [0.5, -0.5], atol=1e-15)
+
+
+# ------------------------------------------------------------------------------------------
+# extreme meshes and scales: generators and a solve on each
+# ------------------------------------------------------------------------------------------
+
+
+def test_geometric_spacing_and_tensor_mesh():
+    x = pf.geometric_spacing(20, 1e3)
+    h = np.diff(x)
+    assert h.max() / h.min() == pytest.approx(1e3)
+    assert x[0] == 0.0 and x[-1] == pytest.approx(1.0)
+    mesh = pf.tensor_mesh(x * 1e6, np.linspace(0.0, 1.0, 5))
+    assert len(mesh.boundaries["left"]) == 4 and len(mesh.boundaries["top"]) == 20
+    with pytest.raises(pf.DiscretizationError, match="strictly increasing"):
+        pf.tensor_mesh(np.array([0.0, 1.0, 1.0]), np.linspace(0, 1, 3))
+
+
+@pytest.mark.parametrize("length", [1e-6, 1e6])
+def test_scaled_domains_keep_the_solution_scaling_as_length_squared(length):
+    """-lap u = 1 on [0, L]^2: u(L x) = L^2 u_1(x), to round-off, in both modes."""
+    unit = pf.discretize(pf.unit_square(8))
+    u_unit = np.asarray(unit.system.solve(np.ones(unit.n_kappa), np.ones(unit.n_dofs),
+                                          ConvergedCG()).x)
+    scaled = pf.discretize(pf.tensor_mesh(*[np.linspace(0.0, length, 9)] * 2))
+    for mode in MODES:
+        u = scaled.system.solve(np.ones(scaled.n_kappa), np.ones(scaled.n_dofs),
+                                TruncatedCG(10 * scaled.n_free, gradient=mode)).x
+        np.testing.assert_allclose(np.asarray(u) / length ** 2, u_unit, rtol=1e-10)
