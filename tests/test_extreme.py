@@ -283,3 +283,24 @@ def test_scaled_domains_keep_the_solution_scaling_as_length_squared(length):
         u = scaled.system.solve(np.ones(scaled.n_kappa), np.ones(scaled.n_dofs),
                                 TruncatedCG(10 * scaled.n_free, gradient=mode)).x
         np.testing.assert_allclose(np.asarray(u) / length ** 2, u_unit, rtol=1e-10)
+
+
+@pytest.mark.parametrize("preconditioner", ["identity", "jacobi"])
+def test_unrolled_gradient_far_past_convergence_is_the_exact_one(preconditioner):
+    """Frozen at round-off, the K-iteration map is the solution map: its gradient (and JVP)
+    must be the exact one, not the lagging derivative of the last Krylov iterate (~1e-2 off)."""
+    disc = square(6)
+    f = disc.interpolate(lambda x: np.cos(np.pi * x[0]) + x[1] ** 2)
+    weights = jnp.asarray(np.random.default_rng(0).standard_normal(disc.n_free))
+
+    def loss(log_kappa, solver):
+        return jnp.vdot(weights, disc.system.solve(jnp.exp(log_kappa), f, solver).x)
+
+    zero = jnp.zeros(disc.n_kappa)
+    exact = jax.grad(loss)(zero, ConvergedCG(rtol=1e-14, preconditioner=preconditioner))
+    unrolled = TruncatedCG(10 * disc.n_free, preconditioner)
+    gradient = jax.grad(loss)(zero, unrolled)
+    np.testing.assert_allclose(gradient, exact, rtol=1e-8, atol=1e-10 * abs(exact).max())
+    direction = jnp.asarray(np.random.default_rng(1).standard_normal(disc.n_kappa))
+    _, tangent = jax.jvp(lambda z: loss(z, unrolled), (zero,), (direction,))
+    assert float(tangent) == pytest.approx(float(jnp.vdot(exact, direction)), rel=1e-8)
