@@ -22,6 +22,7 @@ import dataclasses
 import json
 import math
 import sys
+import time
 from pathlib import Path
 
 from .errors import PrdpFemError
@@ -372,7 +373,7 @@ def _stability(args) -> int:
         [c for c in CASES if c.fast or not args.fast]
     args.out.mkdir(parents=True, exist_ok=True)
     markdown, table = args.out / "stability.md", args.out / "stability.csv"
-    results = []
+    results, start = [], time.perf_counter()
     with _progress(len(cases), "cases") as bar:
         for case in cases:
             bar.set_postfix_str(case.name)
@@ -385,7 +386,8 @@ def _stability(args) -> int:
     failed = [r.case for r in results if r.verdict == "FAIL" or r.nonfinite]
     print(f"{len(results)} cases: {sum(r.verdict == 'ok' for r in results)} ok, "
           f"{sum(r.verdict == 'flagged' for r in results)} flagged, {len(failed)} failed"
-          + (f" ({', '.join(failed)})" if failed else "") + f"; tables in {markdown}, {table}")
+          + (f" ({', '.join(failed)})" if failed else "")
+          + f" in {time.perf_counter() - start:.0f} s; tables in {markdown}, {table}")
     return 0 if passed else 1
 
 

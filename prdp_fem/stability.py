@@ -196,7 +196,9 @@ def _verdict(problems: list[tuple[str, bool]], nonfinite: int,
         return "ok", ""
     if not all(excused for _, excused in problems):
         return "FAIL", text
-    return "flagged", f"cond*eps = {cond_eps:.1e}; {text}"
+    if cond_eps > UNTRUSTED:
+        return "flagged", f"cond*eps = {cond_eps:.1e}; {text}"
+    return "flagged", text
 
 
 # --------------------------------------------------------------------------------------

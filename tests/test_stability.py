@@ -109,7 +109,7 @@ def test_command_writes_markdown_and_csv(tmp_path, capsys):
     assert int(rows[0]["its_jacobi"]) > 0 and rows[0]["verdict"] == "ok"
     markdown = (tmp_path / "stability.md").read_text()
     assert markdown.startswith("| case | dofs |") and "| contrast_1 | 361 |" in markdown
-    assert "2 cases: 2 ok, 0 flagged, 0 failed" in capsys.readouterr().out
+    assert "2 cases: 2 ok, 0 flagged, 0 failed in" in capsys.readouterr().out
 
 
 def test_command_exits_nonzero_on_a_failure(tmp_path, monkeypatch, capsys):
