@@ -61,6 +61,11 @@ class SparseMatrix:
         """Same sparsity pattern, new values (e.g. ``G @ kappa``)."""
         return dataclasses.replace(self, values=values)
 
+    def astype(self, dtype) -> SparseMatrix:
+        """The values in another precision (``solve`` then runs in it: e.g. float32, whose
+        limits -- rtol >= ~1e-5, errors ~ cond * 1e-7 -- the stability suite states)."""
+        return self.with_values(self.values.astype(dtype))
+
     @classmethod
     def from_coo(cls, rows, cols, values, shape: tuple[int, int]) -> SparseMatrix:
         """From COO arrays in any order (sorted by row here; the constructor assumes it)."""

@@ -218,8 +218,7 @@ def _setup(problem: CaseProblem, dtype: str) -> _Setup:
 
 def _operator(setup: _Setup, kappa: jax.Array | None = None) -> SparseMatrix:
     """``A(kappa)`` assembled in float64, then rounded to the working precision."""
-    A = setup.system.operator(setup.kappa if kappa is None else kappa)
-    return A.with_values(A.values.astype(setup.dtype))
+    return setup.system.operator(setup.kappa if kappa is None else kappa).astype(setup.dtype)
 
 
 def _rhs(setup: _Setup, kappa: jax.Array | None = None) -> jax.Array:

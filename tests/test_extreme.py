@@ -304,3 +304,27 @@ def test_unrolled_gradient_far_past_convergence_is_the_exact_one(preconditioner)
     direction = jnp.asarray(np.random.default_rng(1).standard_normal(disc.n_kappa))
     _, tangent = jax.jvp(lambda z: loss(z, unrolled), (zero,), (direction,))
     assert float(tangent) == pytest.approx(float(jnp.vdot(exact, direction)), rel=1e-8)
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_float32_solves_run_in_float32_to_its_stated_accuracy(mode):
+    disc = square(12)
+    kappa, f = jnp.ones(disc.n_kappa), jnp.ones(disc.n_dofs)
+    reference = pf.direct_solve(disc.stiffness_matrix(np.ones(disc.n_kappa)),
+                                disc.rhs(np.ones(disc.n_kappa), np.ones(disc.n_dofs))).x
+    A = disc.system.operator(kappa).astype(jnp.float32)
+    sol = solve(A, disc.system.rhs(kappa, f), TruncatedCG(10 * disc.n_free, gradient=mode))
+    assert sol.x.dtype == jnp.float32 and int(sol.status) == Status.SUCCESS
+    error = np.linalg.norm(np.asarray(sol.x, float) - reference) / np.linalg.norm(reference)
+    cond = condition_estimate(disc.stiffness_matrix(np.ones(disc.n_kappa))).condition
+    assert 1e-9 < error < 10 * cond * np.finfo(np.float32).eps  # float32, not float64, digits
+
+    def loss(k):
+        x = solve(disc.system.operator(k).astype(jnp.float32), disc.system.rhs(k, f),
+                  TruncatedCG(10 * disc.n_free, gradient=mode)).x
+        return jnp.sum(x.astype(jnp.float64) ** 2)
+
+    gradient = jax.grad(loss)(kappa)
+    exact = jax.grad(lambda k: jnp.sum(disc.system.solve(k, f, ConvergedCG()).x ** 2))(kappa)
+    assert np.isfinite(gradient).all()
+    np.testing.assert_allclose(gradient, exact, rtol=1e-3, atol=1e-4 * abs(exact).max())
