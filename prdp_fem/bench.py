@@ -17,6 +17,7 @@ import numpy as np
 
 from .cg import TruncatedCG, solve
 from .discretization import discretize
+from .errors import SolverConfigError
 from .generators import unit_square
 
 __all__ = ["CGIterationCost", "cg_iteration_cost"]
@@ -40,6 +41,9 @@ def _poisson_operator(n_side: int):
 
 def cg_iteration_cost(n_side: int, *, iterations: int = 100, repeats: int = 7) -> CGIterationCost:
     """P1 Laplacian on an ``n_side x n_side`` square ((n_side - 1)^2 free dofs)."""
+    for name, value in (("iterations", iterations), ("repeats", repeats)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise SolverConfigError(f"{name}={value!r}: expected an integer >= 1")
     op, b = _poisson_operator(n_side)
     csr = op.to_scipy()
     b = jnp.asarray(b)

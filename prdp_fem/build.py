@@ -24,7 +24,7 @@ import skfem
 from . import generators
 from .cg import ConvergedCG, Solution, TruncatedCG, solve
 from .discretization import Discretization, discretize
-from .errors import PrdpFemError
+from .errors import DiscretizationError, SceneError, SensorError, ShapeError
 from .expressions import compile_field
 from .inverse import InverseProblem, Validation, inverse_problem
 from .mesh import load_mesh
@@ -32,7 +32,13 @@ from .observations import boundary_values, full_field, point_sensors, with_noise
 from .operator import SparseMatrix
 from .prdp import Refinement, converged, fixed, prdp
 from .reference import amg_solve, direct_solve
-from .scene import Scene
+from .scene import (
+    Scene,
+    SceneCoefficientError,
+    SceneDataError,
+    SceneDiscretizationError,
+    SceneSensorError,
+)
 
 __all__ = [
     "ForwardResult",
@@ -80,18 +86,22 @@ def build_discretization(scene: Scene, mesh: skfem.Mesh | None = None,
     dim = mesh.dim()
     neumann = _boundary_data(scene, "pde.neumann", scene.pde.neumann, dim) \
         if scene.pde.neumann else None
-    return discretize(mesh, element=element or scene.pde.element,
-                      kappa_space=scene.pde.kappa_space,
-                      dirichlet=_boundary_data(scene, "pde.dirichlet", scene.pde.dirichlet, dim),
-                      neumann=neumann)
+    try:
+        return discretize(mesh, element=element or scene.pde.element,
+                          kappa_space=scene.pde.kappa_space,
+                          dirichlet=_boundary_data(scene, "pde.dirichlet", scene.pde.dirichlet,
+                                                   dim),
+                          neumann=neumann)
+    except DiscretizationError as exc:  # boundary names, or an element the mesh has not
+        raise SceneDiscretizationError(f"{scene.source}: [pde] {exc}") from None
 
 
 def coefficient(scene: Scene, disc: Discretization) -> np.ndarray:
     kappa = disc.interpolate_kappa(field_function(scene, "pde.kappa", scene.pde.kappa,
                                                   disc.mesh.dim()))
     if not (kappa > 0).all():
-        raise PrdpFemError(f"{scene.source}: pde.kappa = {scene.pde.kappa!r}: expected values "
-                           f"> 0 on the mesh, found min {kappa.min():.3g}")
+        raise SceneCoefficientError(f"{scene.source}: pde.kappa = {scene.pde.kappa!r}: expected "
+                                    f"values > 0 on the mesh, found min {kappa.min():.3g}")
     return kappa
 
 
@@ -143,8 +153,8 @@ def _sensor_points(scene: Scene, disc: Discretization) -> np.ndarray:
     mesh = disc.mesh
     interior = np.setdiff1d(np.arange(mesh.p.shape[1]), mesh.boundary_nodes())
     if sensors > len(interior):
-        raise PrdpFemError(f"{scene.source}: inverse.sensors = {sensors}: the mesh has only "
-                           f"{len(interior)} interior vertices")
+        raise SceneSensorError(f"{scene.source}: inverse.sensors = {sensors}: the mesh has only "
+                               f"{len(interior)} interior vertices; expected at most that many")
     picked = np.random.default_rng(scene.inverse.seed).choice(interior, sensors, replace=False)
     return mesh.p[:, np.sort(picked)].T
 
@@ -159,7 +169,7 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
     """The inverse problem of the scene (data synthetic from ``truth`` unless ``data`` given)."""
     spec = scene.inverse
     if spec is None:
-        raise PrdpFemError(f"{scene.source}: no [inverse] section; expected one to invert")
+        raise SceneError(f"{scene.source}: no [inverse] section; expected one to invert")
     disc = build_discretization(scene) if disc is None else disc
     dim = disc.mesh.dim()
     source_unknown = spec.unknown == "source"
@@ -178,10 +188,15 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
         u_true = _true_state(disc, kappa, f)
         if spec.observations == "full_field":
             observation = full_field(disc, norm=spec.norm, u_true=u_true)
-        elif spec.observations == "sensors":
-            observation = point_sensors(disc, _sensor_points(scene, disc), u_true=u_true)
         else:
-            observation = boundary_values(disc, spec.boundaries, u_true=u_true)
+            key = "sensors" if spec.observations == "sensors" else "boundaries"
+            try:
+                observation = point_sensors(disc, _sensor_points(scene, disc), u_true=u_true) \
+                    if key == "sensors" else boundary_values(disc, spec.boundaries, u_true=u_true)
+            except (SensorError, ShapeError) as exc:
+                if isinstance(exc, SceneError):
+                    raise
+                raise SceneSensorError(f"{scene.source}: inverse.{key}: {exc}") from None
         if spec.noise > 0:
             observation = with_noise(observation, spec.noise, spec.seed)
     problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
@@ -194,8 +209,14 @@ def initial_field(scene: Scene, disc: Discretization) -> np.ndarray | None:
     if scene.inverse.init is None:
         return None
     fn = field_function(scene, "inverse.init", scene.inverse.init, disc.mesh.dim())
-    return disc.interpolate(fn) if scene.inverse.unknown == "source" \
-        else disc.interpolate_kappa(fn)
+    unknown, bounds = scene.inverse.unknown, scene.inverse.bounds
+    field = disc.interpolate(fn) if unknown == "source" else disc.interpolate_kappa(fn)
+    if bounds is not None and ((field < bounds[0]) | (field > bounds[1])).any():
+        error = SceneCoefficientError if unknown == "log_kappa" else SceneDataError
+        raise error(f"{scene.source}: inverse.init = {scene.inverse.init!r}: values from "
+                    f"{field.min():.3g} to {field.max():.3g} on the mesh; expected values within "
+                    f"inverse.bounds = {list(bounds)}")
+    return field
 
 
 def controller(scene: Scene) -> Refinement:

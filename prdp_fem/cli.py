@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import PrdpFemError
+from .errors import PrdpFemError, SceneError, SolverConfigError
 
 DEFAULT_ITERATIONS = [0, 5, 10, 20, 40, 80, 160, 320, 640]
 MESH_SUFFIXES = (".msh", ".vtu", ".vtk", ".xdmf", ".xmf", ".mesh", ".med", ".inp", ".obj",
@@ -176,7 +176,7 @@ def _scene(name_or_path: str, steps: int | None):
     scene = load_scene(name_or_path)
     if steps is not None:
         if steps < 0:
-            raise PrdpFemError(f"--steps {steps}: expected an integer >= 0")
+            raise SolverConfigError(f"--steps {steps}: expected an integer >= 0")
         scene = with_overrides(scene, {"optimizer": {"steps": steps}})
     return scene
 
@@ -242,7 +242,7 @@ def _study(args) -> None:
 def _invert(args) -> None:
     scene = _scene(args.scene, args.steps)
     if scene.inverse is None:
-        raise PrdpFemError(f"{scene.source}: no [inverse] section; expected one to invert")
+        raise SceneError(f"{scene.source}: no [inverse] section; expected one to invert")
     study = dataclasses.replace(scene.study, kind="inverse", runs=((scene.name, "{}"),))
     _run_study(dataclasses.replace(scene, study=study), args.out, False, "invert")
 
@@ -259,7 +259,7 @@ def _solve(args) -> None:
     scene = mesh_scene(args.input) if _is_mesh_file(args.input) else load_scene(args.input)
     if args.iterations is not None:
         if args.iterations < 0:
-            raise PrdpFemError(f"--iterations {args.iterations}: expected an integer >= 0")
+            raise SolverConfigError(f"--iterations {args.iterations}: expected an integer >= 0")
         scene = with_overrides(scene, {"solver": {"iterations": [args.iterations]}})
     result = forward_solve(scene, reference=args.reference)
     out = args.out or Path(f"{scene.name}-solution.vtu")
@@ -332,7 +332,7 @@ def _forward(args) -> None:
     from .forward import build_scene, forward_convergence
 
     if any(k < 0 for k in args.iterations):
-        raise PrdpFemError(f"--iterations {args.iterations}: expected integers >= 0")
+        raise SolverConfigError(f"--iterations {args.iterations}: expected integers >= 0")
     scene = build_scene(args.scene, n=args.n, element=args.element, mesh_path=args.mesh)
     source = args.mesh or f"scene {args.scene} (n={args.n})"
     print(f"{source}: {scene.disc.n_free} free dofs, {args.element}, "
@@ -356,6 +356,11 @@ def _forward(args) -> None:
 def _bench_cg(args) -> None:
     from .bench import cg_iteration_cost
 
+    for option, values, minimum in (("--sides", args.sides, 1), ("--iterations",
+                                    [args.iterations], 1), ("--repeats", [args.repeats], 1)):
+        if any(v < minimum for v in values):
+            shown = " ".join(map(str, values))
+            raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
     print(f"{'dofs':>9} {'nnz':>9} {'SpMV [ms]':>10} {'PCG it [ms]':>12} {'ratio':>7} "
           f"{'compile [s]':>12}")
     for side in args.sides:

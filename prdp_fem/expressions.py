@@ -29,6 +29,10 @@ FUNCTIONS: dict[str, Callable] = {
         "exp", "log", "log10", "sqrt", "abs", "sign", "minimum", "maximum", "where", "floor",
         "ceil", "hypot")
 }
+# how many arguments each function takes (NumPy's extra ones, such as ``out``, are not allowed:
+# ``sin(x, y)`` would write into the coordinates)
+ARITY = {**dict.fromkeys(FUNCTIONS, 1), "arctan2": 2, "minimum": 2, "maximum": 2, "hypot": 2,
+         "where": 3}
 CONSTANTS = {"pi": np.pi, "e": np.e}
 COORDINATES = ("x", "y", "z")
 
@@ -59,8 +63,17 @@ def _check(tree: ast.AST, text: str, where: str, dim: int) -> None:
                                                and node.func.id in FUNCTIONS):
             raise ExpressionError(f"{where} = {text!r}: only the functions "
                                   f"{', '.join(sorted(FUNCTIONS))} can be called")
+        if isinstance(node, ast.Call) and len(node.args) != ARITY[node.func.id]:
+            raise ExpressionError(
+                f"{where} = {text!r}: {node.func.id}() called with {len(node.args)} "
+                f"argument(s); expected {ARITY[node.func.id]}")
         if isinstance(node, ast.Constant) and not isinstance(node.value, int | float):
             raise ExpressionError(f"{where} = {text!r}: only numeric constants are allowed")
+
+
+class _FloatConstants(ast.NodeTransformer):
+    def visit_Constant(self, node: ast.Constant) -> ast.Constant:
+        return ast.copy_location(ast.Constant(float(node.value)), node)
 
 
 def compile_field(value: float | int | str, *, where: str,
@@ -82,15 +95,22 @@ def compile_field(value: float | int | str, *, where: str,
     except SyntaxError as exc:
         raise ExpressionError(f"{where} = {value!r}: not a formula ({exc.msg})") from None
     _check(tree, value, where, dim)
+    # integer constants as floats: Python would compute 10**10**10 exactly (for ever)
+    tree = ast.fix_missing_locations(_FloatConstants().visit(tree))
     code = compile(tree, f"<{where}>", "eval")
     namespace = {"__builtins__": {}, **FUNCTIONS, **CONSTANTS}
 
     def field(x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, dtype=float)
         names = dict(zip(COORDINATES, x, strict=False))
-        with np.errstate(all="ignore"):
-            result = eval(code, namespace, names)
-        result = np.broadcast_to(np.asarray(result, dtype=float), x.shape[1:]).copy()
+        try:
+            with np.errstate(all="ignore"):
+                result = eval(code, namespace, names)
+            result = np.broadcast_to(np.asarray(result, dtype=float), x.shape[1:]).copy()
+        except (ArithmeticError, ValueError, TypeError) as exc:  # 1 % 0, 2.0**1e6, ...
+            raise ExpressionError(f"{where} = {value!r}: could not be evaluated "
+                                  f"({type(exc).__name__}: {exc}); expected a formula with "
+                                  "finite values") from None
         if not np.isfinite(result).all():
             first = np.argmin(np.isfinite(result).ravel())
             at = x.reshape(x.shape[0], -1)[:, first].tolist()

@@ -20,7 +20,7 @@ import numpy as np
 
 from .cg import TruncatedCG, solve
 from .discretization import Discretization, discretize
-from .errors import PrdpFemError
+from .errors import SceneError, SolverConfigError
 from .generators import l_shape, rectangle_with_hole, unit_cube, unit_square
 from .mesh import load_mesh
 from .reference import amg_solve
@@ -80,7 +80,7 @@ def build_scene(name: str | None = None, *, n: int = 64, element: str = "P1",
     if mesh_path is not None:
         return _scene(load_mesh(mesh_path), element, 0.0)
     if name not in SCENES:
-        raise PrdpFemError(f"scene {name!r}: expected one of {sorted(SCENES)}")
+        raise SceneError(f"scene {name!r}: expected one of {sorted(SCENES)}")
     return SCENES[name](n, element)
 
 
@@ -88,6 +88,12 @@ def forward_convergence(scene: Scene, iterations: Sequence[int], *,
                         preconditioner: str = "jacobi",
                         on_record: Callable[[ForwardRecord], None] | None = None) -> ForwardStudy:
     """Solve ``scene`` with K PCG iterations for each K; errors against pyamg."""
+    bad = [k for k in iterations if isinstance(k, bool) or not isinstance(k, int | np.integer)
+           or k < 0]
+    if bad:
+        raise SolverConfigError(f"iterations={list(iterations)!r}: expected integers >= 0 "
+                                f"(first bad: {bad[0]!r})")
+    TruncatedCG(0, preconditioner)  # checks the preconditioner before any setup
     start = time.perf_counter()
     disc = scene.disc
     A_ref = disc.stiffness_matrix(scene.kappa)

@@ -14,6 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .errors import DataError
+
 __all__ = ["History", "StepRecord"]
 
 
@@ -77,12 +79,12 @@ class History:
 
     def column(self, name: str) -> np.ndarray:
         """One field over all steps (``total_iterations`` included)."""
-        if name not in StepRecord._fields and name != "total_iterations":
-            raise KeyError(f"{name!r}: expected one of {StepRecord._fields}")
+        _check_field(name)
         return np.array([getattr(r, name) for r in self._records])
 
     def first_reaching(self, error: float, field: str = "parameter_error") -> StepRecord | None:
         """The first record whose ``field`` is ``<= error`` (None if never)."""
+        _check_field(field)
         for record in self._records:
             if getattr(record, field) <= error:
                 return record
@@ -100,7 +102,24 @@ class History:
 
     @classmethod
     def from_jsonl(cls, path: str | os.PathLike) -> History:
+        """Read what :meth:`to_jsonl` wrote; a line that is not a step record is a DataError."""
+        records = []
         with open(path) as stream:
-            rows = [json.loads(line) for line in stream if line.strip()]
-        return cls(StepRecord(**{k: (math.nan if v is None else v) for k, v in row.items()})
-                   for row in rows)
+            for number, line in enumerate(stream, start=1):
+                if not line.strip():
+                    continue
+                try:
+                    row = json.loads(line)
+                    records.append(StepRecord(**{k: (math.nan if v is None else v)
+                                                 for k, v in row.items()}))
+                except (ValueError, TypeError, AttributeError) as exc:
+                    raise DataError(
+                        f"{os.fspath(path)}: line {number} is not a step record ({exc}); "
+                        "expected one JSON object of StepRecord fields per line, as "
+                        "History.to_jsonl writes them") from None
+        return cls(records)
+
+
+def _check_field(name: str) -> None:
+    if name not in StepRecord._fields and name != "total_iterations":
+        raise KeyError(f"{name!r}: expected one of {StepRecord._fields}")

@@ -31,7 +31,14 @@ import optax.tree_utils as otu
 
 from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG
 from .discretization import Discretization
-from .errors import PrdpFemError, SolverConfigError
+from .errors import (
+    CoefficientError,
+    DataError,
+    DiscretizationError,
+    PrdpFemError,
+    ShapeError,
+    SolverConfigError,
+)
 from .history import History, StepRecord
 from .observations import Observation
 from .operator import SparseMatrix, matvec
@@ -40,6 +47,7 @@ from .prdp import Refinement, RefinementState, prdp
 from .reference import amg_solve
 from .regularizers import Regularizer, regularizer
 from .system import LinearSystem
+from .validation import finite_vector
 
 __all__ = [
     "InverseProblem",
@@ -123,33 +131,50 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     """Assemble an :class:`InverseProblem` on ``disc`` (checks sizes at the edge).
 
     ``unknown="source"``: ``f`` nodal in the solution space, ``known`` is ``kappa`` in the
-    kappa space (default 1). ``unknown="log_kappa"``: ``m = log kappa`` in the kappa space,
-    ``known`` is the nodal source ``f`` (default 0).
+    kappa space (default 1, the identity for a tensor ``kappa``). ``unknown="log_kappa"``:
+    ``m = log kappa`` in the kappa space, ``known`` is the nodal source ``f`` (default 0).
+
+    Raises :class:`~prdp_fem.errors.CoefficientError` for a ``kappa`` (``known``) that is not
+    finite and positive, or a NaN log-kappa ``truth``; :class:`~prdp_fem.errors.DataError` for a
+    NaN/Inf source; :class:`~prdp_fem.errors.ShapeError` for arrays of the wrong length;
+    :class:`~prdp_fem.errors.SolverConfigError` for bad ``unknown``, ``alpha`` or
+    ``regularization``.
     """
     parameterization = Parameterization(unknown, bounds)
     n_param = parameter_basis(disc, unknown).N
-    if not (np.isfinite(alpha) and alpha >= 0):
-        raise PrdpFemError(f"alpha={alpha!r}: expected a finite number >= 0")
+    if unknown == "log_kappa" and disc.kappa_kind != "scalar":
+        raise DiscretizationError(
+            f"unknown='log_kappa' on a discretisation with kappa_kind={disc.kappa_kind!r}: "
+            "expected kappa_kind='scalar' (a log-coefficient is one field)")
+    try:
+        valid_alpha = np.ndim(alpha) == 0 and bool(np.isfinite(alpha) and alpha >= 0)
+    except (TypeError, ValueError):
+        valid_alpha = False
+    if not valid_alpha:
+        raise SolverConfigError(f"alpha={alpha!r}: expected a finite number >= 0")
     if observation.operator.shape[1] != disc.n_dofs:
-        raise PrdpFemError(f"observation: operator acts on {observation.operator.shape[1]} "
-                           f"dofs, expected {disc.n_dofs} (built on another discretisation?)")
-    n_known = disc.n_kappa if unknown == "source" else disc.n_dofs
-    default = 1.0 if unknown == "source" else 0.0
-    known = np.broadcast_to(np.asarray(default if known is None else known, float),
-                            (n_known,)).copy()
-    if not np.isfinite(known).all() or (unknown == "source" and (known <= 0).any()):
-        raise PrdpFemError(f"known: expected {n_known} finite values (kappa > 0)")
+        raise ShapeError(f"observation: operator acts on {observation.operator.shape[1]} "
+                         f"dofs, expected {disc.n_dofs} (built on another discretisation?)")
+    if unknown == "source":
+        if known is None:
+            known = 1.0 if disc.kappa_kind == "scalar" else disc.interpolate_kappa(
+                lambda x: np.eye(disc.mesh.dim()))
+        known = disc.check_kappa(known, "known (kappa of a source inversion)")
+    else:
+        known = finite_vector(0.0 if known is None else known,
+                              "known (nodal source f of a log_kappa inversion)", disc.n_dofs)
     if truth is not None:
-        truth = np.asarray(truth, dtype=float)
-        if truth.shape != (n_param,) or not np.isfinite(truth).all():
-            raise PrdpFemError(f"truth: expected {n_param} finite values of the {unknown} "
-                               f"field, got shape {truth.shape}")
-        truth = jnp.asarray(truth)
+        truth = jnp.asarray(finite_vector(
+            truth, f"truth ({unknown} field)", n_param,
+            error=CoefficientError if unknown == "log_kappa" else DataError))
     if isinstance(regularization, str):
         regularization = regularizer(disc, unknown, regularization)
+    if not isinstance(regularization, Regularizer):
+        raise SolverConfigError(f"regularization={regularization!r}: expected 'l2', 'h1', 'tv' "
+                                "or a Regularizer")
     if regularization.reference.shape != (n_param,):
-        raise PrdpFemError(f"regularization: built for {regularization.reference.shape[0]} "
-                           f"parameters, expected {n_param}")
+        raise ShapeError(f"regularization: built for {regularization.reference.shape[0]} "
+                         f"parameters, expected {n_param}")
     return InverseProblem(disc.system, parameterization, observation, regularization,
                           jnp.asarray(float(alpha)), jnp.asarray(known), truth,
                           SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
@@ -287,12 +312,21 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     """
     if gradient not in ("implicit", "unrolled"):
         raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
-    if not (isinstance(steps, int) and steps >= 0):
+    if not (_is_count(steps) and steps >= 0):
         raise SolverConfigError(f"steps={steps!r}: expected an integer >= 0")
-    if not (monitor in ("loss", "gradient") or isinstance(monitor, Validation)):
+    if not (_is_count(reference_every) and reference_every >= 0):
+        raise SolverConfigError(
+            f"reference_every={reference_every!r}: expected an integer >= 0 (0: never)")
+    if not (isinstance(monitor, Validation) or monitor in ("loss", "gradient")):
         raise SolverConfigError(
             f"monitor={monitor!r}: expected 'loss', 'gradient' or a Validation")
+    if callback is not None and not callable(callback):
+        raise SolverConfigError(f"callback={callback!r}: expected a callable or None")
+    TruncatedCG(0, preconditioner)  # checks the preconditioner now, not inside the first step
     refinement = prdp() if refinement is None else refinement
+    if not isinstance(refinement, Refinement):
+        raise SolverConfigError(f"refinement={refinement!r}: expected a controller from "
+                                "prdp_fem.prdp (prdp(), fixed(K) or converged(rtol))")
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")
@@ -370,10 +404,22 @@ def _initial_params(problem: InverseProblem, init) -> jax.Array:
         if problem.parameterization.bounds is not None:
             field = np.full(n, 0.5 * sum(problem.parameterization.bounds))
     else:
-        field = np.broadcast_to(np.asarray(init, dtype=float), (n,))
-        if not np.isfinite(field).all():
-            raise PrdpFemError(f"init: expected {n} finite values of the field")
+        unknown = problem.parameterization.unknown
+        field = finite_vector(init, f"init (initial {unknown} field)", n)
+        bounds = problem.parameterization.bounds
+        if bounds is not None:
+            outside = (field < bounds[0]) | (field > bounds[1])
+            if outside.any():
+                i = int(np.flatnonzero(outside)[0])
+                raise DataError(
+                    f"init (initial {unknown} field): {int(outside.sum())} value(s) outside "
+                    f"bounds={bounds} (first: index {i}, value {field[i]}); expected values "
+                    "within the bounds")
     return problem.parameterization.from_field(field)
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
 
 
 def _state_error(problem, z, gradient, tolerance_mode, K, K_adj, rtol, preconditioner) -> float:

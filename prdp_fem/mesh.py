@@ -24,6 +24,9 @@ Validation raises one typed :mod:`prdp_fem.errors` exception per problem, naming
 
 from __future__ import annotations
 
+import contextlib
+import io
+import sys
 import warnings
 from pathlib import Path
 from typing import NamedTuple
@@ -102,18 +105,80 @@ def load_mesh(path: str | Path, *, repair: bool = False) -> skfem.Mesh:
         raise MeshFileError(path, "is not a regular file; expected a mesh file")
     if path.stat().st_size == 0:
         raise MeshFileError(path, "file is empty; expected a mesh file")
+    _check_content(path)
     # .msh is also ANSYS's suffix: meshio then tries both and exits the process on failure
     file_format = "gmsh" if path.suffix.lower() == ".msh" else None
+    printed, warned = io.StringIO(), io.StringIO()
     try:
-        raw = meshio.read(path, file_format=file_format)
+        # meshio prints its read errors (stdout) and a summary (stderr) before sys.exit(1):
+        # capture them, so that the error below is the only thing a failed read says
+        with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(warned):
+            raw = meshio.read(path, file_format=file_format)
     except (Exception, SystemExit) as exc:  # meshio raises many types: make one clear error
-        detail = f"{type(exc).__name__}: {exc}".strip().splitlines()[0][:200]
+        said = [line for line in printed.getvalue().splitlines() if line.strip()]
+        if isinstance(exc, SystemExit):  # the reason, if meshio gave one, is what it printed
+            detail = said[0] if said else f"no valid {path.suffix or 'mesh'} content"
+        else:
+            detail = f"{type(exc).__name__}: {exc}".strip().splitlines()[0]
         raise MeshFileError(
             path,
-            f"could not be read as a mesh ({detail}); expected a file in a meshio format "
-            "such as Gmsh .msh, .vtu, .xdmf or Medit .mesh",
+            f"could not be read as a mesh ({detail[:200]}); expected a complete file in a meshio "
+            "format such as Gmsh .msh, .vtu, .xdmf or Medit .mesh",
         ) from exc
+    sys.stdout.write(printed.getvalue())  # a successful read's notes are passed on as they were
+    sys.stderr.write(warned.getvalue())
     return _mesh_from_meshio(raw, str(path), repair=repair)
+
+
+# (a marker near the start of the file, what the content is, the suffixes it goes with)
+_SIGNATURES = (
+    (b"$MeshFormat", "Gmsh", (".msh",)),
+    (b"<VTKFile", "VTK XML", (".vtu",)),
+    (b"# vtk DataFile", "legacy VTK", (".vtk",)),
+    (b"<Xdmf", "XDMF", (".xdmf", ".xmf")),
+    (b"MeshVersionFormatted", "Medit", (".mesh",)),
+)
+# what the last line of a complete file holds (a truncated file could otherwise load in part)
+_END_MARKERS = {"Gmsh": (b"$End", "an $End... section line"), "Medit": (b"End", "End"),
+                "VTK XML": (b"</VTKFile>", "</VTKFile>"), "XDMF": (b"</Xdmf>", "</Xdmf>")}
+
+
+def _check_content(path: Path) -> None:
+    """Refuse a file whose content contradicts its suffix, or that stops before its end."""
+    with open(path, "rb") as stream:
+        head = stream.read(4096)
+        stream.seek(max(path.stat().st_size - 256, 0))
+        tail = stream.read()
+    suffix = path.suffix.lower()
+    found = next(((kind, suffixes) for marker, kind, suffixes in _SIGNATURES if marker in head),
+                 None)
+    if found is None:
+        if suffix == ".msh" and not head.lstrip().startswith(b"$Comments"):
+            first = head.lstrip().split(b"\n", 1)[0].strip()
+            raise MeshFileError(
+                path, f"could not be read as a mesh: it does not start with $MeshFormat (first "
+                f"line {_printable(first)}); expected a Gmsh .msh file")
+        return
+    kind, suffixes = found
+    if suffix not in suffixes:
+        raise MeshFileError(
+            path, f"could not be read as a mesh: its content is a {kind} file but its suffix is "
+            f"{suffix!r}; expected the suffix to match the content (rename it to "
+            f"{path.stem}{suffixes[0]})")
+    if kind in _END_MARKERS:
+        marker, what = _END_MARKERS[kind]
+        lines = tail.rstrip().splitlines()
+        last = lines[-1].strip() if lines else b""
+        if marker not in last:
+            raise MeshFileError(
+                path, f"could not be read as a mesh: the {kind} file ends with "
+                f"{_printable(last)} instead of {what}, so it is truncated; expected a complete "
+                f"{kind} file")
+
+
+def _printable(line: bytes) -> str:
+    text = line[-40:].decode("ascii", "replace")
+    return repr(text) if text.isprintable() else "binary data"
 
 
 def mesh_from_arrays(

@@ -27,8 +27,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from .discretization import Discretization
-from .errors import PrdpFemError
+from .errors import DataError, SensorError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, matvec
+from .validation import finite_vector
 
 __all__ = ["Observation", "boundary_values", "full_field", "point_sensors", "with_noise"]
 
@@ -75,17 +76,11 @@ def _observation(operator: sp.spmatrix, weight: sp.spmatrix, u_true: np.ndarray 
                  data: np.ndarray | None) -> Observation:
     n_obs, n_dofs = operator.shape
     if (u_true is None) == (data is None):
-        raise PrdpFemError("observation: expected exactly one of u_true= (observed through B) "
-                           "or data= (the observed values)")
+        raise DataError("observation: expected exactly one of u_true= (observed through B) "
+                        "or data= (the observed values)")
     if u_true is not None:
-        u_true = np.asarray(u_true, dtype=float)
-        if u_true.shape != (n_dofs,) or not np.isfinite(u_true).all():
-            raise PrdpFemError(f"u_true: expected {n_dofs} finite nodal values, got shape "
-                               f"{u_true.shape}")
-        data = operator @ u_true
-    data = np.asarray(data, dtype=float)
-    if data.shape != (n_obs,) or not np.isfinite(data).all():
-        raise PrdpFemError(f"data: expected {n_obs} finite values, got shape {data.shape}")
+        data = operator @ finite_vector(u_true, "u_true (nodal state, all dofs)", n_dofs)
+    data = finite_vector(data, "data (observed values)", n_obs)
     return Observation(SparseMatrix.from_scipy(operator), SparseMatrix.from_scipy(weight),
                        jnp.asarray(data), jnp.zeros(()))
 
@@ -99,7 +94,7 @@ def full_field(disc: Discretization, *, u_true: np.ndarray | None = None,
     minimiser as the misfit against the function itself).
     """
     if norm not in ("l2", "nodal"):
-        raise PrdpFemError(f"norm={norm!r}: expected 'l2' or 'nodal'")
+        raise SolverConfigError(f"norm={norm!r}: expected 'l2' or 'nodal'")
     identity = sp.identity(disc.n_dofs, format="csr")
     weight = disc.mass_matrix if norm == "l2" else identity
     return _observation(identity, weight, u_true, data)
@@ -109,20 +104,45 @@ def point_sensors(disc: Discretization, points: np.ndarray, *,
                   u_true: np.ndarray | None = None,
                   data: np.ndarray | None = None) -> Observation:
     """Point values at ``points`` (shape ``(n_sensors, dim)``) by FE interpolation."""
-    points = np.atleast_2d(np.asarray(points, dtype=float))
     dim = disc.mesh.dim()
-    if points.ndim != 2 or points.shape[1] != dim or not np.isfinite(points).all():
-        raise PrdpFemError(f"points: expected finite coordinates of shape (n_sensors, {dim}), "
-                           f"got {points.shape}")
+    try:
+        points = np.atleast_2d(np.asarray(points, dtype=float))
+    except (TypeError, ValueError):
+        raise ShapeError(f"points: expected an array of shape (n_sensors, {dim}), got "
+                         f"{points!r:.80}") from None
+    if points.ndim != 2 or points.shape[1] != dim:
+        raise ShapeError(f"points: expected coordinates of shape (n_sensors, {dim}), got "
+                         f"{points.shape}")
+    if len(points) == 0:
+        raise SensorError(f"points: an empty sensor set (shape {points.shape}); expected at "
+                          "least one sensor")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise SensorError(f"points: {int(bad.sum())} sensor(s) have NaN/Inf coordinates "
+                          f"(first: sensor {i} at {points[i].tolist()}); expected finite "
+                          "coordinates inside the mesh")
     try:
         probes = disc.basis.probes(points.T).tocsr()
-    except ValueError as exc:  # skfem: a point in no element
-        raise PrdpFemError(f"points: every sensor must lie inside the mesh ({exc})") from None
-    inside = np.asarray(np.abs(probes).sum(axis=1)).ravel() > 0
+        inside = np.asarray(np.abs(probes).sum(axis=1)).ravel() > 0
+    except ValueError as exc:  # skfem: a point in no element; find which, one at a time
+        inside = np.array([_inside(disc, p) for p in points])
+        if inside.all():
+            raise SensorError(f"points: the sensors could not be located in the mesh ({exc}); "
+                              "expected every sensor inside the mesh") from None
     if not inside.all():
-        raise PrdpFemError(f"points: sensors {np.flatnonzero(~inside)[:5].tolist()} lie outside "
-                           "the mesh")
+        outside = np.flatnonzero(~inside)
+        raise SensorError(f"points: {len(outside)} sensor(s) lie outside the mesh (first: "
+                          f"sensor {int(outside[0])} at {points[outside[0]].tolist()}); "
+                          "expected every sensor inside the mesh")
     return _observation(probes, sp.identity(len(points), format="csr"), u_true, data)
+
+
+def _inside(disc: Discretization, point: np.ndarray) -> bool:
+    try:
+        return bool(abs(disc.basis.probes(point[:, None])).sum() > 0)
+    except ValueError:
+        return False
 
 
 def boundary_values(disc: Discretization, boundaries: Sequence[str], *,
@@ -130,14 +150,20 @@ def boundary_values(disc: Discretization, boundaries: Sequence[str], *,
                     data: np.ndarray | None = None) -> Observation:
     """Nodal values on the named boundaries (e.g. a measured Neumann side), weighted by ``I``."""
     names = disc.mesh.boundaries or {}
+    if isinstance(boundaries, str):
+        raise SensorError(f"boundaries={boundaries!r}: expected a list of boundary names "
+                          f"among {sorted(names)}, not a single string")
     missing = [b for b in boundaries if b not in names]
-    if missing or not boundaries:
-        raise PrdpFemError(f"boundaries={list(boundaries)!r}: expected names among "
-                           f"{sorted(names)}")
+    if not boundaries:
+        raise SensorError(f"boundaries={list(boundaries)!r}: an empty sensor set; expected names "
+                          f"among {sorted(names)}")
+    if missing:
+        raise SensorError(f"boundaries={list(boundaries)!r}: unknown {missing[0]!r}; expected "
+                          f"names among {sorted(names)}")
     facets = np.concatenate([names[b] for b in boundaries])
     dofs = np.unique(disc.basis.get_dofs(facets=facets).all())
     if np.isin(dofs, disc.dirichlet_dofs).all():
-        raise PrdpFemError(f"boundaries={list(boundaries)!r}: every observed dof carries Dirichlet "
+        raise SensorError(f"boundaries={list(boundaries)!r}: every observed dof carries Dirichlet "
                            "data, so the observation does not depend on the unknown; expected a "
                            "boundary with a Neumann or natural condition")
     selection = sp.csr_matrix((np.ones(len(dofs)), (np.arange(len(dofs)), dofs)),
@@ -147,8 +173,14 @@ def boundary_values(disc: Discretization, boundaries: Sequence[str], *,
 
 def with_noise(observation: Observation, level: float, seed: int = 0) -> Observation:
     """Add Gaussian noise ``sigma = level * max|d|`` (hIPPYlib's convention), seeded."""
-    if not (np.isfinite(level) and level >= 0):
-        raise PrdpFemError(f"noise level={level!r}: expected a finite number >= 0")
+    try:
+        valid = bool(np.isfinite(level) and level >= 0) and np.ndim(level) == 0
+    except (TypeError, ValueError):
+        valid = False
+    if not valid:
+        raise DataError(f"noise level={level!r}: expected a finite number >= 0")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise DataError(f"noise seed={seed!r}: expected an integer >= 0")
     data = np.asarray(observation.data)
     sigma = float(level) * float(np.max(np.abs(data)))
     noise = sigma * np.random.default_rng(seed).standard_normal(data.shape)

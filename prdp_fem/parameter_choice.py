@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 from .cg import ConvergedCG
-from .errors import PrdpFemError
+from .errors import DataError, PrdpFemError, SolverConfigError
 from .inverse import InverseProblem, invert
 from .prdp import converged
 
@@ -67,10 +67,17 @@ def morozov(problem: InverseProblem, *, alpha0: float = 1e-6, tau: float = 1.0,
     ``solve(problem, init_field) -> Inversion`` runs one inversion (default: L-BFGS, converged
     solves, 200 steps). Raises if the observation carries no noise level.
     """
+    for name, value in (("alpha0", alpha0), ("tau", tau), ("rtol", rtol)):
+        if not _positive(value):
+            raise SolverConfigError(f"morozov: {name}={value!r}: expected a finite number > 0")
+    if isinstance(max_inversions, bool) or not isinstance(max_inversions, int) \
+            or max_inversions < 1:
+        raise SolverConfigError(f"morozov: max_inversions={max_inversions!r}: expected an "
+                                "integer >= 1")
     target = tau * float(problem.observation.noise_norm())
     if not target > 0:
-        raise PrdpFemError("morozov: the observation has no noise level (noise_std = 0); use "
-                           "observations.with_noise or choose alpha by l_curve")
+        raise DataError("morozov: the observation has no noise level (noise_std = 0); use "
+                        "observations.with_noise or choose alpha by l_curve")
     solve = _default_solve if solve is None else solve
     trials, fields = [], {}
 
@@ -113,9 +120,14 @@ def morozov(problem: InverseProblem, *, alpha0: float = 1e-6, tau: float = 1.0,
 def l_curve(problem: InverseProblem, alphas: Sequence[float], *,
             solve: Callable | None = None) -> AlphaChoice:
     """The grid ``alpha`` at the L-curve's corner (maximum Menger curvature)."""
-    alphas = sorted(float(a) for a in alphas)
-    if len(alphas) < 3 or alphas[0] <= 0:
-        raise PrdpFemError(f"alphas={alphas!r}: expected at least 3 positive values")
+    try:
+        alphas = sorted({float(a) for a in alphas})
+    except (TypeError, ValueError):
+        raise SolverConfigError(f"alphas={alphas!r}: expected at least 3 distinct finite "
+                                "positive values") from None
+    if len(alphas) < 3 or not all(_positive(a) for a in alphas):
+        raise SolverConfigError(f"alphas={alphas!r}: expected at least 3 distinct finite "
+                                "positive values")
     solve = _default_solve if solve is None else solve
     trials, fields, init = [], [], None
     for alpha in reversed(alphas):  # large to small: each warm-starts the next
@@ -131,6 +143,13 @@ def l_curve(problem: InverseProblem, alphas: Sequence[float], *,
     corner = 1 + int(np.argmax(curvature))
     return AlphaChoice(alphas[corner], problem.parameterization.from_field(fields[corner]),
                        trials[corner][1], math.nan, tuple(trials))
+
+
+def _positive(value) -> bool:
+    try:
+        return np.ndim(value) == 0 and bool(np.isfinite(value) and value > 0)
+    except (TypeError, ValueError):
+        return False
 
 
 def _menger(a, b, c) -> float:

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 import skfem
 
 from .discretization import Discretization
-from .errors import PrdpFemError
+from .errors import CoefficientError, DataError, SolverConfigError
 
 __all__ = ["UNKNOWNS", "Parameterization", "parameter_basis", "parameter_mass"]
 
@@ -43,13 +43,18 @@ class Parameterization:
     bounds: tuple[float, float] | None = None
 
     def __post_init__(self):
-        if self.unknown not in UNKNOWNS:
-            raise PrdpFemError(f"unknown={self.unknown!r}: expected one of {UNKNOWNS}")
+        if not (isinstance(self.unknown, str) and self.unknown in UNKNOWNS):
+            raise SolverConfigError(f"unknown={self.unknown!r}: expected one of {UNKNOWNS}")
         if self.bounds is not None:
-            lower, upper = (float(b) for b in self.bounds)
+            # bounds on log kappa bound the coefficient; on a source, the source values
+            error = CoefficientError if self.unknown == "log_kappa" else DataError
+            try:
+                lower, upper = (float(b) for b in self.bounds)
+            except (TypeError, ValueError):  # not a pair of numbers
+                lower = upper = float("nan")
             if not (np.isfinite(lower) and np.isfinite(upper) and lower < upper):
-                raise PrdpFemError(
-                    f"bounds={self.bounds!r}: expected finite (lower, upper) with lower < upper")
+                raise error(f"bounds={self.bounds!r} on the {self.unknown} field: expected "
+                            "finite (lower, upper) with lower < upper")
             object.__setattr__(self, "bounds", (lower, upper))
 
     def field(self, z: jax.Array) -> jax.Array:
@@ -78,8 +83,8 @@ class Parameterization:
 
 def parameter_basis(disc: Discretization, unknown: str) -> skfem.CellBasis:
     """The FE basis the unknown lives in: the solution space (source) or the kappa space."""
-    if unknown not in UNKNOWNS:
-        raise PrdpFemError(f"unknown={unknown!r}: expected one of {UNKNOWNS}")
+    if not (isinstance(unknown, str) and unknown in UNKNOWNS):
+        raise SolverConfigError(f"unknown={unknown!r}: expected one of {UNKNOWNS}")
     return disc.basis if unknown == "source" else disc.kappa_basis
 
 

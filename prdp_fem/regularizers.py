@@ -36,9 +36,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from .discretization import Discretization
-from .errors import PrdpFemError
+from .errors import SolverConfigError
 from .operator import SparseMatrix, matvec
 from .parameters import parameter_basis, parameter_mass
+from .validation import finite_vector
 
 __all__ = ["REGULARIZERS", "Regularizer", "regularizer"]
 
@@ -76,12 +77,16 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
 
     ``reference`` is ``m_0`` (L2, H1); ``epsilon`` smooths TV (in units of the gradient).
     """
-    if kind not in REGULARIZERS:
-        raise PrdpFemError(f"regularizer={kind!r}: expected one of {REGULARIZERS}")
-    if not (np.isfinite(epsilon) and epsilon > 0):
-        raise PrdpFemError(f"epsilon={epsilon!r}: expected a finite number > 0")
+    if not (isinstance(kind, str) and kind in REGULARIZERS):
+        raise SolverConfigError(f"regularizer={kind!r}: expected one of {REGULARIZERS}")
+    try:
+        valid = np.ndim(epsilon) == 0 and bool(np.isfinite(epsilon) and epsilon > 0)
+    except (TypeError, ValueError):
+        valid = False
+    if not valid:
+        raise SolverConfigError(f"epsilon={epsilon!r}: expected a finite number > 0")
     basis = parameter_basis(disc, unknown)
-    m0 = np.broadcast_to(np.asarray(reference, dtype=float), (basis.N,)).copy()
+    m0 = finite_vector(reference, f"reference (m_0 of the {unknown} field)", basis.N)
     if kind == "l2":
         matrix, weights, dim = parameter_mass(disc, unknown), np.ones(1), 1
     elif unknown == "log_kappa" and disc.kappa_space == "P0":

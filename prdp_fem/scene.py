@@ -21,7 +21,12 @@ takes the default written in the dataclass below):
                   ``band``, ``levels``, ``elements``
 
 Unknown keys and bad values raise :class:`SceneError` naming the file, the key and what is
-allowed.
+allowed. Where the value belongs to a kind the Python API has a typed error for, the error is
+both: a ``kappa`` <= 0 raises :class:`SceneCoefficientError` (a ``SceneError`` *and* a
+``CoefficientError``), sensors :class:`SceneSensorError`, noise and source bounds
+:class:`SceneDataError`, ``[solver]``, ``[refinement]``, ``[optimizer]`` and ``alpha``
+:class:`SceneSolverConfigError`, so ``except CoefficientError`` catches a scene's bad ``kappa``
+as it catches a bad array.
 
 >>> scene = parse_scene({"mesh": {"n": 8}, "pde": {"source": "sin(pi*x)"}})
 >>> scene.mesh.n, scene.pde.element, scene.inverse is None, scene.study.kind
@@ -39,7 +44,14 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from .errors import SceneError
+from .errors import (
+    CoefficientError,
+    DataError,
+    DiscretizationError,
+    SceneError,
+    SensorError,
+    SolverConfigError,
+)
 from .expressions import compile_field
 
 __all__ = [
@@ -50,7 +62,12 @@ __all__ = [
     "PdeSpec",
     "RefinementSpec",
     "Scene",
+    "SceneCoefficientError",
+    "SceneDataError",
+    "SceneDiscretizationError",
     "SceneError",
+    "SceneSensorError",
+    "SceneSolverConfigError",
     "SolverSpec",
     "StudySpec",
     "builtin_scene_path",
@@ -67,29 +84,54 @@ PACKAGE_MESH_PREFIX = "@meshes/"
 Field = float | str  # a number or a formula, validated by expressions.compile_field
 
 
-class _Table:
-    """Reads one TOML table key by key; whatever is left unread is an unknown key."""
+class SceneCoefficientError(SceneError, CoefficientError):
+    """A scene's ``pde.kappa`` that is not positive on the mesh (or log-kappa bounds)."""
 
-    def __init__(self, data: Any, section: str, source: str):
+
+class SceneDataError(SceneError, DataError):
+    """A scene's noise level, source bounds or other data that cannot be used."""
+
+
+class SceneSensorError(SceneError, SensorError):
+    """A scene's sensors or observed boundaries: none, outside the mesh, or too many."""
+
+
+class SceneSolverConfigError(SceneError, SolverConfigError):
+    """A scene's ``[solver]``, ``[refinement]`` or ``[optimizer]`` setting, or its ``alpha``."""
+
+
+class SceneDiscretizationError(SceneError, DiscretizationError):
+    """A scene's element, coefficient space or boundary names that do not fit its mesh."""
+
+
+class _Table:
+    """Reads one TOML table key by key; whatever is left unread is an unknown key.
+
+    ``error`` is the class of the errors it raises (a :class:`SceneError`; see the module).
+    """
+
+    def __init__(self, data: Any, section: str, source: str,
+                 error: type[SceneError] = SceneError):
         if not isinstance(data, dict):
             raise SceneError(f"{source}: [{section}] must be a table, got {data!r}")
-        self.data, self.section, self.source = dict(data), section, source
+        self.data, self.section, self.source, self.error = dict(data), section, source, error
         self.read: list[str] = []
 
     def where(self, key: str) -> str:
         return f"{self.section}.{key}" if self.section else key
 
-    def fail(self, key: str, expected: str) -> SceneError:
-        return SceneError(f"{self.source}: {self.where(key)} = {self.data.get(key)!r}: "
-                          f"expected {expected}")
+    def fail(self, key: str, expected: str, error: type[SceneError] | None = None) -> SceneError:
+        return (error or self.error)(f"{self.source}: {self.where(key)} = "
+                                     f"{self.data.get(key)!r}: expected {expected}")
 
-    def get(self, key: str, default: Any, check, expected: str) -> Any:
+    def get(self, key: str, default: Any, check, expected: str,
+            error: type[SceneError] | None = None) -> Any:
         self.read.append(key)
         if key not in self.data:
             return default
         value = self.data[key]
         if not check(value):
-            raise self.fail(key, expected)
+            raise self.fail(key, expected, error)
         return value
 
     def integer(self, key: str, default: int | None, minimum: int = 0) -> int | None:
@@ -97,16 +139,18 @@ class _Table:
                         f"an integer >= {minimum}")
 
     def number(self, key: str, default: float | None, *, low: float = float("-inf"),
-               high: float = float("inf"), open_low: bool = False) -> float | None:
+               high: float = float("inf"), open_low: bool = False,
+               error: type[SceneError] | None = None) -> float | None:
         def check(v):
             ok_low = v > low if open_low else v >= low
             return _is_number(v) and ok_low and v <= high
         bound = f"> {low}" if open_low else f">= {low}"
-        value = self.get(key, default, check, f"a finite number {bound} and <= {high}")
+        value = self.get(key, default, check, f"a finite number {bound} and <= {high}", error)
         return None if value is None else float(value)
 
-    def choice(self, key: str, default: str | None, choices: tuple[str, ...]) -> str | None:
-        return self.get(key, default, lambda v: v in choices, f"one of {list(choices)}")
+    def choice(self, key: str, default: str | None, choices: tuple[str, ...],
+               error: type[SceneError] | None = None) -> str | None:
+        return self.get(key, default, lambda v: v in choices, f"one of {list(choices)}", error)
 
     def boolean(self, key: str, default: bool) -> bool:
         return self.get(key, default, lambda v: isinstance(v, bool), "true or false")
@@ -334,6 +378,9 @@ def _pde(t: _Table) -> PdeSpec:
     element = t.choice("element", "P1", ("P1", "P2", "Q1", "Q2"))
     kappa_space = t.choice("kappa_space", "P0", ("P0", "P1"))
     kappa, source = t.field("kappa", 1.0), t.field("source", 1.0)
+    if _is_number(kappa) and kappa <= 0:
+        raise t.fail("kappa", "a coefficient > 0 (a number or a formula positive on the mesh)",
+                     SceneCoefficientError)
     if isinstance(t.data.get("dirichlet"), dict):
         dirichlet = t.field_table("dirichlet")
     else:
@@ -349,10 +396,10 @@ def _sensors(t: _Table):
         if _is_int(v):
             return v >= 1
         return isinstance(v, list) and len(v) > 0 and all(
-            isinstance(p, list) and len(p) in (2, 3) and all(_is_number(c) for c in p)
-            for p in v)
-    value = t.get("sensors", 50, check, "a positive count or a non-empty list of [x, y(, z)] "
-                  "points")
+            isinstance(p, list) and len(p) == len(v[0]) in (2, 3)
+            and all(_is_number(c) for c in p) for p in v)
+    value = t.get("sensors", 50, check, "a positive count or a non-empty list of [x, y] (or "
+                  "all [x, y, z]) points", SceneSensorError)
     return value if _is_int(value) else tuple(tuple(float(c) for c in p) for p in value)
 
 
@@ -363,13 +410,15 @@ def _inverse(t: _Table) -> InverseSpec:
     norm = t.choice("norm", "l2", ("l2", "nodal"))
     sensors = _sensors(t)
     boundaries = tuple(t.get("boundaries", [], lambda v: isinstance(v, list) and all(
-        isinstance(b, str) for b in v), "a list of boundary names"))
-    noise = t.number("noise", 0.0, low=0.0)
+        isinstance(b, str) for b in v), "a list of boundary names", SceneSensorError))
+    noise = t.number("noise", 0.0, low=0.0, error=SceneDataError)
     seed = t.integer("seed", 0)
-    alpha = t.number("alpha", 1e-6, low=0.0)
-    regularization = t.choice("regularization", "h1", ("l2", "h1", "tv"))
+    alpha = t.number("alpha", 1e-6, low=0.0, error=SceneSolverConfigError)
+    regularization = t.choice("regularization", "h1", ("l2", "h1", "tv"),
+                              SceneSolverConfigError)
     bounds = t.get("bounds", None, lambda v: isinstance(v, list) and len(v) == 2 and all(
-        _is_number(b) for b in v) and v[0] < v[1], "[lower, upper] with lower < upper")
+        _is_number(b) for b in v) and v[0] < v[1], "[lower, upper] with finite lower < upper",
+        SceneCoefficientError if unknown == "log_kappa" else SceneDataError)
     spec = InverseSpec(unknown, truth, data, observations, norm, sensors, boundaries, noise,
                        seed, alpha, regularization,
                        None if bounds is None else (float(bounds[0]), float(bounds[1])),
@@ -381,8 +430,8 @@ def _inverse(t: _Table) -> InverseSpec:
         raise SceneError(f"{t.source}: inverse.data is a field observed everywhere; expected "
                          f"observations = 'full_field', got {observations!r}")
     if observations == "boundary" and not boundaries:
-        raise SceneError(f"{t.source}: inverse.boundaries: expected a non-empty list of "
-                         "boundary names for observations = 'boundary'")
+        raise SceneSensorError(f"{t.source}: inverse.boundaries: expected a non-empty list of "
+                               "boundary names for observations = 'boundary'")
     return spec
 
 
@@ -439,7 +488,8 @@ def _refinement(t: _Table) -> RefinementSpec:
     t.finish()
     spec = RefinementSpec(**values)
     if kind == "prdp" and spec.K0 > spec.K_max:
-        raise SceneError(f"{t.source}: refinement.K0 = {spec.K0} exceeds K_max = {spec.K_max}")
+        raise SceneSolverConfigError(f"{t.source}: refinement.K0 = {spec.K0} exceeds K_max = "
+                                     f"{spec.K_max}; expected K0 <= K_max")
     return spec
 
 
@@ -517,9 +567,11 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         pde=_pde(_Table(sections["pde"], "pde", source)),
         inverse=_inverse(_Table(sections["inverse"], "inverse", source)) if has_inverse
         else None,
-        solver=_solver(_Table(sections["solver"], "solver", source)),
-        refinement=_refinement(_Table(sections["refinement"], "refinement", source)),
-        optimizer=_optimizer(_Table(sections["optimizer"], "optimizer", source)),
+        solver=_solver(_Table(sections["solver"], "solver", source, SceneSolverConfigError)),
+        refinement=_refinement(_Table(sections["refinement"], "refinement", source,
+                                      SceneSolverConfigError)),
+        optimizer=_optimizer(_Table(sections["optimizer"], "optimizer", source,
+                                    SceneSolverConfigError)),
         study=_study(_Table(sections["study"], "study", source), has_inverse),
         raw=json.dumps(table, sort_keys=True))
     if _with_runs:

@@ -15,7 +15,7 @@ import meshio
 import numpy as np
 import skfem
 
-from .errors import PrdpFemError
+from .errors import DiscretizationError, ShapeError
 from .mesh import _HEX_SKFEM_TO_MESHIO, _meshio_cell_type
 
 __all__ = ["write_vtu"]
@@ -31,17 +31,17 @@ def write_vtu(mesh: skfem.Mesh, path: str | Path,
         values = np.asarray(values, dtype=float)
         if space == "P0":
             if values.shape != (n_cells,):
-                raise PrdpFemError(f"field {name!r}: expected {n_cells} cell values, got "
+                raise ShapeError(f"field {name!r}: expected {n_cells} cell values, got "
                                    f"{values.shape}")
             cell_data[name] = [values]
         elif space in ("P1", "nodal"):
             if values.ndim != 1 or len(values) < n_vertices:
-                raise PrdpFemError(f"field {name!r}: expected at least {n_vertices} nodal "
+                raise ShapeError(f"field {name!r}: expected at least {n_vertices} nodal "
                                    f"values, got {values.shape}")
             point_data[name] = values[:n_vertices]  # vertex dofs come first in skfem
         else:
-            raise PrdpFemError(f"field {name!r}: space {space!r}, expected 'nodal', 'P1' or "
-                               "'P0'")
+            raise DiscretizationError(f"field {name!r}: space {space!r}, expected 'nodal', "
+                                      "'P1' or 'P0'")
     cell_type = _meshio_cell_type(mesh)
     cells = mesh.t.T
     if cell_type == "hexahedron":

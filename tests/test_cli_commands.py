@@ -2,6 +2,7 @@
 
 import csv
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -21,14 +22,19 @@ DETERMINISTIC = ("run", "final_error", "final_K", "cg_iterations", "evaluations"
                  "reached_step", "iterations_to_target")
 
 
+# subprocesses import this checkout's package, whatever is installed and whatever their cwd
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
+    [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+
 def cli(*args, cwd=None, timeout=300):
     return subprocess.run([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
-                          capture_output=True, text=True, timeout=timeout)
+                          capture_output=True, text=True, timeout=timeout, env=ENV)
 
 
 def start(*args, cwd=None):
     return subprocess.Popen([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
 
 
 @pytest.fixture
