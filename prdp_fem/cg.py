@@ -77,7 +77,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
-from .errors import DataError, IncompatibleDataError, SolverBreakdownError, SolverConfigError
+from .errors import (
+    DataError,
+    IncompatibleDataError,
+    ShapeError,
+    SolverBreakdownError,
+    SolverConfigError,
+)
 from .operator import SparseMatrix, matvec
 from .precond import PRECONDITIONERS, make_preconditioner
 from .validation import is_traced
@@ -280,7 +286,7 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     b = jnp.asarray(b, dtype=matrix.values.dtype)
     x0 = jnp.zeros_like(b) if x0 is None else jnp.asarray(x0, dtype=b.dtype)
     if b.shape != (matrix.shape[0],) or x0.shape != b.shape:
-        raise SolverConfigError(
+        raise ShapeError(
             f"b{tuple(b.shape)} / x0{tuple(x0.shape)}: expected vectors of length "
             f"{matrix.shape[0]} to match the operator")
     if not isinstance(solver, TruncatedCG | ConvergedCG):
@@ -368,7 +374,7 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
 def _unit_nullspace(nullspace: jax.Array, b: jax.Array) -> jax.Array:
     v = jnp.asarray(nullspace, dtype=b.dtype)
     if v.shape != b.shape:
-        raise SolverConfigError(f"nullspace{tuple(v.shape)}: expected a vector of length "
+        raise ShapeError(f"nullspace{tuple(v.shape)}: expected a vector of length "
                                 f"{b.shape[0]} spanning the operator's nullspace")
     if not is_traced(v) and not (np.isfinite(np.asarray(v)).all() and np.any(np.asarray(v))):
         raise SolverConfigError("nullspace: expected a finite, non-zero vector")

@@ -245,8 +245,10 @@ class Discretization:
                              self.n_free)
 
     def interpolate(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-        """Nodal values of ``fn`` at the dofs of the solution space (all dofs)."""
-        return np.asarray(fn(self.basis.doflocs), dtype=float)
+        """Nodal values of ``fn`` at the dofs of the solution space (all dofs); finite."""
+        values = np.broadcast_to(np.asarray(fn(self.basis.doflocs), dtype=float),
+                                 (self.n_dofs,))
+        return finite_vector(values, "interpolate: fn(x)", self.n_dofs)
 
     def project(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """L2 projection of ``fn`` onto the solution space, all dofs (``M p = int fn v``).
@@ -255,6 +257,7 @@ class Discretization:
         have the same minimiser; ``fn`` is evaluated at quadrature points.
         """
         load = skfem.LinearForm(lambda v, w: fn(w.x) * v).assemble(self.basis)
+        load = finite_vector(load, "project: fn(x)", self.n_dofs)
         return spla.spsolve(self.mass_matrix.tocsc(), load)
 
     def interpolate_kappa(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
@@ -266,6 +269,9 @@ class Discretization:
         x = self.mesh.p[:, self.mesh.t].mean(axis=1) if self.kappa_space == "P0" \
             else self.kappa_basis.doflocs
         values = np.asarray(fn(x), dtype=float)
+        if not np.isfinite(values).all():
+            raise CoefficientError("interpolate_kappa: fn(x) has NaN/Inf values; expected a "
+                                   "finite coefficient")
         if self.kappa_kind == "scalar":
             return np.array(np.broadcast_to(values, x.shape[1:]))
         dim = self.mesh.dim()

@@ -111,7 +111,7 @@ def test_solver_options_are_checked_at_construction():
         TruncatedCG(5, preconditioner="ilu")
     with pytest.raises(pf.SolverConfigError, match="rtol=0"):
         ConvergedCG(rtol=0.0, atol=0.0)
-    with pytest.raises(pf.SolverConfigError, match="expected vectors of length"):
+    with pytest.raises(pf.ShapeError, match="expected vectors of length"):
         A = pf.SparseMatrix.from_scipy(np.eye(3))
         solve(A, np.ones(4), TruncatedCG(2))
 

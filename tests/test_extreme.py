@@ -328,3 +328,16 @@ def test_float32_solves_run_in_float32_to_its_stated_accuracy(mode):
     exact = jax.grad(lambda k: jnp.sum(disc.system.solve(k, f, ConvergedCG()).x ** 2))(kappa)
     assert np.isfinite(gradient).all()
     np.testing.assert_allclose(gradient, exact, rtol=1e-3, atol=1e-4 * abs(exact).max())
+
+
+def test_interpolation_of_non_finite_functions_is_refused():
+    disc = square(4)
+    with pytest.raises(pf.DataError, match=r"interpolate: fn\(x\).*NaN/Inf"):
+        disc.interpolate(lambda x: np.log(x[0]))  # log 0 = -inf on the left side
+    with pytest.raises(pf.CoefficientError, match="interpolate_kappa"):
+        disc.interpolate_kappa(lambda x: np.sqrt(x[0] - 0.5))
+    with pytest.raises(pf.DataError, match="project"):
+        disc.project(lambda x: np.nan * x[0])
+    with pytest.raises(pf.ShapeError, match="nullspace"):
+        solve(disc.system.operator(jnp.ones(disc.n_kappa)), np.ones(disc.n_free),
+              TruncatedCG(2), nullspace=np.ones(3))
