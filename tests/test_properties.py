@@ -18,8 +18,8 @@ log-normal, ``kappa = exp(sigma g)`` with ``g`` standard normal per coefficient 
 5. Tensor coefficients: the operator equals an independent NumPy assembly (P1) and converged
    solves agree with sparse LU.
 
-A known failure the properties found is kept as a strict xfail: after CG terminates early (a
-symmetric mesh and coefficient), the unrolled gradient is not that of x* even at K >> n_free.
+The properties found that after CG terminates early (a symmetric mesh and coefficient), the
+unrolled gradient was not that of x* even at K >> n_free; that case is pinned below.
 
 References for a truncated CG map are not plain: the map is smooth but can be strongly
 nonlinear (changing on a scale below 1e-5 in log kappa) and, in floating point, is not forward
@@ -42,7 +42,6 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial import Delaunay
@@ -567,16 +566,12 @@ def test_tensor_coefficient_solves_match_the_direct_solve(case, kappa_space, amp
                  aligned, seed)
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="unrolled CG differentiates the frozen iterate: after an early (exact) "
-                   "termination its gradient is that of the shorter map, not that of x*")
 def test_unrolled_gradient_after_early_termination_is_exact():
-    """Known failure, found by the properties above: unit_square(3), kappa = 1, f = 0, affine
-    Dirichlet data. The right-hand side lies in a 2-dimensional invariant subspace, CG freezes
-    after 2 of 4 iterations, and at K = 10 n_free the unrolled gradient is that of the 2-step
-    map, not of x*: relative error 5.6 against the exact (implicit, converged) gradient here.
-    unit_square(8) and (32) with f = 1, zero Dirichlet data and a random target: 24% and 4%
-    (Jacobi): a constant initial kappa on a structured mesh is enough."""
+    """Found by the properties above: unit_square(3), kappa = 1, f = 0, affine Dirichlet data.
+    The right-hand side lies in a 2-dimensional invariant subspace and CG freezes after 2 of 4
+    iterations. The reverse sweep through the frozen scan returned the gradient of the 2-step
+    map (relative error 5.6 against the exact one; 24% on unit_square(8) with f = 1): once
+    frozen, unrolled mode now differentiates the solution map implicitly."""
     disc = pf.discretize(pf.unit_square(3), element="P1", kappa_space="P1",
                          dirichlet=lambda x: 1.0 + x[0])
     problem = Problem(disc, np.ones(disc.n_kappa), np.random.default_rng(0), source=0.0)
