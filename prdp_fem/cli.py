@@ -371,6 +371,7 @@ def _bench_cg(args) -> None:
 
 
 def _stability(args) -> int:
+    from .atomic import write_text_atomic
     from .stability import format_markdown, run_case, suite_passed, write_csv
     from .stability_cases import CASES, case_named
 
@@ -384,7 +385,7 @@ def _stability(args) -> int:
             bar.set_postfix_str(case.name)
             results.append(run_case(case))
             write_csv(results, table)  # after every case: an interrupted run keeps its rows
-            _write_atomic(markdown, format_markdown(results))
+            write_text_atomic(markdown, format_markdown(results))
             bar.update()
     print(format_markdown(results), end="")
     passed = suite_passed(results)
@@ -400,12 +401,6 @@ def _progress(total: int, unit: str):
     from tqdm import tqdm
 
     return tqdm(total=total, unit=unit, disable=not sys.stderr.isatty(), leave=False)
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(text)
-    partial.replace(path)
 
 
 COMMANDS = {"study": _study, "invert": _invert, "solve": _solve, "mesh-info": _mesh_info,

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import DataError
 
 __all__ = ["History", "StepRecord"]
@@ -92,13 +93,11 @@ class History:
 
     def to_jsonl(self, path: str | os.PathLike) -> None:
         """Write one JSON object per step (NaN as null), atomically (temp file + rename)."""
-        tmp = f"{os.fspath(path)}.tmp"
-        with open(tmp, "w") as stream:
+        with atomic_path(path) as tmp, open(tmp, "w") as stream:
             for record in self._records:
                 row = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                        for k, v in record._asdict().items()}
                 stream.write(json.dumps(row) + "\n")
-        os.replace(tmp, path)
 
     @classmethod
     def from_jsonl(cls, path: str | os.PathLike) -> History:

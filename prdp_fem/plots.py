@@ -7,7 +7,6 @@ Forward studies: error against K and time. h-studies: error against h and agains
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import meshio
@@ -15,6 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.tri import Triangulation
 
+from .atomic import atomic_path
 from .history import History
 
 __all__ = ["forward_figures", "h_figures", "inverse_figures"]
@@ -25,9 +25,8 @@ _METRIC_LABEL = {"parameter_error": "relative L2 error of the recovered field",
 
 def _save(fig: Figure, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
     return path
 
 

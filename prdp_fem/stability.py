@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
+from .atomic import atomic_path
 from .cg import ConvergedCG, Status, TruncatedCG, solve
 from .conditioning import condition_estimate
 from .errors import PrdpFemError
@@ -352,11 +353,8 @@ def format_markdown(results: Sequence[CaseResult]) -> str:
 
 def write_csv(results: Sequence[CaseResult], path: str | Path) -> None:
     """All columns of :data:`COLUMNS`, full precision, written atomically."""
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    with open(partial, "w", newline="") as handle:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(COLUMNS)
         for r in results:
             writer.writerow([repr(v) if isinstance(v, float) else v for v in r])
-    partial.replace(path)

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import plots
+from .atomic import atomic_path, write_text_atomic
 from .build import (
     build_discretization,
     build_inverse,
@@ -141,12 +142,6 @@ class ResultsLog:
             os.fsync(stream.fileno())
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def _slug(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "run"
 
@@ -203,7 +198,7 @@ def _open(scene: Scene, out: Path, resume: bool) -> ResultsLog:
                 f"fingerprint {previous.get('fingerprint')}); expected {scene.source} as it was "
                 f"(fingerprint {scene.fingerprint})")
     else:
-        _atomic_write(manifest, json.dumps(_manifest(scene), indent=2) + "\n")
+        write_text_atomic(manifest, json.dumps(_manifest(scene), indent=2) + "\n")
     return log
 
 
@@ -442,11 +437,9 @@ def _h_summary(by_run: dict[str, list[dict]]) -> list[dict]:
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as stream:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as stream:
         if rows:
             writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
             writer.writeheader()
             for row in rows:
                 writer.writerow({k: ("" if v is None else v) for k, v in row.items()})
-    os.replace(tmp, path)

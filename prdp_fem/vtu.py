@@ -7,7 +7,6 @@ or ``"P0"`` (one value per cell).
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -15,6 +14,7 @@ import meshio
 import numpy as np
 import skfem
 
+from .atomic import atomic_path
 from .errors import DiscretizationError, ShapeError
 from .mesh import _HEX_SKFEM_TO_MESHIO, _meshio_cell_type
 
@@ -52,7 +52,6 @@ def write_vtu(mesh: skfem.Mesh, path: str | Path,
     out = meshio.Mesh(points, [(cell_type, cells.astype(np.int64))], point_data=point_data,
                       cell_data=cell_data)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    meshio.write(tmp, out, file_format="vtu")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        meshio.write(tmp, out, file_format="vtu")
     return path

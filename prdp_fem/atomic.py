@@ -1,0 +1,39 @@
+"""Atomic file output: write a temporary sibling, then rename it over the target.
+
+A reader (or a resumed run) sees either the old file or the complete new one, never a torn
+write; the rename is atomic on POSIX within one directory.
+
+>>> import tempfile, pathlib
+>>> target = pathlib.Path(tempfile.mkdtemp()) / "table.csv"
+>>> write_text_atomic(target, "a,b\\n")
+>>> target.read_text(), sorted(p.name for p in target.parent.iterdir())
+('a,b\\n', ['table.csv'])
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+__all__ = ["atomic_path", "write_text_atomic"]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path`` (same suffix, so writers that go by the suffix
+    still work); it replaces ``path`` when the block ends, and is removed if the block fails."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+    """``Path(path).write_text(text)``, atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
