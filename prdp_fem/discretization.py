@@ -147,8 +147,9 @@ class Discretization:
             raise CoefficientError(f"{name}: a single number for a tensor coefficient; expected "
                                    f"{self.n_kappa} Voigt components (see interpolate_kappa)")
         kappa = finite_vector(kappa, name, self.n_kappa, error=CoefficientError)
-        smallest = np.linalg.eigvalsh(self.kappa_tensors(kappa)).min(axis=1)
-        largest = np.abs(self.kappa_tensors(kappa)).max(axis=(1, 2))
+        tensors = self.kappa_tensors(kappa)
+        smallest = np.linalg.eigvalsh(tensors).min(axis=1)
+        largest = np.abs(tensors).max(axis=(1, 2))
         bad = smallest <= 0
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
