@@ -2,6 +2,8 @@
 
 Importing the package switches JAX to float64 (``jax_enable_x64``): finite-element systems and
 their gradients need it. Set ``PRDP_FEM_KEEP_X64=0`` before import to leave JAX's setting alone.
+It also turns on JAX's persistent compilation cache in a user cache directory
+(:mod:`prdp_fem.compilation_cache`; ``PRDP_FEM_COMPILATION_CACHE=0`` switches it off).
 """
 import os as _os
 
@@ -13,6 +15,8 @@ if _os.environ.get("PRDP_FEM_KEEP_X64", "1") != "0":
 from ._version import __version__
 from .cg import ConvergedCG, IterationCounter, Solution, Status, TruncatedCG, solve
 from .comparison import ComparisonRow, compare, format_table
+from .compilation_cache import cache_directory as _cache_directory
+from .compilation_cache import enable_compilation_cache
 from .discretization import Discretization, discretize
 from .errors import (
     CoefficientError,
@@ -49,7 +53,7 @@ from .history import History, StepRecord
 from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
-from .operator import SparseMatrix, diagonal, matvec, rmatvec
+from .operator import CooMatrix, EllMatrix, SparseMatrix, diagonal, matvec, prepare, rmatvec
 from .parameter_choice import AlphaChoice, l_curve, morozov
 from .parameters import Parameterization
 
@@ -72,16 +76,20 @@ from .regularizers import Regularizer, regularizer
 from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
 
+enable_compilation_cache(_cache_directory())  # before anything compiles
+
 __all__ = [
     "AlphaChoice",
     "CoefficientError",
     "ComparisonRow",
     "ConvergedCG",
+    "CooMatrix",
     "DataError",
     "DegenerateCellError",
     "Discretization",
     "DiscretizationError",
     "DuplicateNodeError",
+    "EllMatrix",
     "History",
     "IdentityPreconditioner",
     "IncompatibleDataError",
@@ -128,6 +136,7 @@ __all__ = [
     "direct_solve",
     "discretize",
     "disk",
+    "enable_compilation_cache",
     "format_table",
     "full_field",
     "geometric_spacing",
@@ -146,6 +155,7 @@ __all__ = [
     "mesh_quality",
     "morozov",
     "point_sensors",
+    "prepare",
     "rectangle_with_hole",
     "regularizer",
     "relative_h1_error",

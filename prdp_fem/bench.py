@@ -1,9 +1,16 @@
 """Benchmarks, measured side by side in one process (never timed assertions in tests).
 
 ``cg_iteration_cost``: time of one Jacobi-PCG iteration inside the jitted loop divided by the
-time of one SciPy CSR SpMV of the same matrix. Each repeat interleaves
-``[SciPy: m SpMVs] [JAX: K iterations] [JAX: 0 iterations]``; the iteration time is
-``(t_K - t_0) / K`` so that call overhead cancels; the ratio is the median over repeats.
+time of one SciPy CSR SpMV of the same matrix (an iteration can never cost less than its SpMV
+on one core). Each repeat interleaves ``[SciPy: m SpMVs] [JAX: K iterations] [JAX: 0
+iterations]`` for the ELL kernel and for the COO segment-sum kernel it replaced; an
+iteration's time is ``(t_K - t_0) / K`` so that call overhead cancels; ratios are medians over
+repeats. ``scaling_slope`` fits ``log t = slope log n + c`` over a size sweep (linear: 1).
+
+>>> costs = [CGIterationCost(n, 5 * n, 1e-9 * n, 2e-9 * n, 2.0, 3e-9 * n, 3.0, 0.1)
+...          for n in (1000, 8000)]
+>>> round(scaling_slope(costs), 6)
+1.0
 """
 
 from __future__ import annotations
@@ -14,66 +21,92 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import skfem
+from skfem.models.poisson import laplace
 
 from .cg import TruncatedCG, solve
-from .discretization import discretize
 from .errors import SolverConfigError
-from .generators import unit_square
+from .generators import unit_cube, unit_square
+from .operator import SparseMatrix
 
-__all__ = ["CGIterationCost", "cg_iteration_cost"]
+__all__ = ["CGIterationCost", "cg_iteration_cost", "poisson_operator", "scaling_slope"]
 
 
 class CGIterationCost(NamedTuple):
     n_dofs: int
     nnz: int
     spmv_s: float  # median SciPy CSR SpMV
-    iteration_s: float  # median JAX PCG iteration
-    ratio: float  # median of the per-repeat ratios
+    iteration_s: float  # median JAX PCG iteration, ELL kernel (the default)
+    ratio: float  # median of the per-repeat ratios iteration / SpMV
+    coo_iteration_s: float  # the same with the COO segment-sum kernel (no layout)
+    coo_ratio: float
     compile_s: float  # first call of the jitted solve, compile included, minus a steady call
 
 
-def _poisson_operator(n_side: int):
-    disc = discretize(unit_square(n_side), element="P1", kappa_space="P0")
-    kappa = np.ones(disc.n_kappa)
-    return disc.system.operator(jnp.asarray(kappa)), disc.rhs(kappa, disc.interpolate(
-        lambda x: np.sin(np.pi * x[0]) * x[1]))
+def poisson_operator(n_side: int, dim: int = 2) -> tuple[SparseMatrix, np.ndarray]:
+    """The P1 Laplacian on the free dofs of an ``n_side^dim`` unit square/cube and a smooth
+    right-hand side (assembled by scikit-fem directly: no coefficient map is needed here)."""
+    if dim not in (2, 3):
+        raise SolverConfigError(f"dim={dim!r}: expected 2 or 3")
+    mesh = unit_square(n_side) if dim == 2 else unit_cube(n_side)
+    basis = skfem.Basis(mesh, skfem.ElementTriP1() if dim == 2 else skfem.ElementTetP1())
+    free = basis.complement_dofs(basis.get_dofs())
+    A = laplace.assemble(basis).tocsr()[free][:, free]
+    b = np.sin(np.pi * mesh.p[0, free]) * mesh.p[1, free]
+    return SparseMatrix.from_scipy(A), b
 
 
-def cg_iteration_cost(n_side: int, *, iterations: int = 100, repeats: int = 7) -> CGIterationCost:
-    """P1 Laplacian on an ``n_side x n_side`` square ((n_side - 1)^2 free dofs)."""
-    for name, value in (("iterations", iterations), ("repeats", repeats)):
+def _check_counts(**counts: int) -> None:
+    for name, value in counts.items():
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise SolverConfigError(f"{name}={value!r}: expected an integer >= 1")
-    op, b = _poisson_operator(n_side)
-    csr = op.to_scipy()
+
+
+def cg_iteration_cost(n_side: int, *, dim: int = 2, iterations: int = 100,
+                      repeats: int = 7) -> CGIterationCost:
+    """P1 Laplacian on ``n_side^dim`` cells ((n_side - 1)^dim free dofs)."""
+    _check_counts(n_side=n_side, iterations=iterations, repeats=repeats)
+    ell, b = poisson_operator(n_side, dim)
+    coo = SparseMatrix(ell.rows, ell.cols, ell.values, ell.shape)  # no layout: COO kernel
+    csr = ell.to_scipy()
     b = jnp.asarray(b)
 
     @jax.jit
     def run(op, b, k):
         return solve(op, b, TruncatedCG(k, gradient="implicit")).x
 
-    tic = time.perf_counter()
-    jax.block_until_ready(run(op, b, iterations))
-    first = time.perf_counter() - tic
+    def timed(op, k) -> float:
+        tic = time.perf_counter()
+        jax.block_until_ready(run(op, b, k))
+        return time.perf_counter() - tic
+
+    first = timed(ell, iterations)
+    timed(coo, iterations)  # compile
     x = np.asarray(b)
-    spmv, per_iteration, ratios, steady = [], [], [], []
+    spmv, ell_it, coo_it, ell_ratio, coo_ratio, steady = ([] for _ in range(6))
     for _ in range(repeats):
         tic = time.perf_counter()
         for _ in range(iterations):
-            y = csr @ x
+            csr @ x
         t_spmv = (time.perf_counter() - tic) / iterations
-        del y
-        tic = time.perf_counter()
-        jax.block_until_ready(run(op, b, iterations))
-        t_k = time.perf_counter() - tic
-        tic = time.perf_counter()
-        jax.block_until_ready(run(op, b, 0))
-        t_0 = time.perf_counter() - tic
-        t_it = max(t_k - t_0, 0.0) / iterations
+        t_ell = max(timed(ell, iterations) - timed(ell, 0), 0.0) / iterations
+        t_coo = max(timed(coo, iterations) - timed(coo, 0), 0.0) / iterations
         spmv.append(t_spmv)
-        per_iteration.append(t_it)
-        ratios.append(t_it / t_spmv)
-        steady.append(t_k)
-    return CGIterationCost(csr.shape[0], csr.nnz, float(np.median(spmv)),
-                           float(np.median(per_iteration)), float(np.median(ratios)),
-                           max(first - float(np.median(steady)), 0.0))
+        ell_it.append(t_ell)
+        coo_it.append(t_coo)
+        ell_ratio.append(t_ell / t_spmv)
+        coo_ratio.append(t_coo / t_spmv)
+        steady.append(timed(ell, iterations))
+    median = lambda values: float(np.median(values))  # noqa: E731
+    return CGIterationCost(csr.shape[0], csr.nnz, median(spmv), median(ell_it),
+                           median(ell_ratio), median(coo_it), median(coo_ratio),
+                           max(first - median(steady), 0.0))
+
+
+def scaling_slope(costs: list[CGIterationCost]) -> float:
+    """Least-squares slope of ``log(iteration time)`` against ``log(dofs)``."""
+    if len(costs) < 2:
+        return float("nan")
+    n = np.log([c.n_dofs for c in costs])
+    t = np.log([c.iteration_s for c in costs])
+    return float(np.polyfit(n, t, 1)[0])

@@ -91,8 +91,8 @@ from .errors import (
     SolverBreakdownError,
     SolverConfigError,
 )
-from .operator import SparseMatrix, matvec
-from .precond import PRECONDITIONERS, make_preconditioner
+from .operator import SparseMatrix, prepare
+from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
 from .validation import is_traced
 
 __all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve"]
@@ -316,12 +316,12 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
         k_adj = solver.iterations if solver.adjoint_iterations is None \
             else solver.adjoint_iterations
         sol = _implicit_solve(matrix, b, x0, solver.iterations, k_adj, precond, 0.0, 0.0,
-                              solver.history_size, counter)
+                              solver.history_size, solver.history_size > 0, counter)
     else:
         max_iterations = 10 * matrix.shape[0] if solver.max_iterations is None \
             else solver.max_iterations
         sol = _implicit_solve(matrix, b, x0, max_iterations, max_iterations, precond,
-                              solver.rtol, solver.atol, solver.history_size, counter)
+                              solver.rtol, solver.atol, solver.history_size, True, counter)
     sol = sol._replace(status=_final_status(sol, incompatible, _all_finite(matrix.values, b, x0)))
     _tap(counter, "primal", sol.iterations)
     if eager:
@@ -410,12 +410,59 @@ class _Projected:
 
 
 # --------------------------------------------------------------------------------------
+# the system as CG runs it: a prepared kernel, symmetrically scaled for Jacobi
+# --------------------------------------------------------------------------------------
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["operator", "precond", "scale"],
+         meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class _Krylov:
+    """``A x = b`` as CG runs it: ``(S A S) y = S b``, ``x = S y``, preconditioned by ``precond``.
+
+    With a diagonal preconditioner ``M = S^2`` (Jacobi), PCG on ``A`` *is* CG on ``S A S``
+    without a preconditioner: the iterates map as ``x = S y`` and ``r = S^{-1} r_s``, and
+    ``r.z = r.M r = r_s.r_s``. The scaled form drops the ``z = M r`` pass and its vector from
+    every iteration (one kernel preparation per solve pays for it): measured 1.75x -> 1.5x
+    (65k dofs) and 1.3x -> 0.9x (261k) of a SciPy SpMV per iteration. Otherwise ``S = I``
+    (``scale`` is ``None``) and ``precond`` is applied as usual.
+    """
+
+    operator: Any  # a prepared kernel (operator.prepare) of S A S
+    precond: Any  # None: identity
+    scale: jax.Array | None
+
+    def inner(self, vector: jax.Array) -> jax.Array:
+        """``S v`` (a right-hand side or residual into the scaled system)."""
+        return vector if self.scale is None else self.scale * vector
+
+    def outer(self, vector: jax.Array) -> jax.Array:
+        """``S y`` (a scaled iterate back to ``x``)."""
+        return self.inner(vector)
+
+    def residual_norm(self, r: jax.Array) -> jax.Array:
+        """``||S^{-1} r||_2``: the norm of the residual of ``A x = b``."""
+        return _norm(r if self.scale is None else r / self.scale)
+
+    def precondition(self, r: jax.Array) -> jax.Array:
+        return r if self.precond is None else self.precond(r)
+
+
+def _krylov(matrix: SparseMatrix, precond) -> _Krylov:
+    kernel = prepare(matrix)
+    if isinstance(precond, JacobiPreconditioner):
+        scale = jnp.sqrt(precond.inverse_diagonal)
+        return _Krylov(kernel.scaled(scale), None, scale)
+    return _Krylov(kernel, precond, None)
+
+
+# --------------------------------------------------------------------------------------
 # one PCG iteration, guarded
 # --------------------------------------------------------------------------------------
 
 
 class _CGState(NamedTuple):
-    """PCG on the scaled correction: ``x = x0 + scale * d`` with ``A d = r0 / scale``."""
+    """CG on the scaled correction: ``y = y0 + r0_scale * d`` with ``A_s d = r0 / r0_scale``."""
 
     d: jax.Array
     r: jax.Array
@@ -425,29 +472,42 @@ class _CGState(NamedTuple):
     broken: jax.Array  # p.Ap <= 0 was met while still active: A is not positive definite
 
 
+class _Start(NamedTuple):
+    state: _CGState
+    x0: jax.Array
+    r0_norm: jax.Array  # ||b - A x0||_2
+    r0_scale: jax.Array  # the normalisation of the correction (||r0|| in the scaled system)
+
+
 def _safe_ratio(num: jax.Array, den: jax.Array, ok: jax.Array) -> jax.Array:
     """``num / den`` where ``ok``, else exactly 0; the denominator is made safe first."""
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
-def _init(matrix, precond, b, x0) -> tuple[_CGState, jax.Array, jax.Array]:
+def _init(krylov: _Krylov, b, x0) -> _Start:
     """Initial state of CG on the correction, scaled to a unit residual.
 
     CG from ``x0`` equals CG from zero on ``A d = r0``; solving for ``d`` scaled by
     ``1/||r0||`` keeps every inner product O(1), so neither the values nor their derivatives
     (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides.
     """
-    r0 = b - matvec(matrix, x0)
-    if isinstance(precond, _Projected):  # round-off or a cotangent may leave a v component
-        r0 = precond.project(r0)
-    r0_norm = _norm(r0)
-    scale = jnp.where(r0_norm > 0, r0_norm, 1.0)
-    r = r0 / scale
-    z = precond(r)
+    y0 = x0 if krylov.scale is None else x0 / krylov.scale
+    r0 = krylov.inner(b) - krylov.operator(y0)
+    if isinstance(krylov.precond, _Projected):  # round-off or a cotangent may leave a v part
+        r0 = krylov.precond.project(r0)
+    r0_scale = _norm(r0)
+    r0_scale = jnp.where(r0_scale > 0, r0_scale, 1.0)
+    r = r0 / r0_scale
+    z = krylov.precondition(r)
     rz = jnp.vdot(r, z)
     eps = jnp.finfo(r.dtype).eps
-    return (_CGState(jnp.zeros_like(r), r, z, rz, eps * eps * rz, jnp.asarray(False)),
-            r0_norm, scale)
+    state = _CGState(jnp.zeros_like(r), r, z, rz, eps * eps * rz, jnp.asarray(False))
+    return _Start(state, x0, r0_scale * krylov.residual_norm(r), r0_scale)
+
+
+def _solution(krylov: _Krylov, start: _Start, d: jax.Array) -> jax.Array:
+    # x0 + S (r0_scale d), not S (y0 + ...): K = 0 returns x0 bit for bit
+    return start.x0 + krylov.outer(start.r0_scale * d)
 
 
 def _norm(v: jax.Array) -> jax.Array:
@@ -461,16 +521,16 @@ def _active(state: _CGState) -> jax.Array:
     return state.rz > state.freeze_level
 
 
-def _step(matrix, precond, state: _CGState) -> tuple[_CGState, jax.Array]:
+def _step(krylov: _Krylov, state: _CGState) -> tuple[_CGState, jax.Array]:
     """One PCG iteration; returns the new state and whether it moved ``x``."""
-    q = matvec(matrix, state.p)
+    q = krylov.operator(state.p)
     pq = jnp.vdot(state.p, q)
     active = _active(state)
     moving = active & (pq > 0)
     alpha = _safe_ratio(state.rz, pq, moving)
     d = state.d + alpha * state.p
     r = state.r - alpha * q
-    z = precond(r)
+    z = krylov.precondition(r)
     rz_new = jnp.vdot(r, z)
     beta = _safe_ratio(rz_new, state.rz, moving)
     p = jnp.where(moving, z + beta * state.p, state.p)
@@ -490,17 +550,19 @@ def _solver_status(broken: jax.Array, not_converged: jax.Array) -> jax.Array:
 
 
 def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solution:
-    state, r0_norm, scale = _init(matrix, precond, b, x0)
+    krylov = _krylov(matrix, precond)
+    start = _init(krylov, b, x0)
 
     def body(carry, _):
-        new, moving = _step(matrix, precond, carry)
-        return new, (moving, _norm(new.r))
+        new, moving = _step(krylov, carry)
+        return new, (moving, krylov.residual_norm(new.r))
 
     if checkpoint:
         body = jax.checkpoint(body)
-    state, (moved, norms) = jax.lax.scan(body, state, None, length=iterations)
-    history = jax.lax.stop_gradient(scale * jnp.concatenate([jnp.ones(1, norms.dtype), norms]))
-    x = x0 + scale * state.d
+    state, (moved, norms) = jax.lax.scan(body, start.state, None, length=iterations)
+    history = jax.lax.stop_gradient(jnp.concatenate(
+        [start.r0_norm[None], start.r0_scale * norms]))
+    x = _solution(krylov, start, state.d)
     # frozen at round-off before K: the K-iteration map *is* the solution map to working
     # precision, but the reverse sweep through the frozen iterations would return the
     # derivative of the last moving Krylov iterate, which lags the exact one (the CG
@@ -509,7 +571,7 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool) -> Solu
     x = jax.lax.cond(converged, lambda: _solution_map(matrix, precond, b, iterations),
                      lambda: x)
     return Solution(x, jnp.sum(moved).astype(jnp.int32), history[-1],
-                    jax.lax.stop_gradient(r0_norm), history,
+                    jax.lax.stop_gradient(start.r0_norm), history,
                     _solver_status(state.broken, jnp.asarray(False)))
 
 
@@ -519,14 +581,15 @@ def _solution_map(matrix, precond, b, max_iterations: int) -> jax.Array:
     ``lax.custom_linear_solve`` differentiates ``x = A^{-1} b`` through ``A``'s matvec and
     solves the tangent/adjoint systems with the same (symmetric) solver.
     """
-    precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
+    constant = jax.tree_util.tree_map(jax.lax.stop_gradient, (matrix, precond))
+    krylov = _krylov(*constant)
     no_tolerance = jnp.zeros(2, b.dtype)
 
     def pcg(_, rhs):
-        return _while_solve(jax.lax.stop_gradient(matrix), precond, rhs, jnp.zeros_like(rhs),
-                            max_iterations, no_tolerance, 0).x
+        return _while_solve(krylov, rhs, jnp.zeros_like(rhs), max_iterations, no_tolerance, 0,
+                            track_norm=False).x
 
-    return jax.lax.custom_linear_solve(partial(matvec, matrix), b, pcg, symmetric=True)
+    return jax.lax.custom_linear_solve(prepare(matrix), b, pcg, symmetric=True)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(2,))
@@ -552,10 +615,16 @@ _adjoint_tap.defvjp(_adjoint_tap_fwd, _adjoint_tap_bwd)
 # --------------------------------------------------------------------------------------
 
 
-def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_size: int):
-    """PCG while ``k < max_iterations``, still moving and ``||r|| > max(rtol ||b||, atol)``."""
-    state, r0_norm, scale = _init(matrix, precond, b, x0)
-    target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1]) / scale
+def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_size: int, *,
+                 track_norm: bool) -> Solution:
+    """PCG while ``k < max_iterations``, still moving and ``||r|| > max(rtol ||b||, atol)``.
+
+    ``track_norm`` (static): compute ``||r||`` every iteration, for a tolerance or a history;
+    without it (zero tolerances, a truncated solve) the loop stops on ``r.z`` alone and the
+    norm is taken once at the end -- a reduction pass less per iteration.
+    """
+    start = _init(krylov, b, x0)
+    target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1]) / start.r0_scale
     positions = jnp.arange(history_size + 1)
 
     def cond(carry):
@@ -563,59 +632,71 @@ def _while_solve(matrix, precond, b, x0, max_iterations, tolerances, history_siz
         return (k < max_iterations) & moved & _active(st) & (norm > target)
 
     def body(carry):
-        k, st, _, hist, _ = carry
-        new, moving = _step(matrix, precond, st)
-        norm = _norm(new.r)
-        hist = jnp.where(positions > k, norm, hist)  # pads the tail with the latest value
+        k, st, norm, hist, _ = carry
+        new, moving = _step(krylov, st)
+        if track_norm:
+            norm = krylov.residual_norm(new.r)
+            hist = jnp.where(positions > k, norm, hist)  # pads the tail with the latest value
         return k + moving.astype(k.dtype), new, norm, hist, moving
 
-    unit = jnp.ones((), b.dtype) * (r0_norm > 0)
-    init = (jnp.zeros((), jnp.int32), state, unit, jnp.full(history_size + 1, unit),
+    unit = start.r0_norm / start.r0_scale
+    init = (jnp.zeros((), jnp.int32), start.state, unit, jnp.full(history_size + 1, unit),
             jnp.asarray(True))
     k, state, norm, history, _ = jax.lax.while_loop(cond, body, init)
+    if not track_norm:
+        norm = krylov.residual_norm(state.r)
     # a tolerance was asked for (ConvergedCG) and not met: say so
     not_converged = (target > 0) & (norm > target)
-    return Solution(x0 + scale * state.d, k, scale * norm, r0_norm, scale * history,
-                    _solver_status(state.broken, not_converged))
+    return Solution(_solution(krylov, start, state.d), k, start.r0_scale * norm, start.r0_norm,
+                    start.r0_scale * history, _solver_status(state.broken, not_converged))
 
 
 def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond, rtol, atol,
-                    history_size, counter=None) -> Solution:
+                    history_size, track_norm, counter=None) -> Solution:
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
+    pattern = (matrix.rows, matrix.cols, matrix.layout)
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
-                         jnp.asarray(adjoint_iterations, jnp.int32), matrix.rows, matrix.cols,
-                         precond, tolerances, matrix.shape, history_size, counter)
+                         jnp.asarray(adjoint_iterations, jnp.int32), pattern, precond,
+                         tolerances, matrix.shape, history_size, track_norm, counter)
     diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
     return Solution(sol.x, *diagnostics)
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(9, 10, 11))
-def _implicit_core(values, b, x0, iterations, adjoint_iterations, rows, cols, precond,
-                   tolerances, shape, history_size, counter):
-    matrix = SparseMatrix(rows, cols, values, shape)
-    return _while_solve(matrix, precond, b, x0, iterations, tolerances, history_size)
+def _pattern_matrix(values, pattern, shape) -> SparseMatrix:
+    rows, cols, layout = pattern
+    return SparseMatrix(rows, cols, values, shape, layout)
 
 
-def _implicit_fwd(values, b, x0, iterations, adjoint_iterations, rows, cols, precond,
-                  tolerances, shape, history_size, counter):
-    matrix = SparseMatrix(rows, cols, values, shape)
-    sol = _while_solve(matrix, precond, b, x0, iterations, tolerances, history_size)
-    return sol, (values, sol.x, adjoint_iterations, rows, cols, precond, tolerances)
+@partial(jax.custom_vjp, nondiff_argnums=(8, 9, 10, 11))
+def _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
+                   shape, history_size, track_norm, counter):
+    krylov = _krylov(_pattern_matrix(values, pattern, shape), precond)
+    return _while_solve(krylov, b, x0, iterations, tolerances, history_size,
+                        track_norm=track_norm)
 
 
-def _implicit_bwd(shape, history_size, counter, residuals, cotangent: Solution):
-    values, x, adjoint_iterations, rows, cols, precond, tolerances = residuals
-    matrix = SparseMatrix(rows, cols, values, shape)
+def _implicit_fwd(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
+                  shape, history_size, track_norm, counter):
+    krylov = _krylov(_pattern_matrix(values, pattern, shape), precond)
+    sol = _while_solve(krylov, b, x0, iterations, tolerances, history_size,
+                       track_norm=track_norm)
+    return sol, (krylov, sol.x, adjoint_iterations, pattern, precond, tolerances)
+
+
+def _implicit_bwd(shape, history_size, track_norm, counter, residuals, cotangent: Solution):
+    krylov, x, adjoint_iterations, pattern, precond, tolerances = residuals
+    rows, cols, _ = pattern
     # A is symmetric: the adjoint system is A lambda = x_bar, solved the same (truncated) way
-    # (with a nullspace, _init projects x_bar: lambda = P A^+ P x_bar)
-    adjoint_solution = _while_solve(matrix, precond, cotangent.x, jnp.zeros_like(cotangent.x),
-                                    adjoint_iterations, tolerances, 0)
+    # with the kernel prepared forward (with a nullspace, _init projects x_bar:
+    # lambda = P A^+ P x_bar)
+    adjoint_solution = _while_solve(krylov, cotangent.x, jnp.zeros_like(cotangent.x),
+                                    adjoint_iterations, tolerances, 0, track_norm=track_norm)
     _tap(counter, "adjoint", adjoint_solution.iterations)
     adjoint = adjoint_solution.x
     values_bar = -adjoint[rows] * x[cols]
     zeros = partial(jax.tree_util.tree_map, jnp.zeros_like)
-    return (values_bar, adjoint, jnp.zeros_like(x), None, None, None, None, zeros(precond),
+    return (values_bar, adjoint, jnp.zeros_like(x), None, None, None, zeros(precond),
             jnp.zeros_like(tolerances))
 
 

@@ -116,9 +116,13 @@ def _parser() -> argparse.ArgumentParser:
 
     bench = _command(sub, "bench", "benchmarks")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
-    cg = bench_sub.add_parser("cg", help="PCG iteration time / SciPy SpMV time")
-    cg.add_argument("--sides", type=int, nargs="+", default=[256, 512],
-                    help="unit-square cells per side ((n-1)^2 dofs: 256 -> 65k, 512 -> 261k)")
+    cg = bench_sub.add_parser("cg", help="PCG iteration time / SciPy SpMV time, and its "
+                              "scaling with the number of dofs")
+    cg.add_argument("--dim", type=int, choices=(2, 3), default=2,
+                    help="unit square (P1 triangles) or unit cube (P1 tetrahedra)")
+    cg.add_argument("--sides", type=int, nargs="+", default=None,
+                    help="cells per side ((n-1)^dim dofs); default 2-D: 128 256 512 1024 "
+                    "(16k .. 1M dofs), 3-D: 32 48 64 80 (30k .. 493k)")
     cg.add_argument("--iterations", type=int, default=100)
     cg.add_argument("--repeats", type=int, default=7)
     return parser
@@ -353,21 +357,35 @@ def _forward(args) -> None:
           f"first-solve compile {study.compile_time_s:.2f} s")
 
 
-def _bench_cg(args) -> None:
-    from .bench import cg_iteration_cost
+def _bench(args) -> None:
+    {"cg": _bench_cg}[args.bench](args)
 
-    for option, values, minimum in (("--sides", args.sides, 1), ("--iterations",
+
+def _bench_cg(args) -> None:
+    from .bench import cg_iteration_cost, scaling_slope
+
+    sides = args.sides or ([128, 256, 512, 1024] if args.dim == 2 else [32, 48, 64, 80])
+    for option, values, minimum in (("--sides", sides, 2), ("--iterations",
                                     [args.iterations], 1), ("--repeats", [args.repeats], 1)):
         if any(v < minimum for v in values):
             shown = " ".join(map(str, values))
             raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
+    print(f"P1 Laplacian, {args.dim}-D; Jacobi-PCG iteration inside the jitted loop / one SciPy "
+          f"CSR SpMV (median of {args.repeats} interleaved repeats)")
     print(f"{'dofs':>9} {'nnz':>9} {'SpMV [ms]':>10} {'PCG it [ms]':>12} {'ratio':>7} "
-          f"{'compile [s]':>12}")
-    for side in args.sides:
-        cost = cg_iteration_cost(side, iterations=args.iterations, repeats=args.repeats)
+          f"{'COO it [ms]':>12} {'COO ratio':>10} {'compile [s]':>12}")
+    costs = []
+    for side in sides:
+        cost = cg_iteration_cost(side, dim=args.dim, iterations=args.iterations,
+                                 repeats=args.repeats)
+        costs.append(cost)
         print(f"{cost.n_dofs:>9} {cost.nnz:>9} {1e3 * cost.spmv_s:>10.3f} "
-              f"{1e3 * cost.iteration_s:>12.3f} {cost.ratio:>7.2f} {cost.compile_s:>12.2f}",
-              flush=True)
+              f"{1e3 * cost.iteration_s:>12.3f} {cost.ratio:>7.2f} "
+              f"{1e3 * cost.coo_iteration_s:>12.3f} {cost.coo_ratio:>10.2f} "
+              f"{cost.compile_s:>12.2f}", flush=True)
+    if len(costs) > 1:
+        print(f"log-log slope of the PCG iteration time against dofs: "
+              f"{scaling_slope(costs):.2f}")
 
 
 def _stability(args) -> int:
@@ -404,7 +422,7 @@ def _progress(total: int, unit: str):
 
 
 COMMANDS = {"study": _study, "invert": _invert, "solve": _solve, "mesh-info": _mesh_info,
-            "mesh": _mesh_info, "scenes": _scenes, "forward": _forward, "bench": _bench_cg,
+            "mesh": _mesh_info, "scenes": _scenes, "forward": _forward, "bench": _bench,
             "stability": _stability}
 
 

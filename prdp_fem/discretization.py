@@ -37,7 +37,7 @@ import skfem
 from skfem.helpers import dot, grad
 
 from .errors import CoefficientError, DataError, DiscretizationError
-from .operator import SparseMatrix
+from .operator import SparseMatrix, ell_layout
 from .system import LinearSystem
 from .validation import finite_vector, is_traced, positive_coefficient
 
@@ -208,6 +208,7 @@ class Discretization:
             dirichlet_values=jnp.asarray(self.dirichlet_values),
             n_dofs=self.n_dofs,
             nullspace=None if self.nullspace is None else jnp.asarray(self.nullspace),
+            layout=ell_layout(*self.pattern, self.n_free),
         )
 
     @property

@@ -1,12 +1,35 @@
-"""Sparse matrices as JAX pytrees: row-sorted COO (BCOO-compatible) with one matvec kernel.
+"""Sparse matrices as JAX pytrees: row-sorted COO (BCOO-compatible), with one kernel choice.
 
 A :class:`SparseMatrix` holds integer ``rows``/``cols`` and float ``values`` as pytree leaves and
 its ``shape`` as static metadata, so it is passed *as an argument* to jitted code (never closed
 over: a closed-over sparse matrix is constant-folded slowly) and is differentiable in ``values``.
 
-All products go through :func:`matvec`; it is the one place where the kernel is chosen.
-
 .. math:: (A x)_i = \\sum_{k:\\, \\mathrm{row}_k = i} \\mathrm{values}_k \\, x_{\\mathrm{col}_k}
+
+Products go through :func:`prepare`, the one place where the kernel is chosen: it turns the
+exchange format into a kernel pytree whose ``__call__`` is the product. Loops that apply the
+same matrix many times (CG) prepare it once and call the kernel; :func:`matvec` prepares and
+applies in one go.
+
+Kernels
+-------
+``EllMatrix`` (square matrices built by :meth:`SparseMatrix.from_coo` / :meth:`from_scipy`,
+which attach an :class:`EllLayout`): the diagonal as a vector and the off-diagonal entries in
+slot-major ELLPACK form ``(w, n)`` (row ``i`` of slot ``k`` holds its ``k``-th off-diagonal
+entry), so that
+
+.. math:: (A x)_i = d_i x_i + \\sum_{k < w} V_{ki}\\, x_{C_{ki}}
+
+is one fused loop of ``w`` contiguous gathers, multiplies and adds -- no scatter, no
+segment sum, and the diagonal needs no gather. Rows longer than ``w`` keep their extra
+entries in a short COO tail (``w`` minimises the padded work, see :func:`ell_layout`).
+Measured on 2 CPU cores against one SciPy CSR SpMV of the 2-D P1 Laplacian:
+0.7x (65k dofs) / 0.5x (261k); the sorted segment sum it replaces took 2.3x (XLA runs the fused
+loop on both cores). ELL slot-major is also the coalesced layout on GPUs, so it is used on
+every backend.
+
+``CooMatrix`` (no layout: rectangular matrices, or a matrix built inside ``jit`` from traced
+indices): gather, multiply, sorted segment sum.
 
 >>> import numpy as np, scipy.sparse as sp
 >>> from prdp_fem.operator import SparseMatrix, matvec
@@ -26,17 +49,83 @@ import numpy as np
 import scipy.sparse as sp
 from jax.experimental import sparse as jsparse
 
-__all__ = ["SparseMatrix", "diagonal", "matvec", "rmatvec"]
+__all__ = ["CooMatrix", "EllLayout", "EllMatrix", "SparseMatrix", "diagonal", "ell_layout",
+           "matvec", "prepare", "rmatvec"]
+
+# a COO-tail entry costs about this many ELL slots (a scatter-add against a streamed gather)
+_OVERFLOW_COST = 4
 
 
-@partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values"],
+@partial(jax.tree_util.register_dataclass,
+         data_fields=["diagonal", "slots", "columns", "overflow_slots", "overflow_rows",
+                      "overflow_columns"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class EllLayout:
+    """Where each stored entry of a square matrix goes in the ELL kernel (indices only).
+
+    ``diagonal[i]``: the position in ``values`` of row ``i``'s (first) diagonal entry;
+    ``slots[k, i]`` / ``columns[k, i]``: position and column of row ``i``'s ``k``-th other
+    entry; ``overflow_*``: entries past slot ``w``. A missing entry points at ``nnz`` (a zero
+    appended to the values) with its own row as column, so padding adds ``0 * x_i``.
+    """
+
+    diagonal: jax.Array
+    slots: jax.Array
+    columns: jax.Array
+    overflow_slots: jax.Array
+    overflow_rows: jax.Array
+    overflow_columns: jax.Array
+
+
+def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int) -> EllLayout:
+    """The ELL layout of a square pattern whose ``rows`` are sorted (host-side, NumPy).
+
+    Duplicates are kept as separate entries (they add up in the product). The width ``w``
+    minimises ``n w + 4 * (entries past slot w)`` (plus ``n`` when any spill, for the tail's
+    pass), so one long row does not pad every row to its length.
+    """
+    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    nnz = rows.size
+    positions = np.arange(nnz)
+    diagonal = np.full(n, nnz, dtype=np.int64)
+    on_diagonal = np.flatnonzero(rows == cols)
+    diagonal_rows, first = np.unique(rows[on_diagonal], return_index=True)
+    diagonal[diagonal_rows] = on_diagonal[first]
+    other = np.ones(nnz, dtype=bool)
+    other[diagonal[diagonal_rows]] = False
+    o_rows, o_positions, o_cols = rows[other], positions[other], cols[other]
+    counts = np.bincount(o_rows, minlength=n)
+    slot = np.arange(o_rows.size) - (np.cumsum(counts) - counts)[o_rows]
+    width = _ell_width(counts)
+    inside = slot < width
+    slots = np.full((width, n), nnz, dtype=np.int64)
+    columns = np.tile(np.arange(n), (width, 1))
+    slots[slot[inside], o_rows[inside]] = o_positions[inside]
+    columns[slot[inside], o_rows[inside]] = o_cols[inside]
+    as_index = partial(jnp.asarray, dtype=jnp.int32)
+    return EllLayout(as_index(diagonal), as_index(slots), as_index(columns),
+                     as_index(o_positions[~inside]), as_index(o_rows[~inside]),
+                     as_index(o_cols[~inside]))
+
+
+def _ell_width(counts: np.ndarray) -> int:
+    if counts.size == 0:
+        return 0
+    widths = np.arange(int(counts.max()) + 1)
+    spilled = np.array([np.maximum(counts - w, 0).sum() for w in widths])
+    cost = counts.size * widths + _OVERFLOW_COST * spilled + counts.size * (spilled > 0)
+    return int(widths[np.argmin(cost)])
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values", "layout"],
          meta_fields=["shape"])
 @dataclasses.dataclass(frozen=True)
 class SparseMatrix:
     """COO matrix with entries sorted by row (duplicates allowed; they add up).
 
     The constructor trusts its input (it runs inside jit); build from unsorted data with
-    :meth:`from_coo`, :meth:`from_scipy` or :meth:`from_bcoo`, which sort.
+    :meth:`from_coo`, :meth:`from_scipy` or :meth:`from_bcoo`, which sort and attach the ELL
+    layout of square matrices (:meth:`with_values` keeps it).
 
     Attributes
     ----------
@@ -46,20 +135,30 @@ class SparseMatrix:
         Float array of length ``nnz`` (the differentiable part).
     shape
         ``(n_rows, n_cols)``, static.
+    layout
+        :class:`EllLayout` of the pattern, or ``None`` (the COO kernel is used).
     """
 
     rows: jax.Array
     cols: jax.Array
     values: jax.Array
     shape: tuple[int, int]
+    layout: EllLayout | None = None
 
     @property
     def nnz(self) -> int:
         return int(self.values.shape[-1])
 
     def with_values(self, values: jax.Array) -> SparseMatrix:
-        """Same sparsity pattern, new values (e.g. ``G @ kappa``)."""
+        """Same sparsity pattern (and layout), new values (e.g. ``G @ kappa``)."""
         return dataclasses.replace(self, values=values)
+
+    def with_layout(self) -> SparseMatrix:
+        """The same matrix with its ELL layout attached (needs concrete, row-sorted indices)."""
+        if self.shape[0] != self.shape[1]:
+            return self
+        return dataclasses.replace(self, layout=ell_layout(np.asarray(self.rows),
+                                                           np.asarray(self.cols), self.shape[0]))
 
     def astype(self, dtype) -> SparseMatrix:
         """The values in another precision (``solve`` then runs in it: e.g. float32, whose
@@ -73,7 +172,8 @@ class SparseMatrix:
         order = np.lexsort((cols, rows))
         return cls(jnp.asarray(rows[order], dtype=jnp.int32),
                    jnp.asarray(cols[order], dtype=jnp.int32),
-                   jnp.asarray(values, dtype=float)[order], (int(shape[0]), int(shape[1])))
+                   jnp.asarray(values, dtype=float)[order],
+                   (int(shape[0]), int(shape[1]))).with_layout()
 
     @classmethod
     def from_scipy(cls, matrix: sp.spmatrix | sp.sparray) -> SparseMatrix:
@@ -81,7 +181,8 @@ class SparseMatrix:
         csr.sum_duplicates()
         coo = csr.tocoo()  # from a canonical CSR: sorted by row, then column
         return cls(jnp.asarray(coo.row, dtype=jnp.int32), jnp.asarray(coo.col, dtype=jnp.int32),
-                   jnp.asarray(coo.data, dtype=float), tuple(int(s) for s in csr.shape))
+                   jnp.asarray(coo.data, dtype=float),
+                   tuple(int(s) for s in csr.shape)).with_layout()
 
     def to_scipy(self) -> sp.csr_matrix:
         return sp.csr_matrix(
@@ -102,11 +203,81 @@ class SparseMatrix:
         return jnp.zeros(self.shape, self.values.dtype).at[self.rows, self.cols].add(self.values)
 
 
+# --------------------------------------------------------------------------------------
+# kernels: prepared once, applied many times
+# --------------------------------------------------------------------------------------
+
+
+@partial(jax.tree_util.register_dataclass,
+         data_fields=["diagonal", "values", "columns", "overflow_values", "overflow_rows",
+                      "overflow_columns"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class EllMatrix:
+    """A square matrix as a diagonal plus slot-major ELL off-diagonal entries (see module)."""
+
+    diagonal: jax.Array
+    values: jax.Array
+    columns: jax.Array
+    overflow_values: jax.Array
+    overflow_rows: jax.Array
+    overflow_columns: jax.Array
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        y = self.diagonal * x
+        for k in range(self.values.shape[0]):  # w is small and static: one fused loop
+            y = y + self.values[k] * x[self.columns[k]]
+        if self.overflow_rows.shape[0]:
+            y = y.at[self.overflow_rows].add(self.overflow_values * x[self.overflow_columns])
+        return y
+
+    def scaled(self, scale: jax.Array) -> EllMatrix:
+        """``S A S`` with ``S = diag(scale)``."""
+        return dataclasses.replace(
+            self, diagonal=self.diagonal * scale * scale,
+            values=self.values * scale * scale[self.columns],
+            overflow_values=self.overflow_values * scale[self.overflow_rows]
+            * scale[self.overflow_columns])
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values"],
+         meta_fields=["n_rows"])
+@dataclasses.dataclass(frozen=True)
+class CooMatrix:
+    """Row-sorted COO: gather, multiply, sorted segment sum."""
+
+    rows: jax.Array
+    cols: jax.Array
+    values: jax.Array
+    n_rows: int
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return jax.ops.segment_sum(self.values * x[self.cols], self.rows,
+                                   num_segments=self.n_rows, indices_are_sorted=True)
+
+    def scaled(self, scale: jax.Array) -> CooMatrix:
+        """``S A S`` with ``S = diag(scale)`` (square matrices)."""
+        return dataclasses.replace(self, values=self.values * scale[self.rows]
+                                   * scale[self.cols])
+
+
+def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix:
+    """The product kernel of ``matrix``: the one place where the kernel is chosen.
+
+    ELL when the matrix carries a layout (any backend), else COO. Differentiable in the
+    values (a gather of them); prepare once per solve, not per product.
+    """
+    if matrix.layout is None:
+        return CooMatrix(matrix.rows, matrix.cols, matrix.values, matrix.shape[0])
+    layout = matrix.layout
+    padded = jnp.concatenate([matrix.values, jnp.zeros((1,), matrix.values.dtype)])
+    return EllMatrix(padded[layout.diagonal], padded[layout.slots], layout.columns,
+                     padded[layout.overflow_slots], layout.overflow_rows,
+                     layout.overflow_columns)
+
+
 def matvec(matrix: SparseMatrix, x: jax.Array) -> jax.Array:
-    """``A @ x``: gather, multiply, sorted segment sum (differentiable in values and x)."""
-    products = matrix.values * x[matrix.cols]
-    return jax.ops.segment_sum(products, matrix.rows, num_segments=matrix.shape[0],
-                               indices_are_sorted=True)
+    """``A @ x`` (differentiable in values and x)."""
+    return prepare(matrix)(x)
 
 
 def rmatvec(matrix: SparseMatrix, y: jax.Array) -> jax.Array:
@@ -116,7 +287,7 @@ def rmatvec(matrix: SparseMatrix, y: jax.Array) -> jax.Array:
 
 
 def diagonal(matrix: SparseMatrix) -> jax.Array:
-    """Main diagonal (zero where a row stores no diagonal entry)."""
+    """Main diagonal (zero where a row stores no diagonal entry; duplicates add up)."""
     on_diagonal = matrix.rows == matrix.cols
     return jax.ops.segment_sum(jnp.where(on_diagonal, matrix.values, 0.0), matrix.rows,
                                num_segments=matrix.shape[0], indices_are_sorted=True)

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from . import cg
 from .errors import CoefficientError
-from .operator import SparseMatrix, matvec
+from .operator import EllLayout, SparseMatrix, matvec
 from .validation import finite_vector
 
 __all__ = ["LinearSystem"]
@@ -35,7 +35,7 @@ __all__ = ["LinearSystem"]
 @partial(jax.tree_util.register_dataclass,
          data_fields=["assembly", "rows", "cols", "lifting", "lifting_rows", "lifting_cols",
                       "source", "neumann", "free_dofs", "dirichlet_dofs", "dirichlet_values",
-                      "nullspace"],
+                      "nullspace", "layout"],
          meta_fields=["n_dofs"])
 @dataclasses.dataclass(frozen=True)
 class LinearSystem:
@@ -61,6 +61,7 @@ class LinearSystem:
     dirichlet_values: jax.Array
     n_dofs: int
     nullspace: jax.Array | None = None
+    layout: EllLayout | None = None  # the ELL layout of (rows, cols): the fast CG kernel
 
     @property
     def n_free(self) -> int:
@@ -73,7 +74,8 @@ class LinearSystem:
     def operator(self, kappa: jax.Array) -> SparseMatrix:
         """``A(kappa)`` on the free dofs (linear in ``kappa``)."""
         values = matvec(self.assembly, kappa)
-        return SparseMatrix(self.rows, self.cols, values, (self.n_free, self.n_free))
+        return SparseMatrix(self.rows, self.cols, values, (self.n_free, self.n_free),
+                            self.layout)
 
     def rhs(self, kappa: jax.Array, f: jax.Array | None = None) -> jax.Array:
         """``b = S f + h - A_ID(kappa) g`` (``f`` nodal in the solution space; ``None``: 0).

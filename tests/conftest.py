@@ -1,10 +1,21 @@
 """Shared fixtures: manufactured solutions and small discretisations."""
 
+import atexit
 import logging
+import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+# hermetic: the session (and the CLI subprocesses it starts) share one throwaway compilation
+# cache instead of the user's; set before prdp_fem is imported, which switches the cache on
+if "PRDP_FEM_COMPILATION_CACHE" not in os.environ:
+    _CACHE = tempfile.mkdtemp(prefix="prdp-fem-test-cache-")
+    os.environ["PRDP_FEM_COMPILATION_CACHE"] = _CACHE
+    atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 
 import prdp_fem as pf
 

@@ -1,6 +1,8 @@
 """Truncated and converged PCG: forward accuracy, then grouped by transformation
 (vjp: unrolled and implicit, jvp, jit/recompiles, vmap)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -404,3 +406,42 @@ def test_taylor_test_accepts_exact_gradient_of_a_linear_map(small_problem):
     assert result.passed()
     assert not pf.taylor_test(jax.jit(linear_in_f), jnp.ones(disc.n_dofs),
                               gradient=jnp.zeros(disc.n_dofs)).passed()
+
+
+# ------------------------------------------------------------------------------------------
+# Jacobi runs as CG on S A S (S = M^1/2): the same map as PCG with z = M r
+# ------------------------------------------------------------------------------------------
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _DiagonalAsGeneral:
+    """``z = M r`` with a diagonal ``M``, but not a JacobiPreconditioner: the general PCG path."""
+
+    inverse_diagonal: jax.Array
+
+    def __call__(self, r):
+        return self.inverse_diagonal * r
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_scaled_jacobi_equals_pcg_with_z_equal_M_r(small_problem, mode):
+    disc, kappa, f = small_problem
+    system = disc.system
+    inverse_diagonal = pf.jacobi(system.operator(jnp.asarray(kappa))).inverse_diagonal
+    b = system.rhs(jnp.asarray(kappa), jnp.asarray(f))
+
+    def loss(values, preconditioner, K):
+        op = system.operator(jnp.asarray(kappa)).with_values(values)
+        x = solve(op, b, TruncatedCG(K, preconditioner, gradient=mode)).x
+        return jnp.sum(x * jnp.cos(jnp.arange(x.size)))
+
+    values = system.operator(jnp.asarray(kappa)).values
+    value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=2)
+    scaled, general = pf.JacobiPreconditioner(inverse_diagonal), \
+        _DiagonalAsGeneral(inverse_diagonal)
+    for K in (1, 12):
+        (value, grad), (reference, reference_grad) = (value_and_grad(values, scaled, K),
+                                                      value_and_grad(values, general, K))
+        np.testing.assert_allclose(value, reference, rtol=1e-12)
+        np.testing.assert_allclose(grad, reference_grad, rtol=1e-9, atol=1e-13)

@@ -95,3 +95,63 @@ def test_matvec_matches_scipy_for_any_coo(n, nnz, seed):
     np.testing.assert_allclose(pf.matvec(A, x), reference @ x, atol=1e-12)
     np.testing.assert_allclose(pf.rmatvec(A, x), reference.T @ x, atol=1e-12)
     np.testing.assert_allclose(pf.diagonal(A), reference.diagonal(), atol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# the ELL kernel (the default for matrices with a layout) against SciPy and the COO kernel
+# ------------------------------------------------------------------------------------------
+
+
+def _star(n: int) -> sp.csr_matrix:
+    """A hub row/column coupled to every node: one row far longer than the rest."""
+    hub = sp.lil_matrix((n, n))
+    hub[0, 1:] = -1.0
+    hub[1:, 0] = -1.0
+    return (hub + sp.diags(np.full(n, float(n)))).tocsr()
+
+
+def test_long_rows_spill_into_the_coo_tail_and_still_multiply_right():
+    matrix = _star(60)
+    A = pf.SparseMatrix.from_scipy(matrix)
+    assert A.layout.slots.shape[0] < 59  # not padded to the hub's length
+    assert A.layout.overflow_rows.shape[0] > 0
+    x = np.random.default_rng(0).normal(size=60)
+    np.testing.assert_allclose(pf.matvec(A, x), matrix @ x, rtol=1e-13)
+
+
+@pytest.mark.parametrize("matrix", ["random", "star"])
+def test_ell_and_coo_kernels_agree_in_value_jvp_and_vjp(random_spd, matrix):
+    matrix = random_spd if matrix == "random" else _star(40)
+    ell = pf.SparseMatrix.from_scipy(matrix)
+    coo = pf.SparseMatrix(ell.rows, ell.cols, ell.values, ell.shape)
+    assert isinstance(pf.prepare(ell), pf.EllMatrix) and isinstance(pf.prepare(coo),
+                                                                     pf.CooMatrix)
+    rng = np.random.default_rng(1)
+    x, dx, dv, y = (rng.normal(size=s) for s in (40, 40, ell.nnz, 40))
+
+    def product(A):
+        return lambda values, x: pf.matvec(A.with_values(values), x)
+
+    for A in (ell, coo):
+        value, tangent = jax.jvp(product(A), (A.values, x), (dv, dx))
+        np.testing.assert_allclose(value, matrix @ x, rtol=1e-12)
+        np.testing.assert_allclose(tangent, A.with_values(dv).to_scipy() @ x + matrix @ dx,
+                                   rtol=1e-12)
+        values_bar, x_bar = jax.vjp(product(A), A.values, x)[1](y)
+        np.testing.assert_allclose(values_bar, y[A.rows] * x[A.cols], rtol=1e-12)
+        np.testing.assert_allclose(x_bar, matrix.T @ y, rtol=1e-12)
+
+
+@settings(max_examples=10, deadline=None)
+@given(n=st.integers(1, 12), nnz=st.integers(0, 60), seed=st.integers(0, 2**31 - 1))
+def test_scaled_kernel_is_S_A_S(n, nnz, seed):
+    """Duplicates, empty rows, missing diagonals: ``prepare(A).scaled(s)`` is ``S A S``."""
+    rng = np.random.default_rng(seed)
+    rows, cols, values = rng.integers(0, n, nnz), rng.integers(0, n, nnz), rng.normal(size=nnz)
+    reference = sp.csr_matrix((values, (rows, cols)), shape=(n, n))  # sums the duplicates
+    A = pf.SparseMatrix.from_coo(rows, cols, values, (n, n))
+    s, x = rng.uniform(0.5, 2.0, n), rng.normal(size=n)
+    scaled = sp.diags(s) @ reference @ sp.diags(s)
+    coo = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
+    for kernel in (pf.prepare(A), pf.prepare(coo)):
+        np.testing.assert_allclose(kernel.scaled(jnp.asarray(s))(x), scaled @ x, atol=1e-12)
