@@ -10,6 +10,8 @@ Subcommands
 ``forward``    truncated-PCG error against K and run time (a quick forward study)
 ``stability``  the stiff/extreme-case suite: a Markdown + CSV table; exit 1 on any failure
 ``bench cg``   PCG iteration / SciPy SpMV time ratio (see :mod:`prdp_fem.bench`)
+``bench memory``  peak memory and time of a gradient through PCG, per gradient mode and K
+               (see :mod:`prdp_fem.bench_memory`)
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
 with status 2, no traceback; Ctrl-C keeps every finished record and exits with 130.
@@ -64,7 +66,7 @@ def _command(sub, name: str, help_text: str, **kwargs) -> argparse.ArgumentParse
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="prdp-fem", description=__doc__.split("\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="\n".join(__doc__.split("\n")[2:11]))
+                                     epilog=__doc__.split("\n\n")[1])  # the subcommands
     sub = parser.add_subparsers(dest="command", required=True)
 
     study = _command(sub, "study", "sweep a scene's configurations; tables and figures of "
@@ -125,6 +127,21 @@ def _parser() -> argparse.ArgumentParser:
                     "(16k .. 1M dofs), 3-D: 32 48 64 80 (30k .. 493k)")
     cg.add_argument("--iterations", type=int, default=100)
     cg.add_argument("--repeats", type=int, default=7)
+    memory = bench_sub.add_parser(
+        "memory", help="peak memory and time of one gradient through PCG (unrolled, "
+        "unrolled with checkpoints, implicit), each in a fresh process")
+    memory.add_argument("--side", type=int, default=257,
+                        help="unit-square cells per side ((n-1)^2 dofs: 257 -> 65536)")
+    memory.add_argument("--iterations", type=int, nargs="+", default=[10, 100, 1000],
+                        metavar="K", help="the K values to run")
+    memory.add_argument("--modes", nargs="+", default=["unrolled", "checkpointed", "implicit"],
+                        metavar="MODE", help="unrolled | checkpointed | implicit")
+    memory.add_argument("--segment", type=int,
+                        help="checkpointed segment length (default: ceil(sqrt(K)))")
+    memory.add_argument("--repeats", type=int, default=3, help="timed gradient evaluations")
+    memory.add_argument("--max-mb", type=float, default=4000.0,
+                        help="skip running a configuration whose XLA scratch estimate exceeds "
+                        "this (MB; it is still compiled and its estimate reported)")
     return parser
 
 
@@ -357,10 +374,6 @@ def _forward(args) -> None:
           f"first-solve compile {study.compile_time_s:.2f} s")
 
 
-def _bench(args) -> None:
-    {"cg": _bench_cg}[args.bench](args)
-
-
 def _bench_cg(args) -> None:
     from .bench import cg_iteration_cost, scaling_slope
 
@@ -386,6 +399,47 @@ def _bench_cg(args) -> None:
     if len(costs) > 1:
         print(f"log-log slope of the PCG iteration time against dofs: "
               f"{scaling_slope(costs):.2f}")
+
+
+def _bench_memory(args) -> None:
+    from .bench_memory import memory_cost
+
+    columns = ["mode", "K", "segment", "peak MB", "n-vectors", "XLA temp MB", "grad [s]"]
+    widths = [12, 6, 8, 9, 10, 12, 9]
+    header_printed = False
+
+    def emit(row):
+        nonlocal header_printed
+        if not header_printed:
+            print(f"P1 Poisson on unit_square({args.side}): {row.n_dofs} dofs, one n-vector = "
+                  f"{row.vector_mb:.3g} MB\npeak: resident memory of one jitted gradient above "
+                  "its own process's baseline (problem built, gradient compiled)"
+                  + ("" if row.hwm_reset else " [high-water mark not reset: small peaks read 0]"))
+            print("  ".join(c.rjust(w) for c, w in zip(columns, widths, strict=True)))
+            header_printed = True
+        cells = [row.mode, str(row.iterations), "-" if row.segment is None else str(row.segment),
+                 f"{row.peak_mb:.1f}" if row.ran else "skipped",
+                 f"{row.peak_mb / row.vector_mb:.1f}" if row.ran else "-",
+                 f"{row.xla_temp_mb:.1f}", f"{row.gradient_s:.3g}" if row.ran else "-"]
+        print("  ".join(c.rjust(w) for c, w in zip(cells, widths, strict=True)), flush=True)
+
+    try:
+        memory_cost(args.side, tuple(args.iterations), modes=tuple(args.modes),
+                    segment=args.segment, repeats=args.repeats, max_mb=args.max_mb, on_row=emit)
+    except SolverConfigError as error:  # name the command-line option, not the keyword
+        raise SolverConfigError(_as_option(str(error))) from None
+
+
+def _as_option(message: str) -> str:
+    """``max_mb=-1.0: ...`` -> ``--max-mb -1.0: ...``; lists are shown space-separated."""
+    name, _, rest = message.partition("=")
+    value, _, explanation = rest.partition(": ")
+    value = value.strip("[]").replace(",", "").replace("'", "")
+    return f"--{name.replace('_', '-')} {value}: {explanation}"
+
+
+def _bench(args) -> None:
+    {"cg": _bench_cg, "memory": _bench_memory}[args.bench](args)
 
 
 def _stability(args) -> int:

@@ -636,6 +636,8 @@ def cli(*args, cwd):
     (["invert", "SENSORS"], r"sensors\.toml \(run 'sensors'\): inverse\.sensors: points: 1 "
      r"sensor\(s\) lie outside the mesh"),
     (["bench", "cg", "--sides", "4", "--repeats", "0"], r"--repeats 0: expected integers >= 1"),
+    (["bench", "memory", "--modes", "adjoint"], r"--modes adjoint: expected some of "
+     r"\['unrolled', 'checkpointed', 'implicit'\]"),
 ])
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     (tmp_path / "kappa.toml").write_text("[mesh]\nn = 4\n[pde]\nkappa = 'x - 0.5'\n")

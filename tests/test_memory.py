@@ -1,0 +1,202 @@
+"""Checkpointed unrolled CG: the same K-iteration map in segments, its memory bound, and the
+``bench memory`` command (structure and the checkpointed < plain ordering; never timings)."""
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prdp_fem as pf
+from prdp_fem.bench_memory import _gradient_problem, memory_cost
+from prdp_fem.cg import TruncatedCG, _scan_iterations, segment_length, solve
+from prdp_fem.cli import main
+
+# ------------------------------------------------------------------------------------------
+# the segmented scan is the plain scan
+# ------------------------------------------------------------------------------------------
+
+
+def _toy_body(theta):
+    """A nonlinear scan body closed over a differentiated parameter, as CG's is over A."""
+
+    def body(carry, _):
+        x, s = carry
+        x_new = jnp.tanh(theta * x[::-1] + 0.3 * s) + 0.1 * x
+        return (x_new, 0.9 * s + jnp.sum(x_new)), (x_new[0] > 0, jnp.sum(x_new ** 2))
+
+    return body
+
+
+def _toy_run(theta, x0, iterations, segment):
+    """``(final x, per-iteration outputs)`` and a scalar that depends on all of them."""
+    (x, s), (flags, squares) = _scan_iterations(_toy_body(theta), (x0, jnp.zeros(())),
+                                                iterations, segment)
+    return jnp.sum(x) + s + jnp.vdot(jnp.cos(jnp.arange(iterations)), squares), (x, flags)
+
+
+@pytest.mark.parametrize("iterations", [0, 1, 5, 9])
+def test_segmented_scan_is_the_plain_scan_for_any_segment_length(iterations):
+    theta, x0 = jnp.linspace(0.5, 1.5, 4), jnp.asarray([0.3, -0.2, 0.1, 0.4])
+    direction = jnp.asarray([1.0, -0.5, 0.25, 2.0])
+
+    @partial(jax.jit, static_argnums=0)
+    def derivatives(segment):
+        value_and_grad = jax.value_and_grad(_toy_run, argnums=(0, 1), has_aux=True)
+        (value, (x, flags)), grads = value_and_grad(theta, x0, iterations, segment)
+        _, slope = jax.jvp(lambda t: _toy_run(t, x0, iterations, segment)[0], (theta,),
+                           (direction,))
+        return value, x, flags, grads, slope
+
+    value, x, flags, grads, slope = derivatives(None)
+    assert flags.shape == (iterations,)
+    for segment in sorted({1, 2, 3, 4, max(iterations, 1), iterations + 1}):
+        s_value, s_x, s_flags, s_grads, s_slope = derivatives(segment)
+        np.testing.assert_array_equal(s_x, x)
+        np.testing.assert_array_equal(s_flags, flags)
+        assert float(s_value) == float(value)
+        for s_grad, grad in zip(s_grads, grads, strict=True):
+            np.testing.assert_allclose(s_grad, grad, rtol=1e-13, atol=1e-15)
+        assert float(s_slope) == pytest.approx(float(slope), rel=1e-13, abs=1e-15)
+
+
+def _weights(disc):
+    return jnp.asarray(np.cos(np.arange(disc.n_free)))
+
+
+def _loss(small_problem, iterations, checkpoint):
+    """``kappa -> (J, Solution)`` with ``J = w . x_K``."""
+    disc, _, f = small_problem
+    system, w = disc.system, _weights(disc)
+
+    def loss(kappa):
+        sol = solve(system.operator(kappa), system.rhs(kappa, f),
+                    TruncatedCG(iterations, checkpoint=checkpoint))
+        return w @ sol.x, sol
+
+    return loss
+
+
+# K = 7 with the sqrt rule: s = 3, two segments and one iteration left over; K = 12 with s = 5:
+# two segments and two left over
+@pytest.mark.parametrize(("iterations", "checkpoint"), [(7, True), (12, 5)])
+def test_checkpointed_solve_gives_the_plain_x_history_and_gradient(small_problem, iterations,
+                                                                   checkpoint):
+    kappa = jnp.asarray(small_problem[1])
+
+    def run(checkpoint):
+        loss = _loss(small_problem, iterations, checkpoint)
+        return jax.jit(jax.value_and_grad(loss, has_aux=True))(kappa)
+
+    (_, plain), plain_grad = run(False)
+    (_, sol), grad = run(checkpoint)
+    # the same operations in the same order, but XLA may fuse the nested loops differently
+    # (a last-bit difference in a product): equal to round-off
+    np.testing.assert_allclose(sol.x, plain.x, rtol=1e-13)
+    np.testing.assert_allclose(sol.residual_history, plain.residual_history, rtol=1e-13)
+    assert int(sol.iterations) == int(plain.iterations) == iterations
+    assert int(sol.status) == int(plain.status)
+    # the backward pass sums in another order: round-off only
+    np.testing.assert_allclose(grad, plain_grad, rtol=1e-12,
+                               atol=1e-14 * float(np.max(np.abs(plain_grad))))
+
+
+def test_checkpointed_solve_jvp_matches_the_plain_one(small_problem):
+    disc, kappa, _ = small_problem
+    direction = jnp.asarray(np.random.default_rng(3).normal(size=disc.n_kappa))
+
+    def tangent(checkpoint):  # K = 10, sqrt rule: s = 4, two segments and two left over
+        loss = _loss(small_problem, 10, checkpoint)
+        return jax.jit(lambda k, v: jax.jvp(lambda k: loss(k)[0], (k,), (v,)))(
+            jnp.asarray(kappa), direction)
+
+    (value, slope), (plain_value, plain_slope) = tangent(True), tangent(False)
+    assert float(value) == float(plain_value)
+    assert float(slope) == pytest.approx(float(plain_slope), rel=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# the option
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("iterations", "checkpoint", "segment"), [
+    (0, True, 1), (1, True, 1), (2, True, 2), (10, True, 4), (16, True, 4), (17, True, 5),
+    (1000, True, 32), (1000, False, None), (1000, 7, 7), (3, 7, 7)])
+def test_segment_length(iterations, checkpoint, segment):
+    assert segment_length(iterations, checkpoint) == segment
+
+
+@pytest.mark.parametrize("checkpoint", [0, -2, 2.5, "yes", None, np.array([3]), 1.0])
+def test_bad_checkpoint_is_refused_at_construction(checkpoint):
+    with pytest.raises(pf.SolverConfigError, match=r"checkpoint=.*: expected True \(segments "
+                       r"of ceil\(sqrt\(K\)\) iterations\), False or a segment length >= 1"):
+        TruncatedCG(10, checkpoint=checkpoint)
+
+
+@pytest.mark.parametrize(("checkpoint", "stored"), [
+    (True, True), (False, False), (np.True_, True), (4, 4), (np.int64(4), 4)])
+def test_checkpoint_is_stored_as_a_python_value(checkpoint, stored):
+    solver = TruncatedCG(10, checkpoint=checkpoint)
+    assert solver.checkpoint == stored and type(solver.checkpoint) is type(stored)
+
+
+# ------------------------------------------------------------------------------------------
+# the memory bound, read from XLA's buffer assignment (deterministic, no process measured)
+# ------------------------------------------------------------------------------------------
+
+
+def _scratch_mb(mode: str, iterations: int, side: int = 33) -> float:
+    gradient, kappa, _, _ = _gradient_problem(side, iterations, mode, None)
+    analysis = gradient.lower(kappa).compile().memory_analysis()
+    if analysis is None:
+        pytest.skip("this backend gives no memory analysis")
+    return analysis.temp_size_in_bytes / 1e6
+
+
+def test_checkpointed_memory_grows_like_sqrt_k_and_implicit_not_at_all():
+    scratch = {(mode, k): _scratch_mb(mode, k) for mode, k in (
+        ("unrolled", 400), ("checkpointed", 100), ("checkpointed", 400), ("implicit", 100),
+        ("implicit", 400))}
+    # checkpointed: K/s stored states + s recomputed iterations with s = sqrt(K), so 4x the
+    # iterations is about 2x the memory (plain: every iteration's intermediates, 4x)
+    assert scratch["checkpointed", 400] < 2.2 * scratch["checkpointed", 100]
+    assert scratch["checkpointed", 400] < scratch["unrolled", 400] / 5
+    assert scratch["implicit", 400] == scratch["implicit", 100]
+
+
+# ------------------------------------------------------------------------------------------
+# the benchmark and its command
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("kwargs", "message"), [
+    ({"side": 1}, r"side=1: expected an integer >= 2"),
+    ({"iterations": (3, -1)}, r"iterations=\[3, -1\]: expected integers >= 0"),
+    ({"iterations": ()}, r"iterations=\[\]: expected integers >= 0"),
+    ({"modes": ("adjoint",)}, r"modes=\['adjoint'\]: expected some of \['unrolled', "),
+    ({"segment": 0}, r"segment=0: expected an integer >= 1 or None"),
+    ({"repeats": 0}, r"repeats=0: expected an integer >= 1"),
+    ({"max_mb": 0}, r"max_mb=0: expected a number > 0"),
+])
+def test_bad_memory_cost_options(kwargs, message):
+    with pytest.raises(pf.SolverConfigError, match=message):
+        memory_cost(**{"side": 8, "iterations": (1,), **kwargs})
+
+
+def test_bench_memory_table_and_checkpointed_peak_below_plain(capsys):
+    # 4096 dofs, K = 400: plain stores ~120 MB, checkpointed ~10 MB, far apart from the few MB
+    # by which a resident-set reading can wander (implicit mode: tested on XLA's figures above)
+    assert main(["bench", "memory", "--side", "65", "--iterations", "400", "--modes",
+                 "unrolled", "checkpointed", "--repeats", "1"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("P1 Poisson on unit_square(65): 4096 dofs, one n-vector = ")
+    assert lines[2].split() == ["mode", "K", "segment", "peak", "MB", "n-vectors", "XLA",
+                                "temp", "MB", "grad", "[s]"]
+    rows = [line.split() for line in lines[3:]]
+    assert [row[:3] for row in rows] == [["unrolled", "400", "-"], ["checkpointed", "400", "20"]]
+    peak = {row[0]: float(row[3]) for row in rows}
+    for row in rows:
+        assert all(float(cell) >= 0 for cell in row[3:])
+    assert peak["checkpointed"] < peak["unrolled"] / 4
