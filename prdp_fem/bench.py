@@ -105,8 +105,8 @@ def cg_iteration_cost(n_side: int, *, dim: int = 2, iterations: int = 100,
 
 def scaling_slope(costs: list[CGIterationCost]) -> float:
     """Least-squares slope of ``log(iteration time)`` against ``log(dofs)``."""
-    if len(costs) < 2:
-        return float("nan")
+    if len({c.n_dofs for c in costs}) < 2:
+        return float("nan")  # no slope from one size
     n = np.log([c.n_dofs for c in costs])
     t = np.log([c.iteration_s for c in costs])
     return float(np.polyfit(n, t, 1)[0])

@@ -1,0 +1,51 @@
+"""bench cg: the operator it times, the table it prints (numbers' structure, never timings)."""
+
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse.linalg as spla
+
+import prdp_fem as pf
+from prdp_fem.bench import CGIterationCost, cg_iteration_cost, poisson_operator, scaling_slope
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
+    [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+
+def test_poisson_operator_is_the_discretised_laplacian():
+    """Against the package's own discretisation with kappa = 1: the same free-dof matrix, and
+    its solution of -lap u = 2 pi^2 sin sin converges to the analytic one."""
+    A, b = poisson_operator(16)
+    disc = pf.discretize(pf.unit_square(16), element="P1", kappa_space="P0")
+    reference = disc.stiffness_matrix(np.ones(disc.n_kappa))
+    assert A.shape == reference.shape == (225, 225) and b.shape == (225,)
+    assert abs(A.to_scipy() - reference).max() < 1e-12
+    A3, _ = poisson_operator(4, dim=3)
+    assert A3.shape == (27, 27) and np.allclose(A3.to_scipy().toarray(),
+                                                A3.to_scipy().toarray().T)
+    assert np.all(spla.eigsh(A3.to_scipy(), k=1, which="SA")[0] > 0)
+
+
+def test_cost_fields_and_slope():
+    cost = cg_iteration_cost(9, iterations=3, repeats=1)
+    assert cost.n_dofs == 64 and cost.nnz == poisson_operator(9)[0].nnz
+    assert all(value >= 0 and math.isfinite(value) for value in cost[2:])
+    line = [CGIterationCost(n, 5 * n, 0.0, 3e-9 * n ** 1.5, 0.0, 0.0, 0.0, 0.0)
+            for n in (100, 1000, 10000)]
+    assert abs(scaling_slope(line) - 1.5) < 1e-12
+    assert math.isnan(scaling_slope(line[:1]))
+
+
+def test_bench_cg_prints_one_row_per_size_and_the_slope():
+    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli", "bench", "cg", "--sides", "8",
+                          "12", "--iterations", "2", "--repeats", "1"], env=ENV,
+                         capture_output=True, text=True, timeout=300, check=True).stdout
+    rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
+    assert [int(row[0]) for row in rows] == [49, 121]
+    assert all(len(row) == 8 and all(math.isfinite(float(v)) for v in row) for row in rows)
+    assert "log-log slope" in out.splitlines()[-1]
