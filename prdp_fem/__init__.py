@@ -11,6 +11,16 @@ if _os.environ.get("PRDP_FEM_KEEP_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 from ._version import __version__
+from .amg import (
+    AMGCycle,
+    PyamgCycle,
+    RebuildPolicy,
+    RebuildState,
+    amg_hierarchy,
+    amg_preconditioner,
+    rebuild_policy,
+)
+from .bench_amg import AMGCost, amg_cost
 from .cg import ConvergedCG, IterationCounter, Solution, Status, TruncatedCG, solve
 from .comparison import ComparisonRow, compare, format_table
 from .discretization import Discretization, discretize
@@ -73,6 +83,8 @@ from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
 
 __all__ = [
+    "AMGCost",
+    "AMGCycle",
     "AlphaChoice",
     "CoefficientError",
     "ComparisonRow",
@@ -101,6 +113,9 @@ __all__ = [
     "Observation",
     "Parameterization",
     "PrdpFemError",
+    "PyamgCycle",
+    "RebuildPolicy",
+    "RebuildState",
     "ReferenceSolution",
     "Refinement",
     "RefinementState",
@@ -121,6 +136,9 @@ __all__ = [
     "UnusedNodeError",
     "Validation",
     "__version__",
+    "amg_cost",
+    "amg_hierarchy",
+    "amg_preconditioner",
     "amg_solve",
     "boundary_values",
     "compare",
@@ -146,6 +164,7 @@ __all__ = [
     "mesh_quality",
     "morozov",
     "point_sensors",
+    "rebuild_policy",
     "rectangle_with_hole",
     "regularizer",
     "relative_h1_error",
