@@ -145,7 +145,7 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
         else:
             symmetric_gs = ("gauss_seidel", {"sweep": "symmetric", "iterations": sweeps})
             change_smoothers(ml, symmetric_gs, symmetric_gs)
-    _check_cycle(ml, kind)
+    _check_cycle(ml, f"kind={kind!r}")
     return ml
 
 
@@ -212,20 +212,24 @@ def _rho_jacobi(matrix: sp.spmatrix) -> float:
     return float(rho_D_inv_A(matrix))
 
 
-def _check_cycle(ml: pyamg.MultilevelSolver, kind: str) -> None:
+def _check_cycle(ml: pyamg.MultilevelSolver, where: str) -> None:
     """One host cycle on a fixed vector: finite and ``r.Mr > 0``, else a clear error.
 
-    Ruge-Stueben, for one, breaks down (NaN) on 3-D P1 tetrahedra: say so at build time rather
-    than inside a jitted solve.
+    Ruge-Stueben, for one, can break down (NaN) on 3-D P1 tetrahedra: say so at build time
+    rather than inside a jitted solve.
     """
     n = ml.levels[0].A.shape[0]
     r = np.cos(np.arange(n) * 0.7) + 0.5  # deterministic, not aligned with a smooth mode
-    with np.errstate(all="ignore"):
-        z = ml.aspreconditioner(cycle="V") @ r
-    if not np.isfinite(z).all() or not float(r @ z) > 0:
+    try:
+        with np.errstate(all="ignore"):
+            z = ml.aspreconditioner(cycle="V") @ r
+        ok = np.isfinite(z).all() and float(r @ z) > 0
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError):  # e.g. pinv of a NaN matrix
+        ok = False
+    if not ok:
         raise SolverConfigError(
-            f"kind={kind!r}: the V-cycle of this hierarchy is not finite and positive (NaN/Inf "
-            "or r.Mr <= 0; Ruge-Stueben fails like this on 3-D P1 tetrahedra); expected an SPD "
+            f"{where}: the V-cycle of this hierarchy is not finite and positive (NaN/Inf or "
+            "r.Mr <= 0; Ruge-Stueben can fail like this on 3-D P1 tetrahedra); expected an SPD "
             "cycle: use kind='sa' or another strength")
 
 
@@ -350,6 +354,7 @@ class AMGCycle:
         """The arrays of a pyamg hierarchy whose smoothers are damped Jacobi (as
         :func:`amg_hierarchy` sets them with ``smoother="jacobi"``); same map as
         ``ml.aspreconditioner(cycle='V')``."""
+        _check_cycle(ml, "hierarchy")
         levels, sweeps = [], 1
         for depth, level in enumerate(ml.levels[:-1]):
             omega, sweeps = _jacobi_parameters(level, depth)
@@ -434,13 +439,14 @@ class _HostCycle:
 
     hierarchy: pyamg.MultilevelSolver
     n: int
+    operator: Any = dataclasses.field(init=False, repr=False)  # ml.aspreconditioner('V')
 
     def __post_init__(self):
-        object.__setattr__(self, "_operator", self.hierarchy.aspreconditioner(cycle="V"))
+        object.__setattr__(self, "operator", self.hierarchy.aspreconditioner(cycle="V"))
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         flat = np.asarray(r, dtype=float).reshape(-1, self.n)
-        out = np.stack([self._operator @ row for row in flat])
+        out = np.stack([self.operator @ row for row in flat])
         return out.reshape(r.shape).astype(r.dtype)
 
     def __call__(self, r):
@@ -460,6 +466,7 @@ class PyamgCycle:
 
     @classmethod
     def from_pyamg(cls, ml: pyamg.MultilevelSolver) -> PyamgCycle:
+        _check_cycle(ml, "hierarchy")
         if not ml.symmetric_smoothing:
             raise SolverConfigError("hierarchy: its pre- and post-smoothers are not adjoint; "
                                     "expected a symmetric cycle (CG needs an SPD "

@@ -109,6 +109,20 @@ def test_bad_matrices_raise_typed_errors(problems):
         jax.jit(lambda v: amg_preconditioner(operator.with_values(v)))(operator.values)
 
 
+def test_a_hierarchy_with_a_non_finite_cycle_is_refused_at_build(problems, monkeypatch):
+    build = pf.amg.pyamg.smoothed_aggregation_solver
+
+    def broken(*args, **kwargs):  # as Ruge-Stueben can break down on 3-D tetrahedra
+        ml = build(*args, **kwargs)
+        ml.levels[-1].A = ml.levels[-1].A * np.nan
+        return ml
+
+    monkeypatch.setattr(pf.amg.pyamg, "smoothed_aggregation_solver", broken)
+    with pytest.raises(pf.SolverConfigError, match=r"kind='sa': the V-cycle of this hierarchy "
+                       r"is not finite and positive"):
+        amg_preconditioner(problems["square"].operator)
+
+
 def test_amg_by_name_in_a_solver_points_to_amg_preconditioner():
     with pytest.raises(pf.SolverConfigError, match=r"preconditioner='amg'.*amg_preconditioner"):
         pf.TruncatedCG(5, preconditioner="amg")
