@@ -76,7 +76,7 @@ import scipy.sparse as sp
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from pyamg.relaxation import relaxation
-from pyamg.relaxation.smoothing import change_smoothers
+from pyamg.relaxation.smoothing import change_smoothers, rho_D_inv_A
 
 from .errors import DataError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, matvec
@@ -209,8 +209,6 @@ def _host_matrix(matrix) -> sp.csr_matrix:
 
 def _rho_jacobi(matrix: sp.spmatrix) -> float:
     """pyamg's estimate of ``rho(D^{-1} A)`` (cached on the matrix by pyamg)."""
-    from pyamg.relaxation.smoothing import rho_D_inv_A
-
     return float(rho_D_inv_A(matrix))
 
 
@@ -283,14 +281,11 @@ def _batch(args, dims, *, cycle):
         # a batch of vectors under one hierarchy: one call on a (batch, ..., n) array
         return _bind(cycle, jnp.moveaxis(r, r_dim, 0), leaves), 0
     # hierarchies stacked along the batch axis (unusual): one cycle per member
-    size = next(x.shape[d] for x, d in zip(args, dims, strict=True)
-                if d is not None)
-    moved = [x if d is None else jnp.moveaxis(x, d, 0)
-             for x, d in zip(args, dims, strict=True)]
+    size = next(x.shape[d] for x, d in zip(args, dims, strict=True) if d is not None)
+    moved = [x if d is None else jnp.moveaxis(x, d, 0) for x, d in zip(args, dims, strict=True)]
 
     def member(i):
-        picked = [x if d is None else x[i]
-                  for x, d in zip(moved, dims, strict=True)]
+        picked = [x if d is None else x[i] for x, d in zip(moved, dims, strict=True)]
         return _bind(cycle, picked[0], picked[1:])
 
     return jax.lax.map(member, jnp.arange(size)), 0

@@ -35,7 +35,7 @@ from .errors import SolverConfigError
 from .generators import unit_cube, unit_square
 from .operator import SparseMatrix
 
-__all__ = ["AMGCost", "amg_cost"]
+__all__ = ["AMGCost", "amg_cost", "poisson_problem"]
 
 RTOL = 1e-10
 SMOOTHER = {"jax": "jacobi", "callback": "gauss_seidel"}
@@ -64,7 +64,12 @@ class AMGCost(NamedTuple):
 
 def poisson_problem(n_side: int, dim: int = 2) -> tuple[SparseMatrix, jax.Array]:
     """P1 Poisson on ``n_side`` cells per side of the unit square (``dim=2``, ``(n-1)^2`` free
-    dofs) or cube (``dim=3``, ``(n-1)^3``), ``kappa = 1``, a smooth source."""
+    dofs) or cube (``dim=3``, ``(n-1)^3``), ``kappa = 1``, a smooth source.
+
+    >>> matrix, b = poisson_problem(4, dim=3)
+    >>> matrix.shape, b.shape
+    ((27, 27), (27,))
+    """
     mesh = unit_square(n_side) if dim == 2 else unit_cube(n_side)
     disc = discretize(mesh, element="P1", kappa_space="P0")
     kappa = np.ones(disc.n_kappa)

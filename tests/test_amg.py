@@ -238,6 +238,15 @@ def test_vmap_over_right_hand_sides(problems, implementation):
                                jax.vmap(M)(rhs).T, rtol=1e-13)
 
 
+def test_vmap_over_stacked_hierarchies(problems):
+    problem = problems["square"]
+    _, first = problem.built("jax")
+    second = amg_preconditioner(problem.operator.with_values(2.0 * problem.operator.values))
+    stacked = jax.tree_util.tree_map(lambda a, c: jnp.stack([a, c]), first, second)
+    applied = jax.vmap(lambda M, r: M(r), in_axes=(0, None))(stacked, problem.b)
+    np.testing.assert_array_equal(applied, jnp.stack([first(problem.b), second(problem.b)]))
+
+
 # ------------------------------------------------------------------------------------------
 # derivatives of M itself: linear, tangent M dr, transpose M
 # ------------------------------------------------------------------------------------------
