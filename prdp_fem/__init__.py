@@ -13,6 +13,16 @@ if _os.environ.get("PRDP_FEM_KEEP_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 from ._version import __version__
+from .amg import (
+    AMGCycle,
+    PyamgCycle,
+    RebuildPolicy,
+    RebuildState,
+    amg_hierarchy,
+    amg_preconditioner,
+    rebuild_policy,
+)
+from .bench_amg import AMGCost, amg_cost
 from .cg import ConvergedCG, IterationCounter, Solution, Status, TruncatedCG, solve
 from .comparison import ComparisonRow, compare, format_table
 from .compilation_cache import cache_directory as _cache_directory
@@ -79,6 +89,8 @@ from .taylor import TaylorResult, taylor_test
 enable_compilation_cache(_cache_directory())  # before anything compiles
 
 __all__ = [
+    "AMGCost",
+    "AMGCycle",
     "AlphaChoice",
     "CoefficientError",
     "ComparisonRow",
@@ -109,6 +121,9 @@ __all__ = [
     "Observation",
     "Parameterization",
     "PrdpFemError",
+    "PyamgCycle",
+    "RebuildPolicy",
+    "RebuildState",
     "ReferenceSolution",
     "Refinement",
     "RefinementState",
@@ -129,6 +144,9 @@ __all__ = [
     "UnusedNodeError",
     "Validation",
     "__version__",
+    "amg_cost",
+    "amg_hierarchy",
+    "amg_preconditioner",
     "amg_solve",
     "boundary_values",
     "compare",
@@ -156,6 +174,7 @@ __all__ = [
     "morozov",
     "point_sensors",
     "prepare",
+    "rebuild_policy",
     "rectangle_with_hole",
     "regularizer",
     "relative_h1_error",

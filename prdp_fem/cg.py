@@ -196,6 +196,13 @@ def _check_preconditioner(spec: Any) -> None:
             hasattr(leaf, "dtype") or isinstance(leaf, int | float)
             for leaf in jax.tree_util.tree_leaves(spec)):
         return
+    if isinstance(spec, str) and spec.lower() == "amg":
+        # an AMG hierarchy is built on the host from concrete values; solve's matrix may be
+        # traced, so the preconditioner is built by the caller, once, outside the transformation
+        raise SolverConfigError(
+            f"preconditioner={spec!r}: the AMG hierarchy cannot be built inside solve (its "
+            "matrix may be traced); expected a preconditioner built once, outside jit: "
+            "preconditioner=prdp_fem.amg_preconditioner(A)")
     raise SolverConfigError(
         f"preconditioner={spec!r}: expected one of {PRECONDITIONERS} or a callable pytree of "
         "arrays (e.g. a registered dataclass with __call__; a plain function is not a pytree)")

@@ -12,6 +12,7 @@ Subcommands
 ``bench cg``   PCG iteration / SciPy SpMV time ratio (see :mod:`prdp_fem.bench`)
 ``bench memory``  peak memory and time of a gradient through PCG, per gradient mode and K
                (see :mod:`prdp_fem.bench_memory`)
+``bench amg``  AMG-PCG against pyamg's own CG solve (see :mod:`prdp_fem.bench_amg`)
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
 with status 2, no traceback; Ctrl-C keeps every finished record and exits with 130.
@@ -142,6 +143,14 @@ def _parser() -> argparse.ArgumentParser:
     memory.add_argument("--max-mb", type=float, default=4000.0,
                         help="skip running a configuration whose XLA scratch estimate exceeds "
                         "this (MB; it is still compiled and its estimate reported)")
+    amg = bench_sub.add_parser("amg", help="AMG-PCG iterations and time / pyamg's own CG solve")
+    amg.add_argument("--sides", type=int, nargs="*", default=[256, 512],
+                     help="unit-square cells per side ((n-1)^2 dofs: 256 -> 65k, 512 -> 261k)")
+    amg.add_argument("--cube-sides", type=int, nargs="*", default=[32],
+                     help="unit-cube cells per side ((n-1)^3 dofs: 32 -> 30k, 64 -> 250k)")
+    amg.add_argument("--implementations", nargs="+", default=["jax", "callback"],
+                     help="jax | callback")
+    amg.add_argument("--repeats", type=int, default=5, help="timed pairs (median)")
     return parser
 
 
@@ -438,8 +447,40 @@ def _as_option(message: str) -> str:
     return f"--{name.replace('_', '-')} {value}: {explanation}"
 
 
+def _bench_amg(args) -> None:
+    from .amg import IMPLEMENTATIONS
+    from .bench_amg import amg_cost
+
+    for option, values, minimum in (("--sides", args.sides, 2),
+                                    ("--cube-sides", args.cube_sides, 2),
+                                    ("--repeats", [args.repeats], 1)):
+        if any(v < minimum for v in values):
+            shown = " ".join(map(str, values))
+            raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
+    if not args.sides and not args.cube_sides:
+        raise SolverConfigError("--sides, --cube-sides: both empty; expected a problem size")
+    unknown = [i for i in args.implementations if i not in IMPLEMENTATIONS]
+    if unknown:
+        raise SolverConfigError(f"--implementations {' '.join(args.implementations)}: "
+                                f"expected some of {' '.join(IMPLEMENTATIONS)}")
+    print(f"P1 Poisson to rtol 1e-10; ours: jitted ConvergedCG + AMG, pyamg: "
+          f"ml.solve(accel='cg') on the same hierarchy; median of {args.repeats} pairs")
+    print(f"{'dim':>3} {'dofs':>8} {'impl':>8} {'its':>4} {'pyamg':>5} {'equal':>5} "
+          f"{'setup [s]':>9} {'pyamg':>6} {'ratio':>5} {'solve [s]':>9} {'pyamg':>6} "
+          f"{'ratio':>5} {'compile [s]':>11}")
+    problems = [(side, 2) for side in args.sides] + [(side, 3) for side in args.cube_sides]
+    for side, dim in problems:
+        for c in amg_cost(side, dim=dim, implementations=tuple(args.implementations),
+                          repeats=args.repeats):
+            print(f"{c.dim:>3} {c.n_dofs:>8} {c.implementation:>8} {c.iterations:>4} "
+                  f"{c.pyamg_iterations:>5} {'yes' if c.iterations_equal else 'no':>5} "
+                  f"{c.setup_s:>9.3f} {c.pyamg_setup_s:>6.3f} {c.setup_ratio:>5.2f} "
+                  f"{c.solve_s:>9.3f} {c.pyamg_solve_s:>6.3f} {c.ratio:>5.2f} "
+                  f"{c.compile_s:>11.2f}", flush=True)
+
+
 def _bench(args) -> None:
-    {"cg": _bench_cg, "memory": _bench_memory}[args.bench](args)
+    {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory}[args.bench](args)
 
 
 def _stability(args) -> int:

@@ -3,7 +3,8 @@
 A preconditioner is a small pytree with ``__call__(r) -> z``. It is built once per solve from the
 operator (never per CG iteration). In unrolled mode its dependence on the operator values is
 differentiated like everything else (the K-iteration map includes it); in implicit mode it is
-treated as a constant, since the converged solution does not depend on it.
+treated as a constant, since the converged solution does not depend on it. Algebraic multigrid
+(a fixed map built on the host from the operator's values) is in :mod:`prdp_fem.amg`.
 
 >>> import numpy as np, scipy.sparse as sp
 >>> from prdp_fem.operator import SparseMatrix

@@ -1,0 +1,411 @@
+"""AMG preconditioner (prdp_fem.amg): construction, the map M, PCG against pyamg, then grouped
+by transformation (jit, vmap, jvp, vjp in both gradient modes), the rebuild policy, the command."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import prdp_fem as pf
+from prdp_fem.amg import AMGCycle, PyamgCycle, amg_hierarchy, amg_preconditioner, rebuild_policy
+from prdp_fem.cli import main
+
+IMPLEMENTATIONS = ["jax", "callback"]
+SMOOTHER = {"jax": "jacobi", "callback": "gauss_seidel"}  # the cycle each implementation runs
+
+
+class Problem:
+    """P1 Poisson on the free dofs: the discretisation, kappa, source, operator and rhs."""
+
+    def __init__(self, mesh, kappa_fn=lambda x: 1.0 + 0.0 * x[0]):
+        self.disc = pf.discretize(mesh, element="P1", kappa_space="P0")
+        self.kappa = jnp.asarray(self.disc.interpolate_kappa(kappa_fn))
+        self.f = jnp.asarray(self.disc.interpolate(lambda x: np.sin(3 * x[0]) + x[1]))
+        self.operator = self.disc.system.operator(self.kappa)
+        self.b = self.disc.system.rhs(self.kappa, self.f)
+        self._built = {}
+        self.losses = {}
+
+    def built(self, implementation):
+        """``(ml, M)``: the pyamg hierarchy and our preconditioner on it (cached)."""
+        if implementation not in self._built:
+            ml = amg_hierarchy(self.operator, smoother=SMOOTHER[implementation])
+            cls = AMGCycle if implementation == "jax" else PyamgCycle
+            self._built[implementation] = ml, cls.from_pyamg(ml)
+        return self._built[implementation]
+
+
+def inclusion(x):
+    """kappa = 1e4 in a disc, 1 outside: a high-contrast coefficient."""
+    return np.where((x[0] - 0.4) ** 2 + (x[1] - 0.6) ** 2 < 0.09, 1e4, 1.0)
+
+
+@pytest.fixture(scope="module")
+def problems():
+    return {"square": Problem(pf.unit_square(24)), "cube": Problem(pf.unit_cube(8)),
+            "contrast": Problem(pf.unit_square(24), inclusion)}
+
+
+@pytest.fixture(scope="module")
+def small():
+    """A 10 x 10 square with a varying kappa, for the derivative tests (fast compiles)."""
+    return Problem(pf.unit_square(10), lambda x: 1.0 + x[0] + 0.5 * np.sin(3 * x[1]))
+
+
+@jax.jit
+def converged(matrix, b, precond):
+    return pf.solve(matrix, b, pf.ConvergedCG(rtol=1e-10, preconditioner=precond))
+
+
+def pyamg_iterations(ml, b):
+    residuals = []
+    ml.solve(np.asarray(b), tol=1e-10, accel="cg", residuals=residuals)
+    return len(residuals) - 1
+
+
+# ------------------------------------------------------------------------------------------
+# construction: typed errors at the edge
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"kind": "gmg"}, r"kind='gmg': expected one of \('sa', 'rs'\)"),
+    ({"implementation": "cuda"}, r"implementation='cuda': expected one of \('jax', 'callback'\)"),
+    ({"smoother": "sor"}, r"smoother='sor': expected one of"),
+    ({"implementation": "jax", "smoother": "gauss_seidel"}, r"implements 'jacobi' only"),
+    ({"omega": 2.0}, r"omega=2.0: expected a number in \(0, 2\)"),
+    ({"sweeps": 0}, r"sweeps=0: expected an integer >= 1"),
+    ({"max_coarse": 1.5}, r"max_coarse=1.5: expected an integer >= 1"),
+])
+def test_bad_options_name_the_argument(problems, options, message):
+    with pytest.raises(pf.SolverConfigError, match=message):
+        amg_preconditioner(problems["square"].operator, **options)
+
+
+def test_bad_matrices_raise_typed_errors(problems):
+    laplacian = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(20, 20), format="csr")
+    broken = laplacian.copy()
+    broken.data[3] = np.nan
+    with pytest.raises(pf.DataError, match=r"matrix: 1 stored value\(s\) are NaN/Inf"):
+        amg_preconditioner(broken)
+    with pytest.raises(pf.SolverConfigError, match=r"matrix: not symmetric"):
+        amg_preconditioner(laplacian + sp.eye(20, k=2, format="csr"))
+    with pytest.raises(pf.SolverConfigError, match=r"a diagonal entry is <= 0"):
+        amg_preconditioner(-laplacian)
+    with pytest.raises(pf.ShapeError, match=r"matrix: shape \(20, 19\)"):
+        amg_preconditioner(laplacian[:, :19])
+    with pytest.raises(pf.SolverConfigError, match=r"expected a prdp_fem.SparseMatrix"):
+        amg_preconditioner(laplacian.toarray())
+    operator = problems["square"].operator
+    with pytest.raises(pf.SolverConfigError, match=r"values are traced.*outside the "
+                       r"transformation and pass it as an argument"):
+        jax.jit(lambda v: amg_preconditioner(operator.with_values(v)))(operator.values)
+
+
+def test_a_hierarchy_with_a_non_finite_cycle_is_refused_at_build(problems, monkeypatch):
+    build = pf.amg.pyamg.smoothed_aggregation_solver
+
+    def broken(*args, **kwargs):  # as Ruge-Stueben can break down on 3-D tetrahedra
+        ml = build(*args, **kwargs)
+        ml.levels[-1].A = ml.levels[-1].A * np.nan
+        return ml
+
+    monkeypatch.setattr(pf.amg.pyamg, "smoothed_aggregation_solver", broken)
+    with pytest.raises(pf.SolverConfigError, match=r"kind='sa': the V-cycle of this hierarchy "
+                       r"is not finite and positive"):
+        amg_preconditioner(problems["square"].operator)
+
+
+def test_amg_by_name_in_a_solver_points_to_amg_preconditioner():
+    with pytest.raises(pf.SolverConfigError, match=r"preconditioner='amg'.*amg_preconditioner"):
+        pf.TruncatedCG(5, preconditioner="amg")
+
+
+def test_jax_cycle_refuses_a_hierarchy_it_does_not_implement(problems):
+    ml, _ = problems["square"].built("callback")  # Gauss-Seidel smoothing
+    with pytest.raises(pf.SolverConfigError, match=r"level 0 smooths with gauss_seidel; "
+                       r"expected damped Jacobi"):
+        AMGCycle.from_pyamg(ml)
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_vector_of_the_wrong_length_is_a_shape_error(problems, implementation):
+    _, M = problems["square"].built(implementation)
+    with pytest.raises(pf.ShapeError, match=r"r\(3,\): expected a vector of length 529"):
+        M(jnp.ones(3))
+
+
+# ------------------------------------------------------------------------------------------
+# the map M: pyamg's cycle, symmetric positive definite
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("name", ["square", "cube"])
+def test_cycle_is_pyamgs_cycle_on_the_same_hierarchy(problems, name, implementation):
+    ml, M = problems[name].built(implementation)
+    r = np.random.default_rng(1).standard_normal(M.n)
+    expected = ml.aspreconditioner(cycle="V") @ r
+    np.testing.assert_allclose(M(r), expected, rtol=1e-12, atol=1e-12 * abs(expected).max())
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("name", ["square", "cube", "contrast"])
+def test_preconditioner_is_symmetric_positive_definite(problems, name, implementation):
+    _, M = problems[name].built(implementation)
+    u, v = np.random.default_rng(2).standard_normal((2, 6, M.n))
+    mu, mv = jax.vmap(M)(u), jax.vmap(M)(v)
+    uMv, vMu = np.einsum("ki,ki->k", u, mv), np.einsum("ki,ki->k", v, mu)
+    np.testing.assert_allclose(uMv, vMu, rtol=1e-11, atol=1e-12 * np.abs(uMv).max())
+    assert np.all(np.einsum("ki,ki->k", u, mu) > 0)
+
+
+# ------------------------------------------------------------------------------------------
+# PCG + AMG: iterations equal pyamg's own CG, solution equals a direct solve
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("name", ["square", "cube", "contrast"])
+def test_iterations_equal_pyamgs_cg_on_the_same_hierarchy(problems, name, implementation):
+    problem = problems[name]
+    ml, M = problem.built(implementation)
+    sol = converged(problem.operator, problem.b, M)
+    assert pf.Status(int(sol.status)) == pf.Status.SUCCESS
+    assert abs(int(sol.iterations) - pyamg_iterations(ml, problem.b)) <= 1
+    assert int(sol.iterations) < 25  # AMG, not Jacobi (which needs ~70 here)
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("name", ["square", "cube", "contrast"])
+def test_solution_equals_a_direct_solve(problems, name, implementation):
+    problem = problems[name]
+    _, M = problem.built(implementation)
+    x = converged(problem.operator, problem.b, M).x
+    x_direct = pf.direct_solve(problem.operator.to_scipy(), np.asarray(problem.b)).x
+    np.testing.assert_allclose(x, x_direct, rtol=0, atol=1e-8 * abs(x_direct).max())
+
+
+def test_ruge_stueben_in_2d(problems):
+    problem = problems["square"]
+    for implementation, cls in (("jax", AMGCycle), ("callback", PyamgCycle)):
+        ml = amg_hierarchy(problem.operator, kind="rs", smoother=SMOOTHER[implementation])
+        sol = converged(problem.operator, problem.b, cls.from_pyamg(ml))
+        assert abs(int(sol.iterations) - pyamg_iterations(ml, problem.b)) <= 1
+
+
+# ------------------------------------------------------------------------------------------
+# jit and vmap
+# ------------------------------------------------------------------------------------------
+
+
+def test_jit_takes_the_preconditioner_as_an_argument_and_a_rebuild_reuses_the_compile(
+        problems):
+    problem = problems["square"]
+    traces = []
+
+    @jax.jit
+    def apply(precond, r):
+        traces.append(1)
+        return precond(r)
+
+    _, first = problem.built("jax")
+    np.testing.assert_allclose(apply(first, problem.b), first(problem.b), rtol=1e-14)
+    rebuilt = amg_preconditioner(problem.operator.with_values(2.0 * problem.operator.values),
+                                 implementation="jax")
+    np.testing.assert_allclose(apply(rebuilt, problem.b), rebuilt(problem.b), rtol=1e-14)
+    assert len(traces) == 1  # same level sizes: the same compiled function
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_vmap_over_right_hand_sides(problems, implementation):
+    problem = problems["square"]
+    _, M = problem.built(implementation)
+    rhs = jnp.stack([problem.b, jnp.flip(problem.b), jnp.ones_like(problem.b)])
+    batched = jax.vmap(lambda b: converged(problem.operator, b, M).x)(rhs)
+    for b, x in zip(rhs, batched, strict=True):
+        np.testing.assert_allclose(x, converged(problem.operator, b, M).x, rtol=1e-12,
+                                   atol=1e-14)
+    # a batch axis other than the first reaches the cycle as one batched call
+    np.testing.assert_allclose(jax.vmap(M, in_axes=1, out_axes=1)(rhs.T),
+                               jax.vmap(M)(rhs).T, rtol=1e-13)
+
+
+def test_vmap_over_stacked_hierarchies(problems):
+    problem = problems["square"]
+    _, first = problem.built("jax")
+    second = amg_preconditioner(problem.operator.with_values(2.0 * problem.operator.values))
+    stacked = jax.tree_util.tree_map(lambda a, c: jnp.stack([a, c]), first, second)
+    applied = jax.vmap(lambda M, r: M(r), in_axes=(0, None))(stacked, problem.b)
+    np.testing.assert_array_equal(applied, jnp.stack([first(problem.b), second(problem.b)]))
+
+
+# ------------------------------------------------------------------------------------------
+# derivatives of M itself: linear, tangent M dr, transpose M
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_linear_rules_of_the_cycle(problems, implementation):
+    _, M = problems["square"].built(implementation)
+    r, dr = np.random.default_rng(3).standard_normal((2, M.n))
+    z, tangent = jax.jvp(M, (jnp.asarray(r),), (jnp.asarray(dr),))
+    np.testing.assert_allclose(tangent, M(dr), rtol=1e-14)
+    _, pullback = jax.vjp(M, jnp.asarray(r))
+    np.testing.assert_allclose(pullback(jnp.asarray(dr))[0], M(dr), rtol=1e-14)
+    (transposed,) = jax.linear_transpose(M, jnp.asarray(r))(jnp.asarray(dr))
+    np.testing.assert_allclose(transposed, M(dr), rtol=1e-14)
+    # grad(r.Mr / 2) = M r (symmetric), under jit and vmap too
+    grad = jax.jit(jax.vmap(jax.grad(lambda v: 0.5 * jnp.vdot(v, M(v)))))
+    np.testing.assert_allclose(grad(jnp.stack([r, dr]))[0], z, rtol=1e-12)
+
+
+# ------------------------------------------------------------------------------------------
+# derivatives of solve(...).x: Taylor tests, both gradient modes
+# ------------------------------------------------------------------------------------------
+
+SOLVERS = {
+    # truncated well before convergence: the derivative of the 4-iteration map
+    "unrolled": lambda M: pf.TruncatedCG(4, preconditioner=M),
+    # converged to round-off by 40 AMG iterations: implicit gradients are exact
+    "implicit": lambda M: pf.TruncatedCG(40, preconditioner=M, gradient="implicit"),
+    "converged": lambda M: pf.ConvergedCG(rtol=1e-13, preconditioner=M),
+}
+
+
+def loss(problem, mode):
+    """``J((kappa, f), M) = w . x(kappa, f)``, jitted, ``M`` passed as an argument (one function
+    per mode, shared by the tests: each compiles once per implementation)."""
+    if mode not in problem.losses:
+        problem.losses[mode] = _loss(problem, mode)
+    return problem.losses[mode]
+
+
+def _loss(problem, mode):
+    system = problem.disc.system
+    w = jnp.asarray(np.random.default_rng(4).standard_normal(problem.disc.n_free))
+
+    @jax.jit
+    def fn(kappa_and_f, precond):
+        kappa, f = kappa_and_f
+        return w @ pf.solve(system.operator(kappa), system.rhs(kappa, f), SOLVERS[mode](precond)).x
+
+    return fn
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+@pytest.mark.parametrize("mode", list(SOLVERS))
+def test_vjp_passes_the_taylor_test(small, mode, implementation):
+    _, M = small.built(implementation)
+    fn = loss(small, mode)
+    x = (small.kappa, small.f)
+    # steps small enough for the asymptotic regime of the (strongly contracting) AMG-CG map
+    result = pf.taylor_test(lambda v: fn(v, M), x, gradient=jax.grad(fn)(x, M), h0=2e-3)
+    assert result.passed(), (result.rates, result.first_order)
+
+
+@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+def test_unrolled_jvp_passes_the_taylor_test(small, implementation):
+    _, M = small.built(implementation)
+    fn = loss(small, "unrolled")
+    x = (small.kappa, small.f)
+    direction = (jnp.asarray(np.cos(np.arange(small.kappa.size))),
+                 jnp.asarray(np.sin(np.arange(small.f.size))))
+    _, slope = jax.jvp(lambda v: fn(v, M), (x,), (direction,))
+    # a "gradient" whose inner product with the direction is the jvp: the Taylor remainder
+    # with it shrinks at second order only if the jvp is the directional derivative
+    norm2 = sum(jnp.vdot(d, d) for d in direction)
+    as_gradient = tuple(slope * d / norm2 for d in direction)
+    result = pf.taylor_test(lambda v: fn(v, M), x, direction, gradient=as_gradient, h0=2e-3)
+    assert result.passed(), result.rates
+
+
+# ------------------------------------------------------------------------------------------
+# when to rebuild
+# ------------------------------------------------------------------------------------------
+
+
+def test_rebuild_every_n_steps():
+    policy = rebuild_policy(every=3)
+    state = policy.init(jnp.ones(2))
+    decisions = []
+    for _ in range(7):
+        rebuild, state = policy.update(state, jnp.ones(2))
+        decisions.append(bool(rebuild))
+    assert decisions == [False, False, True, False, False, True, False]
+
+
+def test_rebuild_when_values_move_by_more_than_the_factor():
+    policy = rebuild_policy(factor=2.0)
+    reference = jnp.array([1.0, -4.0, 0.0])
+    state = policy.init(reference)
+    update = jax.jit(policy.update)
+    cases = [([1.9, -4.0, 0.0], False), ([1.0, -2.1, 0.0], False), ([2.1, -4.0, 0.0], True),
+             ([0.49, -4.0, 0.0], True), ([1.0, 4.0, 0.0], True), ([1.0, -4.0, 1e-3], True),
+             ([np.nan, -4.0, 0.0], True)]
+    for values, expected in cases:
+        rebuild, _ = update(state, jnp.asarray(values))
+        assert bool(rebuild) == expected, values
+    # a rebuild resets the reference: the same values no longer count as moved
+    rebuild, state = update(state, jnp.asarray([3.0, -4.0, 0.0]))
+    assert bool(rebuild) and int(state.steps_since_build) == 0
+    assert not bool(update(state, jnp.asarray([3.0, -4.0, 0.0]))[0])
+    # without a rebuild the state ages and keeps its reference
+    _, older = update(state, jnp.asarray([3.5, -4.0, 0.0]))
+    assert int(older.steps_since_build) == 1
+    np.testing.assert_array_equal(older.reference_values, [3.0, -4.0, 0.0])
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({}, r"expected at least one rebuild criterion"),
+    ({"every": 0}, r"every=0: expected an integer >= 1"),
+    ({"factor": 1.0}, r"factor=1.0: expected a finite number > 1"),
+    ({"every": 2, "factor": float("inf")}, r"factor=inf"),
+])
+def test_bad_rebuild_policies(options, message):
+    with pytest.raises(pf.SolverConfigError, match=message):
+        rebuild_policy(**options)
+
+
+# ------------------------------------------------------------------------------------------
+# prdp-fem bench amg
+# ------------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
+    [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+
+
+def test_bench_amg_reports_iterations_and_ratios(capsys):
+    assert main(["bench", "amg", "--sides", "12", "--cube-sides", "--implementations", "jax",
+                 "--repeats", "1"]) == 0
+    row = capsys.readouterr().out.strip().splitlines()[-1].split()
+    assert row[:3] == ["2", str(11 * 11), "jax"] and row[5] == "yes"  # iterations equal
+    assert len(row) == 13 and all(float(v) >= 0 for v in row[6:])
+
+
+def test_bench_amg_bad_option_is_one_line_and_exit_2(tmp_path):
+    done = subprocess.run([sys.executable, "-m", "prdp_fem.cli", "bench", "amg", "--repeats",
+                           "0"], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                          env=ENV)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr == "prdp-fem: error: --repeats 0: expected integers >= 1\n"
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--sides", "1"], r"--sides 1: expected integers >= 2"),
+    (["--sides", "--cube-sides"], r"--sides, --cube-sides: both empty"),
+    (["--implementations", "gpu"], r"--implementations gpu: expected some of jax callback"),
+])
+def test_bench_amg_bad_options(capsys, args, message):
+    assert main(["bench", "amg", *args]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("prdp-fem: error: ") and error.count("\n") == 1
+    assert re.search(message, error), error
