@@ -79,7 +79,7 @@ from pyamg.relaxation import relaxation
 from pyamg.relaxation.smoothing import change_smoothers, rho_D_inv_A
 
 from .errors import DataError, ShapeError, SolverConfigError
-from .operator import SparseMatrix, matvec
+from .operator import SparseMatrix, prepare
 from .validation import is_traced
 
 __all__ = [
@@ -323,12 +323,13 @@ def _each_vector(apply_one: Callable[[jax.Array], jax.Array], r: jax.Array) -> j
          data_fields=["matrix", "prolongation", "restriction", "smoother_scale"], meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class AMGLevel:
-    """One level above the coarsest: ``A_l``, ``P_l``, ``R_l = P_l^T`` (stored sorted by row,
-    so that restriction is a :func:`matvec` too) and ``omega_l / diag(A_l)``."""
+    """One level above the coarsest: ``A_l``, ``P_l``, ``R_l = P_l^T`` as prepared product
+    kernels (:func:`~prdp_fem.operator.prepare`, once per build: the hierarchy is constant)
+    and ``omega_l / diag(A_l)``."""
 
-    matrix: SparseMatrix
-    prolongation: SparseMatrix
-    restriction: SparseMatrix
+    matrix: Any
+    prolongation: Any
+    restriction: Any
     smoother_scale: jax.Array
 
 
@@ -363,7 +364,8 @@ class AMGCycle:
 
     @property
     def n(self) -> int:
-        return self.levels[0].matrix.shape[0] if self.levels else self.coarse_inverse.shape[0]
+        return self.levels[0].smoother_scale.shape[0] if self.levels \
+            else self.coarse_inverse.shape[0]
 
     def __call__(self, r: jax.Array) -> jax.Array:
         r = _checked_vector(r, self.n)
@@ -371,10 +373,11 @@ class AMGCycle:
         return _bind(_JaxCycle(treedef), r, leaves)
 
 
-def _sparse(matrix) -> SparseMatrix:
+def _sparse(matrix):
+    """The product kernel of a host matrix (explicit zeros dropped)."""
     csr = sp.csr_matrix(matrix, dtype=float)
     csr.eliminate_zeros()
-    return SparseMatrix.from_scipy(csr)
+    return prepare(SparseMatrix.from_scipy(csr))
 
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:
@@ -412,16 +415,16 @@ def _v_cycle(levels, coarse_inverse, sweeps: int, b: jax.Array) -> jax.Array:
     level = levels[0]
     x = level.smoother_scale * b  # the first sweep from x = 0 needs no product
     x = _jacobi(level, b, x, sweeps - 1)
-    residual = b - matvec(level.matrix, x)
-    coarse = _v_cycle(levels[1:], coarse_inverse, sweeps, matvec(level.restriction, residual))
-    x = x + matvec(level.prolongation, coarse)
+    residual = b - level.matrix(x)
+    coarse = _v_cycle(levels[1:], coarse_inverse, sweeps, level.restriction(residual))
+    x = x + level.prolongation(coarse)
     return _jacobi(level, b, x, sweeps)
 
 
 def _jacobi(level: AMGLevel, b: jax.Array, x: jax.Array, sweeps: int) -> jax.Array:
     """``sweeps`` times ``x <- x + omega D^{-1} (b - A x)`` (Jacobi is its own adjoint)."""
     for _ in range(sweeps):
-        x = x + level.smoother_scale * (b - matvec(level.matrix, x))
+        x = x + level.smoother_scale * (b - level.matrix(x))
     return x
 
 

@@ -13,9 +13,9 @@ applies in one go.
 
 Kernels
 -------
-``EllMatrix`` (square matrices built by :meth:`SparseMatrix.from_coo` / :meth:`from_scipy`,
-which attach an :class:`EllLayout`): the diagonal as a vector and the off-diagonal entries in
-slot-major ELLPACK form ``(w, n)`` (row ``i`` of slot ``k`` holds its ``k``-th off-diagonal
+``EllMatrix`` (matrices built by :meth:`SparseMatrix.from_coo` / :meth:`from_scipy`, which
+attach an :class:`EllLayout`): the diagonal as a vector (square matrices) and the other entries
+in slot-major ELLPACK form ``(w, n)`` (row ``i`` of slot ``k`` holds its ``k``-th off-diagonal
 entry), so that
 
 .. math:: (A x)_i = d_i x_i + \\sum_{k < w} V_{ki}\\, x_{C_{ki}}
@@ -28,8 +28,8 @@ Measured on 2 CPU cores against one SciPy CSR SpMV of the 2-D P1 Laplacian:
 loop on both cores). ELL slot-major is also the coalesced layout on GPUs, so it is used on
 every backend.
 
-``CooMatrix`` (no layout: rectangular matrices, or a matrix built inside ``jit`` from traced
-indices): gather, multiply, sorted segment sum.
+``CooMatrix`` (no layout: a matrix built inside ``jit`` from traced indices, or by the
+constructor): gather, multiply, sorted segment sum.
 
 >>> import numpy as np, scipy.sparse as sp
 >>> from prdp_fem.operator import SparseMatrix, matvec
@@ -77,29 +77,35 @@ class EllLayout:
     overflow_columns: jax.Array
 
 
-def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int) -> EllLayout:
-    """The ELL layout of a square pattern whose ``rows`` are sorted (host-side, NumPy).
+def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
+               n_cols: int | None = None) -> EllLayout:
+    """The ELL layout of an ``n x n_cols`` pattern whose ``rows`` are sorted (host, NumPy).
 
-    Duplicates are kept as separate entries (they add up in the product). The width ``w``
-    minimises ``n w + 4 * (entries past slot w)`` (plus ``n`` when any spill, for the tail's
-    pass), so one long row does not pad every row to its length.
+    Square patterns (``n_cols`` is ``None`` or ``n``) keep the diagonal apart; rectangular ones
+    (AMG transfer operators) have none (``diagonal`` is empty). Duplicates are kept as separate
+    entries (they add up in the product). The width ``w`` minimises ``n w + 4 * (entries past
+    slot w)`` (plus ``n`` when any spill, for the tail's pass), so one long row does not pad
+    every row to its length. Padding points at row ``i``'s own column ``min(i, n_cols - 1)``.
     """
     rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
     nnz = rows.size
     positions = np.arange(nnz)
-    diagonal = np.full(n, nnz, dtype=np.int64)
-    on_diagonal = np.flatnonzero(rows == cols)
-    diagonal_rows, first = np.unique(rows[on_diagonal], return_index=True)
-    diagonal[diagonal_rows] = on_diagonal[first]
+    square = n_cols is None or n_cols == n
+    n_cols = n if n_cols is None else n_cols
+    diagonal = np.full(n if square else 0, nnz, dtype=np.int64)
     other = np.ones(nnz, dtype=bool)
-    other[diagonal[diagonal_rows]] = False
+    if square:
+        on_diagonal = np.flatnonzero(rows == cols)
+        diagonal_rows, first = np.unique(rows[on_diagonal], return_index=True)
+        diagonal[diagonal_rows] = on_diagonal[first]
+        other[diagonal[diagonal_rows]] = False
     o_rows, o_positions, o_cols = rows[other], positions[other], cols[other]
     counts = np.bincount(o_rows, minlength=n)
     slot = np.arange(o_rows.size) - (np.cumsum(counts) - counts)[o_rows]
     width = _ell_width(counts)
     inside = slot < width
     slots = np.full((width, n), nnz, dtype=np.int64)
-    columns = np.tile(np.arange(n), (width, 1))
+    columns = np.tile(np.minimum(np.arange(n), max(n_cols - 1, 0)), (width, 1))
     slots[slot[inside], o_rows[inside]] = o_positions[inside]
     columns[slot[inside], o_rows[inside]] = o_cols[inside]
     as_index = partial(jnp.asarray, dtype=jnp.int32)
@@ -109,10 +115,15 @@ def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int) -> EllLayout:
 
 
 def _ell_width(counts: np.ndarray) -> int:
-    if counts.size == 0:
+    if counts.size == 0 or counts.max() == 0:
         return 0
-    widths = np.arange(int(counts.max()) + 1)
-    spilled = np.array([np.maximum(counts - w, 0).sum() for w in widths])
+    # spilled(w) = sum over rows with c > w of (c - w), for every w at once from the histogram
+    histogram = np.bincount(counts)
+    above = lambda weights: np.cumsum(weights[::-1])[::-1][1:]  # noqa: E731  (sum over c > w)
+    widths = np.arange(histogram.size - 1)
+    spilled = np.append(above(histogram * np.arange(histogram.size)) - widths * above(histogram),
+                        0)
+    widths = np.arange(histogram.size)
     cost = counts.size * widths + _OVERFLOW_COST * spilled + counts.size * (spilled > 0)
     return int(widths[np.argmin(cost)])
 
@@ -155,10 +166,8 @@ class SparseMatrix:
 
     def with_layout(self) -> SparseMatrix:
         """The same matrix with its ELL layout attached (needs concrete, row-sorted indices)."""
-        if self.shape[0] != self.shape[1]:
-            return self
-        return dataclasses.replace(self, layout=ell_layout(np.asarray(self.rows),
-                                                           np.asarray(self.cols), self.shape[0]))
+        return dataclasses.replace(self, layout=ell_layout(
+            np.asarray(self.rows), np.asarray(self.cols), *self.shape))
 
     def astype(self, dtype) -> SparseMatrix:
         """The values in another precision (``solve`` then runs in it: e.g. float32, whose
@@ -210,10 +219,10 @@ class SparseMatrix:
 
 @partial(jax.tree_util.register_dataclass,
          data_fields=["diagonal", "values", "columns", "overflow_values", "overflow_rows",
-                      "overflow_columns"], meta_fields=[])
+                      "overflow_columns"], meta_fields=["n_rows"])
 @dataclasses.dataclass(frozen=True)
 class EllMatrix:
-    """A square matrix as a diagonal plus slot-major ELL off-diagonal entries (see module)."""
+    """A diagonal (square matrices; else empty) plus slot-major ELL entries (see module)."""
 
     diagonal: jax.Array
     values: jax.Array
@@ -221,9 +230,13 @@ class EllMatrix:
     overflow_values: jax.Array
     overflow_rows: jax.Array
     overflow_columns: jax.Array
+    n_rows: int
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        y = self.diagonal * x
+        if self.diagonal.shape[0]:
+            y = self.diagonal * x
+        else:
+            y = jnp.zeros(self.n_rows, jnp.result_type(self.values, x))
         for k in range(self.values.shape[0]):  # w is small and static: one fused loop
             y = y + self.values[k] * x[self.columns[k]]
         if self.overflow_rows.shape[0]:
@@ -272,7 +285,7 @@ def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix:
     padded = jnp.concatenate([matrix.values, jnp.zeros((1,), matrix.values.dtype)])
     return EllMatrix(padded[layout.diagonal], padded[layout.slots], layout.columns,
                      padded[layout.overflow_slots], layout.overflow_rows,
-                     layout.overflow_columns)
+                     layout.overflow_columns, matrix.shape[0])
 
 
 def matvec(matrix: SparseMatrix, x: jax.Array) -> jax.Array:

@@ -155,3 +155,14 @@ def test_scaled_kernel_is_S_A_S(n, nnz, seed):
     coo = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
     for kernel in (pf.prepare(A), pf.prepare(coo)):
         np.testing.assert_allclose(kernel.scaled(jnp.asarray(s))(x), scaled @ x, atol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(7, 30), (30, 7)])
+def test_rectangular_ell_has_no_diagonal_and_multiplies_right(shape):
+    """AMG transfer operators and the assembly map are rectangular: ELL without a diagonal."""
+    matrix = sp.random(*shape, density=0.3, random_state=3, format="csr")
+    A = pf.SparseMatrix.from_scipy(matrix)
+    kernel = pf.prepare(A)
+    assert isinstance(kernel, pf.EllMatrix) and kernel.diagonal.shape == (0,)
+    x = np.random.default_rng(2).normal(size=shape[1])
+    np.testing.assert_allclose(kernel(x), matrix @ x, rtol=1e-13, atol=1e-14)
