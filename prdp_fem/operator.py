@@ -54,6 +54,9 @@ __all__ = ["CooMatrix", "EllLayout", "EllMatrix", "SparseMatrix", "diagonal", "e
 
 # a COO-tail entry costs about this many ELL slots (a scatter-add against a streamed gather)
 _OVERFLOW_COST = 4
+# wider rows are applied in a loop over chunks of this many slots: an unrolled fusion of
+# hundreds of gathers (the coarse levels of a 3-D AMG hierarchy) took 9-17 s to compile
+_UNROLLED_SLOTS = 32
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -103,6 +106,8 @@ def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
     counts = np.bincount(o_rows, minlength=n)
     slot = np.arange(o_rows.size) - (np.cumsum(counts) - counts)[o_rows]
     width = _ell_width(counts)
+    if width > _UNROLLED_SLOTS:  # whole chunks for the kernel's loop (padding adds zeros)
+        width = -(-width // _UNROLLED_SLOTS) * _UNROLLED_SLOTS
     inside = slot < width
     slots = np.full((width, n), nnz, dtype=np.int64)
     columns = np.tile(np.minimum(np.arange(n), max(n_cols - 1, 0)), (width, 1))
@@ -233,12 +238,22 @@ class EllMatrix:
     n_rows: int
 
     def __call__(self, x: jax.Array) -> jax.Array:
+        x = jnp.asarray(x)
         if self.diagonal.shape[0]:
             y = self.diagonal * x
         else:
             y = jnp.zeros(self.n_rows, jnp.result_type(self.values, x))
-        for k in range(self.values.shape[0]):  # w is small and static: one fused loop
-            y = y + self.values[k] * x[self.columns[k]]
+        width = self.values.shape[0]
+        if width <= _UNROLLED_SLOTS:
+            y = _add_slots(y, self.values, self.columns, x)  # one fused loop over the rows
+        else:  # wide rows (coarse AMG levels): a loop over chunks, not one huge fusion
+            def add_chunk(chunk, y):
+                start = chunk * _UNROLLED_SLOTS
+                take = partial(jax.lax.dynamic_slice_in_dim, start_index=start,
+                               slice_size=_UNROLLED_SLOTS)
+                return _add_slots(y, take(self.values), take(self.columns), x)
+
+            y = jax.lax.fori_loop(0, width // _UNROLLED_SLOTS, add_chunk, y)
         if self.overflow_rows.shape[0]:
             y = y.at[self.overflow_rows].add(self.overflow_values * x[self.overflow_columns])
         return y
@@ -250,6 +265,12 @@ class EllMatrix:
             values=self.values * scale * scale[self.columns],
             overflow_values=self.overflow_values * scale[self.overflow_rows]
             * scale[self.overflow_columns])
+
+
+def _add_slots(y: jax.Array, values: jax.Array, columns: jax.Array, x: jax.Array) -> jax.Array:
+    for k in range(values.shape[0]):
+        y = y + values[k] * x[columns[k]]
+    return y
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values"],

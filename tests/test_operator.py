@@ -166,3 +166,17 @@ def test_rectangular_ell_has_no_diagonal_and_multiplies_right(shape):
     assert isinstance(kernel, pf.EllMatrix) and kernel.diagonal.shape == (0,)
     x = np.random.default_rng(2).normal(size=shape[1])
     np.testing.assert_allclose(kernel(x), matrix @ x, rtol=1e-13, atol=1e-14)
+
+
+def test_wide_rows_past_the_unrolled_slots_multiply_and_differentiate_right():
+    """A dense-ish matrix (ELL width > 32, as on coarse AMG levels): value, jvp and vjp."""
+    matrix = sp.random(40, 40, density=0.95, random_state=4, format="csr") + sp.eye(40)
+    A = pf.SparseMatrix.from_scipy(matrix)
+    assert pf.prepare(A).values.shape[0] > 32
+    rng = np.random.default_rng(5)
+    x, dx, y = rng.normal(size=40), rng.normal(size=40), rng.normal(size=40)
+    value, tangent = jax.jvp(lambda x: pf.matvec(A, x), (x,), (dx,))
+    np.testing.assert_allclose(value, matrix @ x, rtol=1e-12)
+    np.testing.assert_allclose(tangent, matrix @ dx, rtol=1e-12)
+    values_bar = jax.grad(lambda v: y @ pf.matvec(A.with_values(v), x))(A.values)
+    np.testing.assert_allclose(values_bar, y[A.rows] * x[A.cols], rtol=1e-12)
