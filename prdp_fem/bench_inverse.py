@@ -64,6 +64,7 @@ __all__ = [
     "mother_problem",
     "mother_whole_process",
     "prdp_saving",
+    "saving_rows",
     "solve_mother",
 ]
 
@@ -366,13 +367,19 @@ def prdp_saving(scene, *, out: str | Path | None = None, progress=None) -> list[
     with tempfile.TemporaryDirectory(prefix="prdp-saving-") as scratch:
         result = run_study(restricted, Path(out) if out is not None else Path(scratch),
                            progress=progress)
-    rows = {row["run"]: row for row in result.summary}
-    base = rows[scene.study.reference]
+    return saving_rows(scene.name, scene.study.reference, result.summary)
+
+
+def saving_rows(scene_name: str, reference: str, summary: list[dict]) -> list[SavingRow]:
+    """:class:`SavingRow` s from the rows of a study's ``summary.csv`` (as ``run_study`` returns
+    them): every run against the ``reference`` row."""
+    rows = {row["run"]: row for row in summary}
+    base = rows[reference]
     return [SavingRow(
-        scene=scene.name, run=name, converged_s=base["time_s"],
+        scene=scene_name, run=name, converged_s=base["time_s"],
         converged_iterations=base["cg_iterations"], prdp_s=row["time_s"],
         prdp_iterations=row["cg_iterations"],
         reached_step=row["reached_step"] if row["reached_step"] != "" else None,
         time_saving=row["time_saving"], iteration_saving=row["iteration_saving"],
         converged_error=base["final_error"], prdp_error=row["final_error"])
-        for name, row in rows.items() if name != scene.study.reference]
+        for name, row in rows.items() if name != reference]
