@@ -48,7 +48,6 @@ from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .cg import ConvergedCG, IterationCounter, TruncatedCG, solve
@@ -76,12 +75,16 @@ def homogeneous(problem: InverseProblem) -> InverseProblem:
     Zeroed: the data, the regulariser's reference ``m_0``, the Neumann load and the Dirichlet
     values (they enter ``b`` and the misfit affinely, never ``H``).
     """
-    system = dataclasses.replace(problem.system,
-                                 neumann=jnp.zeros_like(problem.system.neumann),
-                                 dirichlet_values=jnp.zeros_like(problem.system.dirichlet_values))
-    observation = problem.observation.clean(np.zeros(problem.observation.size))
+    def zeros(array):  # NumPy: a jnp constructor would compile a kernel per shape
+        return np.zeros(array.shape, array.dtype)
+
+    system = dataclasses.replace(problem.system, neumann=zeros(problem.system.neumann),
+                                 dirichlet_values=zeros(problem.system.dirichlet_values))
+    observation = dataclasses.replace(problem.observation,
+                                      data=zeros(problem.observation.data),
+                                      noise_std=zeros(problem.observation.noise_std))
     regularizer = dataclasses.replace(problem.regularizer,
-                                      reference=jnp.zeros_like(problem.regularizer.reference))
+                                      reference=zeros(problem.regularizer.reference))
     return dataclasses.replace(problem, system=system, observation=observation,
                                regularizer=regularizer)
 
@@ -162,7 +165,9 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
 
     The records are :class:`~prdp_fem.history.StepRecord` s: ``loss`` is ``J`` at the step's
     start (tracked by the exact quadratic identity ``J(f + a p) = J(f) - a r.p + a^2 p.q / 2``),
-    ``misfit`` and ``state_error`` are NaN, ``evaluations`` counts the gradient evaluations.
+    ``misfit`` and ``state_error`` are NaN, ``evaluations`` counts the gradient evaluations,
+    ``refinements`` those before the step (the controller sees the residual after the record
+    and the callback: a run that stops there never compiles it).
     """
     _check_quadratic(problem)
     refinement = fixed(50) if refinement is None else refinement
@@ -170,11 +175,10 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     counter, riesz_counter = IterationCounter(), IterationCounter()
     f = np.asarray(_initial_params(problem, init))
     control = refinement.init()
-    gradient, gradient_seconds = _compile(
+    gradient, compile_time = _compile(
         _make_gradient(refinement.tolerance_mode, preconditioner, riesz_rtol, counter,
                        riesz_counter), problem, f, *_solver_key(control))
-    update_control, update_seconds = _compile(refinement.update, control, 0.0)
-    compile_time = gradient_seconds + update_seconds
+    update_control = None  # compiled when first needed: a run may stop before
     linear_part, error = homogeneous(problem), _Relative(problem)
 
     def evaluate(which: InverseProblem, point: np.ndarray, key) -> list[np.ndarray]:
@@ -194,7 +198,6 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
         if moved is None:  # H p is not positive along p: the truncation is too coarse to go on
             break
         cg = moved
-        control = update_control(control, cg.residual_norm)
         run_time += time.perf_counter() - start
         record = StepRecord(
             step=step, iterations=key[0], adjoint_iterations=key[1], rtol=key[2],
@@ -207,6 +210,13 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
             break
         if cg.residual_norm <= rtol * cg.initial_norm:
             break
+        start = time.perf_counter()
+        if update_control is None:
+            update_control, seconds = _compile(refinement.update, control, cg.residual_norm)
+            compile_time += seconds
+            start += seconds
+        control = update_control(control, cg.residual_norm)
+        run_time += time.perf_counter() - start
     return ReducedCG(f, history, riesz_counter.primal,
                      math.nan if cg is None else cg.residual_norm,
                      math.nan if cg is None else cg.initial_norm)
