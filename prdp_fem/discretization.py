@@ -37,6 +37,7 @@ import skfem
 from skfem.helpers import dot, grad
 
 from .errors import CoefficientError, DataError, DiscretizationError
+from .host_cg import jacobi_pcg
 from .operator import SparseMatrix
 from .system import LinearSystem
 from .validation import finite_vector, is_traced, positive_coefficient
@@ -259,16 +260,16 @@ class Discretization:
         A misfit ``||u - p||_M^2`` differs from ``int (u - fn)^2`` by a constant only, so both
         have the same minimiser; ``fn`` is evaluated at quadrature points.
 
-        ``M`` is solved by Jacobi-preconditioned CG (:func:`_jacobi_pcg`): ``cond(D^{-1} M)`` is
-        bounded independently of the mesh size and shape (``<= 4`` for P1 triangles), so a few
-        dozen iterations reach round-off where a sparse LU of a 263k-dof mass matrix takes
-        seconds; SuperLU remains the fallback should CG stop short of the tolerance.
+        ``M`` is solved by Jacobi-preconditioned CG (:func:`~prdp_fem.host_cg.jacobi_pcg`):
+        ``cond(D^{-1} M)`` is bounded independently of the mesh size and shape (``<= 4`` for P1
+        triangles), so a few dozen iterations reach round-off where a sparse LU of a 263k-dof
+        mass matrix takes seconds; SuperLU remains the fallback should CG stop short.
         """
         load = skfem.LinearForm(lambda v, w: fn(w.x) * v).assemble(self.basis)
         load = finite_vector(load, "project: fn(x)", self.n_dofs)
-        projection = _jacobi_pcg(self.mass_matrix, load, PROJECTION_RTOL)
+        projection = jacobi_pcg(self.mass_matrix, load, PROJECTION_RTOL)
         return spla.spsolve(self.mass_matrix.tocsc(), load) if projection is None \
-            else projection
+            else projection.x
 
     def interpolate_kappa(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """``fn`` as a coefficient vector: cell centroids (P0) or vertices (P1).
@@ -299,34 +300,6 @@ class Discretization:
         full[self.dirichlet_dofs] = self.dirichlet_values
         full[self.free_dofs] = np.asarray(u_free)
         return full
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    """``a . b`` without BLAS: a threaded OpenBLAS ``ddot`` (and ``nrm2``) was measured at
-    7-8 ms per 66k-vector call on 2 busy cores, 400x this loop."""
-    return float(np.einsum("i,i", a, b))
-
-
-def _jacobi_pcg(matrix: sp.csr_matrix, b: np.ndarray, rtol: float,
-                max_iterations: int = 1000) -> np.ndarray | None:
-    """``x`` with ``||b - A x|| <= rtol ||b||`` by Jacobi-PCG (SPD ``A``), or None if not met."""
-    inverse_diagonal = 1.0 / matrix.diagonal()
-    x = np.zeros_like(b)
-    r = b.copy()
-    z = inverse_diagonal * r
-    p, rz = z.copy(), _dot(r, z)
-    target = (rtol * rtol) * _dot(b, b)
-    for _ in range(max_iterations):
-        if _dot(r, r) <= target:
-            return x
-        q = matrix @ p
-        alpha = rz / _dot(p, q)
-        x += alpha * p
-        r -= alpha * q
-        z = inverse_diagonal * r
-        rz, rz_old = _dot(r, z), rz
-        p = z + (rz / rz_old) * p
-    return x if _dot(r, r) <= target else None
 
 
 def discretize(
