@@ -203,25 +203,36 @@ def test_saving_rows_are_the_study_figures():
                        for k, e in enumerate([0.4, 0.15, 0.1005, 0.0995], start=1))
     passing = History(record(k, e, 0.1 * k, 5 * k)
                       for k, e in enumerate([0.4, 0.1, 0.2, 0.3], start=1))
-    summary = study._inverse_summary(
-        scene, {"converged": converged_run, "prdp": reaching, "prdp passing": passing},
-        "parameter_error")
-    reached, passed = saving_rows("mother", "converged", summary)
-    assert (reached.run, reached.reached_step) == ("prdp", 3)
+    # ends 5 % more accurate than the converged run: never in the +-1 % band, but below it
+    better = History(record(k, e, 0.1 * k, 5 * k)
+                     for k, e in enumerate([0.4, 0.2, 0.0999, 0.095], start=1))
+    histories = {"converged": converged_run, "prdp": reaching, "prdp passing": passing,
+                 "prdp better": better}
+    summary = study._inverse_summary(scene, histories, "parameter_error")
+    reached, passed, below = saving_rows("mother", "converged", summary, histories)
+    assert (reached.run, reached.reached_step, reached.below_step) == ("prdp", 3, 3)
     assert reached.converged_s == 8.0 and reached.converged_iterations == 800
     assert reached.time_saving == pytest.approx(1 - 0.3 / 8.0)
     assert reached.iteration_saving == pytest.approx(1 - 30 / 800)
+    assert reached.below_time_saving == reached.time_saving
     assert reached.error_difference == pytest.approx(-0.005)
-    assert reached.goal_met
+    assert reached.goal_met and reached.goal_met_at_or_below
     assert passed.reached_step is None and np.isnan(passed.time_saving)  # only passed through
+    assert passed.below_step is None and np.isnan(passed.below_time_saving)
     assert passed.error_difference == pytest.approx(2.0) and not passed.goal_met
+    assert not passed.goal_met_at_or_below
+    assert below.reached_step is None and below.below_step == 3
+    assert below.below_iteration_saving == pytest.approx(1 - 30 / 800)
+    assert below.error_difference == pytest.approx(-0.05)
+    assert not below.goal_met and below.goal_met_at_or_below
 
 
 @pytest.mark.slow  # two inversions compiled and a study's figures (about 15 s)
 def test_saving_rows_are_the_study_summary(tmp_path):
     scene_file = tmp_path / "small.toml"  # no [[study.runs]]: converged + the scene's own PRDP
     scene_file.write_text(SMALL_STUDY.replace("STEPS", "12").split("[[study.runs]]")[0])
-    [row] = prdp_saving(load_scene(scene_file), out=tmp_path / "study")
+    scene = load_scene(scene_file)
+    [row] = prdp_saving(scene, out=tmp_path / "study")
     with open(tmp_path / "study" / "summary.csv") as stream:
         summary = {r["run"]: r for r in csv.DictReader(stream)}
     assert set(summary) == {"converged", "small"}
@@ -238,16 +249,24 @@ def test_saving_rows_are_the_study_summary(tmp_path):
         assert row.iteration_saving == pytest.approx(float(prdp_row["iteration_saving"]))
     else:
         assert row.reached_step is None and np.isnan(row.time_saving)
+    history = study.inverse_histories(scene, tmp_path / "study")["small"]
+    assert row.below_step == next(
+        r.step for r in history if all(later.parameter_error <= 1.01 * row.converged_error
+                                       for later in history[r.step - 1:]))
     assert row.goal_met == (row.time_saving >= 0.8 and abs(row.error_difference) <= 0.01)
 
 
 def test_saving_goal_needs_both_the_time_and_the_error():
     from prdp_fem.bench_inverse import SavingRow
 
-    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 1.0, 1.005)
-    assert row.goal_met
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
+    assert row.goal_met and row.goal_met_at_or_below
     assert not row._replace(prdp_error=1.02).goal_met
+    assert not row._replace(prdp_error=1.02).goal_met_at_or_below
+    assert not row._replace(prdp_error=0.95).goal_met  # 5 % better is outside the band ...
+    assert row._replace(prdp_error=0.95).goal_met_at_or_below  # ... and has reached e*
     assert not row._replace(time_saving=0.79).goal_met
+    assert not row._replace(below_time_saving=0.79).goal_met_at_or_below
     assert not row._replace(time_saving=float("nan"), reached_step=None).goal_met
 
 
