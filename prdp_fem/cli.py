@@ -67,7 +67,7 @@ def _command(sub, name: str, help_text: str, **kwargs) -> argparse.ArgumentParse
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="prdp-fem", description=__doc__.split("\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog="\n".join(__doc__.split("\n")[2:11]))
+                                     epilog=__doc__.split("\n\n")[1])
     sub = parser.add_subparsers(dest="command", required=True)
 
     study = _command(sub, "study", "sweep a scene's configurations; tables and figures of "
