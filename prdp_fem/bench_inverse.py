@@ -83,8 +83,9 @@ class PeerFigure(NamedTuple):
     goal_ratio: float  # prdp_fem time / peer time to beat (NaN: no goal at this size)
 
 
-PEER = {128: PeerFigure(2.8, 6.4e-4, math.nan), 256: PeerFigure(6.5, 2.2e-4, 0.5),
-        512: PeerFigure(55.0, 7.5e-5, 0.33)}
+PEER: Mapping[int, PeerFigure] = MappingProxyType({
+    128: PeerFigure(2.8, 6.4e-4, math.nan), 256: PeerFigure(6.5, 2.2e-4, 0.5),
+    512: PeerFigure(55.0, 7.5e-5, 0.33)})
 # the inner PCG's preconditioner by name (a fresh process gets a name, not a pytree): each
 # builds what solve() takes from the problem, once, inside the timed setup; an AMG cycle
 # (a pytree built from problem.system.operator(problem.known)) slots in here

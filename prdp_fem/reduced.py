@@ -271,8 +271,8 @@ class _CGState(NamedTuple):
     def step(self, f: np.ndarray, q: np.ndarray, riesz_q: np.ndarray):
         """``f + a p`` and the next state, or ``(None, f)`` if ``p.q <= 0``.
 
-        ``J(f + a p) = J(f) - a r.p + a^2 p.q / 2`` tracks the objective; ``M^{-1} r`` is
-        updated with ``M^{-1} q`` (linear), so the Riesz map costs no extra call.
+        ``J(f + a p) = J(f) - a r.p + a^2 p.q / 2`` tracks the objective; ``z = M^{-1} r`` is
+        updated with ``M^{-1} q`` (``M^{-1}`` is linear): one Riesz map per step.
         """
         pq = dot(self.p, q)
         if not pq > 0:
