@@ -13,6 +13,8 @@ Subcommands
 ``bench memory``  peak memory and time of a gradient through PCG, per gradient mode and K
                (see :mod:`prdp_fem.bench_memory`)
 ``bench amg``  AMG-PCG against pyamg's own CG solve (see :mod:`prdp_fem.bench_amg`)
+``bench mother``  whole-process time and error on dolfin-adjoint's mother problem, against it
+``bench prdp``    the PRDP saving against the converged run on the built-in inverse scenes
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
 with status 2, no traceback; Ctrl-C keeps every finished record and exits with 130.
@@ -31,6 +33,7 @@ from pathlib import Path
 from .errors import PrdpFemError, SceneError, SolverConfigError
 
 DEFAULT_ITERATIONS = [0, 5, 10, 20, 40, 80, 160, 320, 640]
+DEFAULT_INNER_K = 5  # prdp_fem.bench_inverse.DEFAULT_K (not imported here: jax loads slowly)
 MESH_SUFFIXES = (".msh", ".vtu", ".vtk", ".xdmf", ".xmf", ".mesh", ".med", ".inp", ".obj",
                  ".ply", ".stl", ".off", ".dat", ".su2", ".avs", ".f3grid", ".h5m", ".ugrid")
 
@@ -151,6 +154,34 @@ def _parser() -> argparse.ArgumentParser:
     amg.add_argument("--implementations", nargs="+", default=["jax", "callback"],
                      help="jax | callback")
     amg.add_argument("--repeats", type=int, default=5, help="timed pairs (median)")
+    mother = bench_sub.add_parser(
+        "mother", help="mother problem: whole-process time and error against dolfin-adjoint",
+        description="dolfin-adjoint's Poisson mother problem (P1/P1, alpha = 1e-6) solved by "
+        "CG on the reduced Hessian with truncated inner PCG, each run a fresh process, until "
+        "the relative L2 error of f reaches the peer's (see prdp_fem.bench_inverse)")
+    mother.add_argument("--sizes", type=int, nargs="+", default=[256, 512],
+                        help="unit-square cells per side (peer figures at 128, 256, 512)")
+    mother.add_argument("--repeats", type=int, default=3,
+                        help="fresh processes per size (the median is reported)")
+    mother.add_argument("--target", type=float, metavar="E",
+                        help="relative L2 error of f to reach (default: the peer's at each size; "
+                        "needed at other sizes)")
+    mother.add_argument("--iterations", type=int, default=DEFAULT_INNER_K, metavar="K",
+                        help="K0 = dK of PRDP on the inner state and adjoint PCG solves "
+                        f"(default {DEFAULT_INNER_K})")
+    mother.add_argument("--inner-rtol", type=float, metavar="R",
+                        help="instead: every inner solve to the relative residual R")
+    mother.add_argument("--preconditioner", default="jacobi",
+                        help="of the inner PCG: jacobi | identity")
+    saving = bench_sub.add_parser(
+        "prdp", help="PRDP saving against the converged run, per built-in inverse scene",
+        description="run each scene's converged reference and its PRDP configurations (a "
+        "study) and print the saving: time and CG iterations to reach the converged run's "
+        "final error, against the converged run's totals")
+    saving.add_argument("--scene", nargs="+", default=None, metavar="SCENE",
+                        help="scene files or built-in names (default: mother inclusion "
+                        "plate_hole cube)")
+    saving.add_argument("--steps", type=int, help="optimiser steps (overrides the scenes)")
     return parser
 
 
@@ -479,8 +510,74 @@ def _bench_amg(args) -> None:
                   f"{c.compile_s:>11.2f}", flush=True)
 
 
+def _bench_mother(args) -> None:
+    from .bench_inverse import check_mother_options, mother_whole_process
+
+    check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
+                         K=args.iterations, inner_rtol=args.inner_rtol,
+                         preconditioner=args.preconditioner)
+    inner = f"PRDP K0 = dK = {args.iterations}" if args.inner_rtol is None else \
+        f"rtol {args.inner_rtol:g}"
+    print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
+    print(f"{'n':>5} {'dofs':>7} {'target':>8} {'error':>8} {'outer':>5} {'CG its':>6} "
+          f"{'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} "
+          f"{'whole [s]':>9} {'peer [s]':>8} {'ratio':>6}  goal")
+    for n in args.sizes:
+        b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=args.iterations,
+                                 inner_rtol=args.inner_rtol, preconditioner=args.preconditioner)
+        goal = "-" if b.goal_met is None else (
+            f"<= {b.peer.goal_ratio:g} {'met' if b.goal_met else 'NOT met'}")
+        peer = f"{b.peer.seconds:>8.1f}" if b.peer else f"{'-':>8}"
+        print(f"{b.n:>5} {b.dofs:>7} {b.target:>8.1e} {b.error:>8.2e} {b.outer_iterations:>5} "
+              f"{b.cg_iterations:>6} {b.start_s:>6.2f} {b.import_s:>6.2f} {b.assembly_s:>6.2f} "
+              f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.whole_s:>9.2f} {peer} "
+              f"{b.ratio:>6.2f}  {goal}", flush=True)
+    print(f"whole: median wall time of {args.repeats} fresh process(es) per size (Python start, "
+          "imports, mesh, assembly, compilation, optimisation); phases: medians inside the "
+          "process, start = whole - phases; CG its: primal + adjoint state-solve iterations "
+          "(Riesz-map mass solves apart); error: relative L2 of f against the analytic optimum")
+
+
+def _bench_prdp(args) -> None:
+    from .bench_inverse import SAVING_SCENES, prdp_saving, saving_configurations
+
+    if args.steps is not None and args.steps < 1:
+        raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
+    scenes = [_scene(name, args.steps) for name in (args.scene or SAVING_SCENES)]
+    for scene in scenes:  # every scene checked before the first one runs
+        saving_configurations(scene)
+    rows = [_saving_cells(row) for scene in scenes for row in prdp_saving(scene)]
+    _print_table(rows, list(rows[0]))
+    print("save: 1 - (run time or CG iterations of the PRDP run up to the step from which its "
+          "parameter error stays within +-1 % of the converged run's final error e* (band@, the "
+          "study's figures) or at or below 1.01 e* (below@)) / (the converged run's totals); "
+          "times exclude compilation; err_diff: (PRDP - converged) / converged final error; "
+          "met: save_t >= 80 % and |err_diff| <= 1 %; met_below: below_save_t >= 80 % and "
+          "err_diff <= 1 %")
+
+
+def _saving_cells(row) -> dict:
+    def step(value):
+        return "-" if value is None else value
+
+    return {"scene": row.scene, "run": row.run, "conv_s": row.converged_s,
+            "conv_its": row.converged_iterations, "prdp_s": row.prdp_s,
+            "prdp_its": row.prdp_iterations, "band@": step(row.reached_step),
+            "save_t": _percent(row.time_saving), "save_its": _percent(row.iteration_saving),
+            "below@": step(row.below_step), "below_save_t": _percent(row.below_time_saving),
+            "below_save_its": _percent(row.below_iteration_saving),
+            "err_diff": _percent(row.error_difference, digits=2),
+            "met": "yes" if row.goal_met else "no",
+            "met_below": "yes" if row.goal_met_at_or_below else "no"}
+
+
+def _percent(value: float, digits: int = 0) -> str:
+    return "-" if math.isnan(value) else f"{100 * value:.{digits}f} %"
+
+
 def _bench(args) -> None:
-    {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory}[args.bench](args)
+    return {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory,
+            "mother": _bench_mother, "prdp": _bench_prdp}[args.bench](args)
 
 
 def _stability(args) -> int:

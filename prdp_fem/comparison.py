@@ -34,13 +34,23 @@ class ComparisonRow(NamedTuple):
     iteration_saving: float
 
 
-def settled(history: History, target: float, band: float = 0.01) -> StepRecord | None:
-    """First record from which ``|error - target| <= band * target`` holds to the end."""
-    inside = [abs(r.parameter_error - target) <= band * target for r in history]
-    if not inside or not inside[-1]:
+def settled(history: History, target: float, band: float = 0.01, *,
+            at_or_below: bool = False) -> StepRecord | None:
+    """First record from which ``|error - target| <= band * target`` holds to the end.
+
+    ``at_or_below=True``: from which ``error <= (1 + band) target`` holds (an error that ends
+    *lower* than the target counts as reached, as "reach the converged run's error" reads).
+    """
+    def inside(error: float) -> bool:
+        if at_or_below:
+            return error <= (1 + band) * target
+        return abs(error - target) <= band * target
+
+    flags = [inside(r.parameter_error) for r in history]
+    if not flags or not flags[-1]:
         return None
-    first = len(inside) - 1
-    while first > 0 and inside[first - 1]:
+    first = len(flags) - 1
+    while first > 0 and flags[first - 1]:
         first -= 1
     return history[first]
 

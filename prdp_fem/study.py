@@ -354,7 +354,7 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
     kind = scene.study.kind
     if kind == "inverse":
         histories = {n: _history(r) for n, r in by_run.items()}
-        metric = _metric(by_run)
+        metric = metric_of(histories)
         rows = _inverse_summary(scene, histories, metric)
         figures = plots.inverse_figures(scene.name, histories, metric, out,
                                         {n: _field_file(out, n) for n in histories})
@@ -369,10 +369,16 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
     return rows, figures
 
 
-def _metric(by_run: dict[str, list[dict]]) -> str:
+def metric_of(histories: dict[str, History]) -> str:
     """The parameter error when a truth is known, else the misfit."""
-    last = [r[-1].get("parameter_error") for r in by_run.values() if r]
-    return "parameter_error" if any(v is not None for v in last) else "misfit"
+    last = [h[-1].parameter_error for h in histories.values() if len(h)]
+    return "parameter_error" if any(not math.isnan(v) for v in last) else "misfit"
+
+
+def inverse_histories(scene: Scene, out: str | Path) -> dict[str, History]:
+    """The step records of every finished configuration of an inverse study in ``out``."""
+    by_run = _finished_records(scene, ResultsLog(Path(out) / RESULTS).records())
+    return {name: _history(rows) for name, rows in by_run.items()}
 
 
 def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -> list[dict]:

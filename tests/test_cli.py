@@ -59,4 +59,4 @@ def test_bench_cg_reports_the_operator(capsys):
     row = capsys.readouterr().out.strip().splitlines()[-1].split()
     assert int(row[0]) == 15 * 15  # interior dofs of a 16 x 16 square
     assert int(row[1]) == 15 * 15 + 4 * 15 * 14  # five-point pattern of P1 on right triangles
-    assert len(row) == 6  # dofs, nnz, SpMV, iteration, ratio, compile
+    assert len(row) == 8  # dofs, nnz, SpMV, iteration, ratio, COO iteration, COO ratio, compile

@@ -1,0 +1,426 @@
+r"""Inverse-problem benchmarks (``prdp-fem bench mother``, ``prdp-fem bench prdp``).
+
+Mother problem against the peer
+-------------------------------
+dolfin-adjoint's Poisson "mother problem" on the unit square, P1 state and P1 control on an
+``n x n`` mesh:
+
+.. math::
+
+    \min_f\; \tfrac12 \|u - d\|_{L^2}^2 + \tfrac\alpha2 \|f\|_{L^2}^2, \quad
+    -\Delta u = f,\; u|_{\partial\Omega} = 0, \quad
+    d = \frac{\sin\pi x \sin\pi y}{2\pi^2}, \quad
+    f^* = \frac{\sin\pi x \sin\pi y}{1 + 4\alpha\pi^4}, \quad \alpha = 10^{-6}.
+
+The objective is quadratic in ``f``, so the solver is :func:`~prdp_fem.reduced.reduced_cg`:
+CG on the reduced Hessian, preconditioned by the L2 Riesz map, whose Hessian products are the
+toolkit's implicit gradients through truncated PCG state and adjoint solves (``K`` from a PRDP
+controller). It stops at the first iterate whose relative L2 error against ``f*``
+(``||f - f*||_M / ||f*||_M`` with the P1 mass matrix and the nodal interpolant of ``f*``, as
+the study and the example measure it) reaches the peer's. Every run is a fresh Python process
+(:func:`mother_whole_process`): interpreter start, imports, mesh, assembly, compilation and the
+optimisation are all inside the wall time. No persistent compilation cache is used.
+
+PRDP saving
+-----------
+:func:`prdp_saving` runs a scene's converged reference and its PRDP configurations through
+:func:`~prdp_fem.study.run_study` and reads the saving from the study's own summary
+(BENCHMARKS.md): run time and cumulative primal + adjoint CG iterations of a PRDP run up to the
+step from which its parameter error stays within 1 % of the converged run's final error,
+divided by the converged run's totals (same scene, optimiser and steps; compilation excluded).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .comparison import settled
+from .discretization import discretize
+from .errors import SceneError, SolverConfigError
+from .generators import unit_square
+from .history import History
+from .inverse import InverseProblem, inverse_problem
+from .observations import full_field
+from .prdp import converged, prdp
+from .reduced import reduced_cg
+
+__all__ = [
+    "ALPHA",
+    "PEER",
+    "MotherBench",
+    "MotherSolve",
+    "PeerFigure",
+    "SavingRow",
+    "mother_problem",
+    "mother_whole_process",
+    "prdp_saving",
+    "saving_rows",
+    "solve_mother",
+]
+
+ALPHA = 1e-6
+
+
+class PeerFigure(NamedTuple):
+    """dolfin-adjoint (L-BFGS-B) on this machine kind: whole-process seconds, final error."""
+
+    seconds: float
+    error: float
+    goal_ratio: float  # prdp_fem time / peer time to beat (NaN: no goal at this size)
+
+
+PEER: Mapping[int, PeerFigure] = MappingProxyType({
+    128: PeerFigure(2.8, 6.4e-4, math.nan), 256: PeerFigure(6.5, 2.2e-4, 0.5),
+    512: PeerFigure(55.0, 7.5e-5, 0.33)})
+# the inner PCG's preconditioner by name (a fresh process gets a name, not a pytree): each
+# builds what solve() takes from the problem, once, inside the timed setup; an AMG cycle
+# (a pytree built from problem.system.operator(problem.known)) slots in here
+INNER_PRECONDITIONERS: Mapping[str, Callable[[InverseProblem], Any]] = MappingProxyType({
+    "jacobi": lambda problem: "jacobi",
+    "identity": lambda problem: "identity",
+})
+DEFAULT_K = 5  # K0 = dK of the inner solves: the mother scene's PRDP settings
+SAVING_GOAL, ERROR_BAND = 0.8, 0.01  # BENCHMARKS.md: >= 80 % saving, final error within 1 %
+
+
+# --------------------------------------------------------------------------------------
+# the mother problem, solved in this process
+# --------------------------------------------------------------------------------------
+
+
+def _mode(x: np.ndarray) -> np.ndarray:
+    return np.sin(np.pi * x[0]) * np.sin(np.pi * x[1])
+
+
+def mother_problem(n: int, alpha: float = ALPHA) -> InverseProblem:
+    """The mother problem on an ``n x n`` unit square as an :class:`InverseProblem`.
+
+    The misfit is against the L2 projection of ``d`` (the same minimiser as against ``d``
+    itself, which dolfin-adjoint integrates); the truth is the nodal interpolant of ``f*``.
+    """
+    disc = discretize(unit_square(n, "triangle"), element="P1", kappa_space="P0",
+                      dirichlet=0.0)
+    data = disc.project(lambda x: _mode(x) / (2 * np.pi ** 2))
+    truth = disc.interpolate(_mode) / (1 + 4 * alpha * np.pi ** 4)
+    return inverse_problem(disc, full_field(disc, data=data), unknown="source", alpha=alpha,
+                           regularization="l2", truth=truth)
+
+
+class MotherSolve(NamedTuple):
+    """One mother-problem solve in this process, phases timed (seconds)."""
+
+    n: int
+    dofs: int                 # nodal unknowns of f (the control)
+    error: float              # relative L2 error of f against f* where the run stopped
+    target: float
+    outer_iterations: int     # reduced-Hessian CG iterations (Hessian products)
+    cg_iterations: int        # primal + adjoint PCG iterations of the state solves
+    riesz_iterations: int     # mass-matrix PCG iterations of the Riesz map
+    final_K: int
+    assembly_s: float         # mesh, assembly, data, the inverse problem, the preconditioner
+    compile_s: float
+    solve_s: float            # the optimisation, compilation excluded
+
+
+def check_mother_options(sizes, *, repeats: int = 1, target: float | None = None,
+                         K: int = DEFAULT_K, inner_rtol: float | None = None,
+                         preconditioner: str = "jacobi") -> None:
+    """Refuse bad benchmark settings up front (SolverConfigError naming the option)."""
+    if any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in sizes) or not sizes:
+        raise SolverConfigError(f"--sizes {' '.join(map(str, sizes))}: expected integers >= 2")
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+        raise SolverConfigError(f"--repeats {repeats!r}: expected an integer >= 1")
+    if isinstance(K, bool) or not isinstance(K, int) or K < 1:
+        raise SolverConfigError(f"--iterations {K!r}: expected an integer >= 1")
+    if inner_rtol is not None and not (isinstance(inner_rtol, float | int)
+                                       and 0 < inner_rtol < 1):
+        raise SolverConfigError(f"--inner-rtol {inner_rtol!r}: expected a number in (0, 1)")
+    if preconditioner not in INNER_PRECONDITIONERS:
+        raise SolverConfigError(f"--preconditioner {preconditioner!r}: expected one of "
+                                f"{list(INNER_PRECONDITIONERS)}")
+    for n in sizes:
+        _target(n, target)
+
+
+def _inner_refinement(K: int, inner_rtol: float | None):
+    """PRDP on the inner ``K`` (``K0 = dK = K``), or every inner solve to ``inner_rtol``."""
+    return prdp(K0=K, dK=K, restart=True) if inner_rtol is None else converged(inner_rtol)
+
+
+def solve_mother(n: int, *, target: float | None = None, K: int = DEFAULT_K,
+                 inner_rtol: float | None = None, preconditioner: str = "jacobi",
+                 max_iterations: int = 100) -> MotherSolve:
+    """Set up and solve the mother problem until the error reaches ``target``.
+
+    ``target`` defaults to the peer's error at ``n`` (it must be given at other sizes). The
+    inner state and adjoint solves run ``K`` PCG iterations under PRDP (``K0 = dK = K``), or
+    to the relative residual ``inner_rtol`` when given; ``preconditioner`` is the inner PCG's.
+    """
+    check_mother_options([n], target=target, K=K, inner_rtol=inner_rtol,
+                         preconditioner=preconditioner)
+    target = _target(n, target)
+    start = time.perf_counter()
+    problem = mother_problem(n)
+    inner_preconditioner = INNER_PRECONDITIONERS[preconditioner](problem)
+    assembly = time.perf_counter() - start
+    result = reduced_cg(problem, refinement=_inner_refinement(K, inner_rtol),
+                        iterations=max_iterations, preconditioner=inner_preconditioner,
+                        callback=lambda record, field: record.parameter_error <= target)
+    last = result.history[-1]
+    return MotherSolve(
+        n=n, dofs=problem.n_parameters, error=last.parameter_error, target=target,
+        outer_iterations=last.step,
+        cg_iterations=last.primal_iterations + last.adjoint_iterations_total,
+        riesz_iterations=result.riesz_iterations, final_K=last.iterations,
+        assembly_s=assembly, compile_s=last.compile_time, solve_s=last.time)
+
+
+def _target(n: int, target: float | None) -> float:
+    if target is None:
+        if n not in PEER:
+            raise SolverConfigError(f"--sizes {n}: no peer error known at this size (known: "
+                                    f"{sorted(PEER)}); expected a --target error there")
+        return PEER[n].error
+    if not (isinstance(target, float | int) and 0 < target < 1):
+        raise SolverConfigError(f"--target {target!r}: expected a relative error in (0, 1)")
+    return float(target)
+
+
+# --------------------------------------------------------------------------------------
+# the mother problem, one fresh process per run
+# --------------------------------------------------------------------------------------
+
+# the child times its own imports from its first statement; the parent times the whole process
+_CHILD = (
+    "import time; start = time.perf_counter()\n"
+    "import sys\n"
+    "from prdp_fem.bench_inverse import _mother_child\n"
+    "_mother_child(start, sys.argv[1])\n"
+)
+
+
+def _mother_child(start: float, arguments: str) -> None:
+    """Solve in this (fresh) process and print the phases as one JSON line."""
+    imported = time.perf_counter() - start
+    solve = solve_mother(**json.loads(arguments))
+    print(json.dumps({**solve._asdict(), "import_s": imported}), flush=True)
+
+
+class MotherBench(NamedTuple):
+    """Medians over fresh-process runs at one size (seconds); the last run's solver figures."""
+
+    n: int
+    dofs: int
+    target: float
+    error: float
+    outer_iterations: int
+    cg_iterations: int
+    riesz_iterations: int
+    start_s: float      # interpreter start, process exit, anything outside the phases
+    import_s: float
+    assembly_s: float
+    compile_s: float
+    solve_s: float
+    whole_s: float      # wall time of the whole process, measured by the parent
+    runs: int
+    peer: PeerFigure | None
+
+    @property
+    def ratio(self) -> float:
+        """Whole-process time / the peer's (NaN where the peer's time is unknown)."""
+        return self.whole_s / self.peer.seconds if self.peer else math.nan
+
+    @property
+    def goal_met(self) -> bool | None:
+        """Time ratio and error both at the goal (None where there is no goal)."""
+        if self.peer is None or math.isnan(self.peer.goal_ratio):
+            return None
+        return self.ratio <= self.peer.goal_ratio and self.error <= self.peer.error
+
+
+def _child_environment() -> dict[str, str]:
+    """This package first on the path; no persistent compilation cache (a cold start)."""
+    package_root = str(Path(__file__).resolve().parent.parent)
+    path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
+    return {key: value for key, value in {**os.environ, "PYTHONPATH": path}.items()
+            if key != "JAX_COMPILATION_CACHE_DIR"}
+
+
+def _run_child(arguments: dict, timeout: float) -> tuple[dict, float]:
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(arguments)],
+                          capture_output=True, text=True, timeout=timeout,
+                          env=_child_environment())
+    whole = time.perf_counter() - start
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"mother benchmark process failed ({done.returncode}): {last}")
+    return json.loads(done.stdout.strip().splitlines()[-1]), whole
+
+
+def mother_whole_process(n: int, *, repeats: int = 3, target: float | None = None,
+                         K: int = DEFAULT_K, inner_rtol: float | None = None,
+                         preconditioner: str = "jacobi", timeout: float = 600.0) -> MotherBench:
+    """Median whole-process figures over ``repeats`` fresh processes solving at size ``n``.
+
+    The settings are those of :func:`solve_mother`.
+    """
+    check_mother_options([n], repeats=repeats, target=target, K=K, inner_rtol=inner_rtol,
+                         preconditioner=preconditioner)
+    target = _target(n, target)
+    arguments = {"n": n, "target": target, "K": K, "inner_rtol": inner_rtol,
+                 "preconditioner": preconditioner}
+    runs = [_run_child(arguments, timeout) for _ in range(repeats)]
+    phases = ("import_s", "assembly_s", "compile_s", "solve_s")
+
+    def median(values) -> float:
+        return float(statistics.median(values))
+
+    last = runs[-1][0]
+    inside = [sum(run[p] for p in phases) for run, _ in runs]
+    return MotherBench(
+        n=n, dofs=last["dofs"], target=target, error=last["error"],
+        outer_iterations=last["outer_iterations"], cg_iterations=last["cg_iterations"],
+        riesz_iterations=last["riesz_iterations"],
+        start_s=median([whole - inner for (_, whole), inner in zip(runs, inside, strict=True)]),
+        **{p: median([run[p] for run, _ in runs]) for p in phases},
+        whole_s=median([whole for _, whole in runs]), runs=repeats, peer=PEER.get(n))
+
+
+# --------------------------------------------------------------------------------------
+# PRDP saving on the built-in scenes, through the study
+# --------------------------------------------------------------------------------------
+
+SAVING_SCENES = ("mother", "inclusion", "plate_hole", "cube")
+
+
+class SavingRow(NamedTuple):
+    """One PRDP configuration against the scene's converged reference.
+
+    Two readings of "reach the converged run's final error ``e*``": the study's (the error
+    stays within ``+-1 %`` of ``e*`` from ``reached_step`` on) and *at or below* (it stays
+    ``<= 1.01 e*`` from ``below_step`` on: a run that ends more accurate than the converged
+    one has reached it too). Savings are ``1 -`` cost up to that step / the converged totals.
+    """
+
+    scene: str
+    run: str
+    converged_s: float
+    converged_iterations: int
+    prdp_s: float               # whole run
+    prdp_iterations: int
+    reached_step: int | None    # the study's: in the +-1 % band from here on (None: never)
+    time_saving: float          # NaN when never reached
+    iteration_saving: float
+    below_step: int | None      # at or below 1.01 e* from here on
+    below_time_saving: float
+    below_iteration_saving: float
+    converged_error: float
+    prdp_error: float
+
+    @property
+    def error_difference(self) -> float:
+        """(PRDP final error - converged final error) / converged final error."""
+        return (self.prdp_error - self.converged_error) / self.converged_error
+
+    @property
+    def goal_met(self) -> bool:
+        """BENCHMARKS.md read strictly: >= 80 % time saving, final error within +-1 %."""
+        return self.time_saving >= SAVING_GOAL and abs(self.error_difference) <= ERROR_BAND
+
+    @property
+    def goal_met_at_or_below(self) -> bool:
+        """>= 80 % time saving to reach ``e*`` and a final error at most 1 % above it."""
+        return self.below_time_saving >= SAVING_GOAL and self.error_difference <= ERROR_BAND
+
+
+def _comparable(variant, reference) -> bool:
+    """Same problem and optimiser as the reference: only the solver and refinement differ."""
+    return all(getattr(variant, part) == getattr(reference, part)
+               for part in ("mesh", "pde", "inverse", "optimizer"))
+
+
+def saving_configurations(scene) -> list[str]:
+    """The reference and the PRDP runs comparable with it (the order of the scene)."""
+    if scene.study.kind != "inverse":
+        raise SceneError(f"{scene.source}: study.kind = {scene.study.kind!r}; expected an "
+                         "inverse study (the PRDP saving compares inversions)")
+    runs = dict(scene.runs())
+    reference = runs.get(scene.study.reference)
+    if reference is None:
+        raise SceneError(f"{scene.source}: study.reference = {scene.study.reference!r} is not "
+                         f"one of its runs {list(runs)}; expected the converged baseline")
+    chosen = [name for name, variant in runs.items() if name == scene.study.reference or (
+        variant.refinement.kind == "prdp" and _comparable(variant, reference))]
+    if len(chosen) < 2:
+        raise SceneError(f"{scene.source}: no PRDP run comparable with the reference "
+                         f"{scene.study.reference!r}; expected a run with refinement.kind = "
+                         "'prdp' on the same mesh, PDE, data and optimiser")
+    return chosen
+
+
+def _restricted(scene, names: list[str]):
+    """The scene with only the named runs (a scene without [[study.runs]] gets them spelled)."""
+    runs = scene.study.runs or (("converged", json.dumps(
+        {"refinement": {"kind": "converged"}})), (scene.name, "{}"))
+    kept = tuple((name, overrides) for name, overrides in runs if name in names)
+    return dataclasses.replace(scene, study=dataclasses.replace(scene.study, runs=kept))
+
+
+def prdp_saving(scene, *, out: str | Path | None = None, progress=None) -> list[SavingRow]:
+    """The PRDP saving of every comparable PRDP run of ``scene`` (a loaded Scene).
+
+    Runs the reference and those runs with :func:`~prdp_fem.study.run_study` into ``out`` (a
+    temporary directory when ``None``) and reads the figures from its summary and records.
+    """
+    from .study import inverse_histories, run_study  # here: they import matplotlib
+
+    restricted = _restricted(scene, saving_configurations(scene))
+    with tempfile.TemporaryDirectory(prefix="prdp-saving-") as scratch:
+        directory = Path(out) if out is not None else Path(scratch)
+        result = run_study(restricted, directory, progress=progress)
+        histories = inverse_histories(restricted, directory)
+    return saving_rows(scene.name, scene.study.reference, result.summary, histories,
+                       scene.study.band)
+
+
+def saving_rows(scene_name: str, reference: str, summary: list[dict],
+                histories: dict[str, History], band: float = ERROR_BAND) -> list[SavingRow]:
+    """:class:`SavingRow` s of every run against ``reference``, from a study's summary rows
+    (as ``run_study`` returns them) and step records."""
+    rows = {row["run"]: row for row in summary}
+    base = rows[reference]
+    base_iterations = base["cg_iterations"]
+
+    def at_or_below(name: str) -> tuple[int | None, float, float]:
+        hit = _reached_at_or_below(histories[name], base["final_error"], band, base["metric"])
+        if hit is None:
+            return None, math.nan, math.nan
+        iterations = hit.primal_iterations + hit.adjoint_iterations_total
+        return hit.step, 1 - hit.time / base["time_s"], 1 - iterations / base_iterations
+
+    return [SavingRow(
+        scene_name, name, base["time_s"], base_iterations, row["time_s"], row["cg_iterations"],
+        row["reached_step"] if row["reached_step"] != "" else None, row["time_saving"],
+        row["iteration_saving"], *at_or_below(name), base["final_error"], row["final_error"])
+        for name, row in rows.items() if name != reference]
+
+
+def _reached_at_or_below(history: History, target: float, band: float, metric: str):
+    if metric != "parameter_error":  # settled() reads parameter_error: give it the metric
+        history = History(r._replace(parameter_error=getattr(r, metric)) for r in history)
+    return settled(history, target, band, at_or_below=True)

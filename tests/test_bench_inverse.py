@@ -1,0 +1,307 @@
+"""The inverse benchmarks and the reduced-Hessian CG under them, at tiny sizes, against references.
+
+No timings are asserted: only errors, iteration counts, the bookkeeping of the fresh-process
+runs and the saving figures against the study's own summary.
+"""
+
+import csv
+
+import jax
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from conftest import SMALL_STUDY
+
+import prdp_fem as pf
+from prdp_fem import study
+from prdp_fem.bench_inverse import (
+    PEER,
+    check_mother_options,
+    mother_problem,
+    mother_whole_process,
+    prdp_saving,
+    saving_configurations,
+    saving_rows,
+    solve_mother,
+)
+from prdp_fem.cli import main
+from prdp_fem.errors import SceneError, SolverConfigError
+from prdp_fem.history import History, StepRecord
+from prdp_fem.prdp import converged, fixed
+from prdp_fem.reduced import homogeneous, reduced_cg
+from prdp_fem.scene import load_scene
+
+
+def kkt_optimum(problem) -> np.ndarray:
+    """The discrete optimum f of a mother-type problem by one sparse LU of its KKT system.
+
+    ``alpha M f - S' lam = 0``, ``M_II u - (M d)_I + A lam = 0``, ``A u - S f = 0`` (the misfit
+    ``1/2 (E u - d)' M (E u - d)`` on the expanded state, ``E`` the free-dof injection).
+    """
+    system = problem.system
+    A = system.operator(problem.known).to_scipy()
+    S = system.source.to_scipy()
+    M = problem.parameter_mass.to_scipy()
+    W = problem.observation.weight.to_scipy()
+    free = np.asarray(system.free_dofs)
+    E = sp.csr_matrix((np.ones(len(free)), (free, np.arange(len(free)))),
+                      shape=(system.n_dofs, len(free)))
+    alpha = float(problem.alpha)
+    kkt = sp.bmat([[alpha * M, None, -S.T], [None, E.T @ W @ E, A], [-S, A, None]]).tocsc()
+    rhs = np.concatenate([np.zeros(system.n_dofs),
+                          E.T @ (W @ np.asarray(problem.observation.data)),
+                          np.zeros(len(free))])
+    return spla.spsolve(kkt, rhs)[:system.n_dofs]
+
+
+def relative_l2(problem, f) -> float:
+    M = problem.parameter_mass.to_scipy()
+    truth = np.asarray(problem.truth)
+    e = f - truth
+    return float(np.sqrt(e @ M @ e / (truth @ M @ truth)))
+
+
+@pytest.fixture(scope="module")
+def mother16():
+    problem = mother_problem(16)
+    optimum = kkt_optimum(problem)
+    return problem, optimum, relative_l2(problem, optimum)
+
+
+def test_reduced_cg_converges_to_the_kkt_optimum(mother16):
+    problem, optimum, optimum_error = mother16
+    result = reduced_cg(problem, refinement=converged(1e-12), iterations=200, rtol=1e-10)
+    assert result.residual_norm <= 1e-10 * result.initial_residual_norm
+    assert np.linalg.norm(result.field - optimum) <= 1e-7 * np.linalg.norm(optimum)
+    assert result.history[-1].parameter_error == pytest.approx(optimum_error, rel=1e-6)
+    # the discretisation error of P1/P1 at n = 16 (4.06e-2; 6.69e-4 at n = 128: O(h^2))
+    assert optimum_error == pytest.approx(4.063e-2, rel=1e-3)
+    # Riesz-preconditioned: cond = (alpha + mu_1) / alpha ~ 2600, far fewer steps than the
+    # 289 unknowns (the data excite few modes)
+    assert result.history[-1].step <= 60
+
+
+def test_mother_solve_reaches_the_discretisation_error_in_one_step(mother16):
+    _, _, optimum_error = mother16
+    solve = solve_mother(16, target=optimum_error)
+    assert solve.error <= optimum_error
+    assert solve.outer_iterations == 1
+    # K0 = 5 primal iterations of the Hessian product (the solve at f = 0 has b = 0), 2 x 5
+    # adjoint ones: the data is the lowest mode, which five Jacobi-PCG iterations resolve
+    assert solve.cg_iterations == 15
+    assert solve.dofs == 17 * 17 and solve.final_K == 5
+    converged_inner = solve_mother(16, target=optimum_error, inner_rtol=1e-10)
+    assert converged_inner.error == pytest.approx(solve.error, rel=0.05)
+    assert converged_inner.cg_iterations > 5 * solve.cg_iterations
+
+
+def test_the_hessian_product_is_the_homogeneous_gradient():
+    """grad J(f + p) - grad J(f) = grad J_0(p): J_0 has no data, reference, Neumann, Dirichlet."""
+    disc = pf.discretize(pf.unit_square(6), element="P1", kappa_space="P0",
+                         dirichlet={"left": 1.0, "bottom": lambda x: x[0]},
+                         neumann={"top": 0.5})
+    state = disc.expand(pf.direct_solve(disc.stiffness_matrix(np.ones(disc.n_kappa)),
+                                        disc.rhs(np.ones(disc.n_kappa))).x)
+    observation = pf.with_noise(pf.full_field(disc, u_true=state), 0.05, seed=3)
+    reference = disc.interpolate(lambda x: 1 + x[1])
+    regularization = pf.regularizer(disc, "source", "h1", reference=reference)
+    problem = pf.inverse_problem(disc, observation, unknown="source", alpha=1e-3,
+                                 regularization=regularization,
+                                 known=disc.interpolate_kappa(lambda x: 1 + x[0]))
+    solver = pf.ConvergedCG(rtol=1e-13)
+
+    @jax.jit  # one compile: the homogeneous problem has the same structure
+    def gradient(which, f):
+        return jax.grad(lambda z: which.loss(z, solver)[0])(f)
+
+    rng = np.random.default_rng(0)
+    f, p = rng.standard_normal((2, problem.n_parameters))
+    difference = gradient(problem, f + p) - gradient(problem, f)
+    np.testing.assert_allclose(gradient(homogeneous(problem), p), difference,
+                               atol=1e-9 * np.abs(difference).max())
+
+
+@pytest.mark.parametrize(("settings", "message"), [
+    (dict(unknown="log_kappa"), "unknown='log_kappa'"),
+    (dict(unknown="source", bounds=(0.0, 1.0)), "bounds=(0.0, 1.0)"),
+    (dict(unknown="source", regularization="tv"), "regularization='tv'"),
+])
+def test_reduced_cg_refuses_objectives_that_are_not_quadratic(settings, message):
+    disc = pf.discretize(pf.unit_square(4), element="P1", kappa_space="P1")
+    observation = pf.full_field(disc, data=np.zeros(disc.n_dofs))
+    problem = pf.inverse_problem(disc, observation, alpha=1e-6, **settings)
+    with pytest.raises(SolverConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        reduced_cg(problem)
+
+
+def test_reduced_cg_stops_at_the_callback_and_counts_what_ran(mother16):
+    problem, _, _ = mother16
+    seen = []
+    result = reduced_cg(problem, refinement=fixed(7), iterations=10,
+                        callback=lambda record, field: seen.append(record.step) or len(seen) == 3)
+    assert seen == [1, 2, 3] and len(result.history) == 3
+    last = result.history[-1]
+    # the restart at f = 0 (b = 0: no primal iterations) then one Hessian product per step
+    assert (last.primal_iterations, last.adjoint_iterations_total) == (3 * 7, 4 * 7)
+    assert last.evaluations == 4 and result.riesz_iterations > 0
+    assert np.all(np.diff(result.history.column("loss")) < 0)
+
+
+@pytest.mark.slow  # a fresh process: the command's test below runs one already
+def test_mother_whole_process_times_a_fresh_process():
+    bench = mother_whole_process(8, repeats=1, target=0.5)
+    assert bench.error <= 0.5 and bench.outer_iterations == 1 and bench.runs == 1
+    phases = bench.import_s + bench.assembly_s + bench.compile_s + bench.solve_s
+    assert bench.start_s > 0 and bench.whole_s == pytest.approx(bench.start_s + phases)
+    assert bench.import_s > 0 and bench.compile_s > 0
+    assert bench.peer is None and bench.goal_met is None and np.isnan(bench.ratio)
+
+
+def test_peer_figures_and_goals_are_the_benchmark_table():
+    assert PEER[256].error == 2.2e-4 and PEER[256].seconds == 6.5 and PEER[256].goal_ratio == 0.5
+    assert PEER[512].error == 7.5e-5 and PEER[512].seconds == 55 and PEER[512].goal_ratio == 0.33
+    check_mother_options([256, 512])  # the peer's sizes need no target
+    with pytest.raises(SolverConfigError, match="--target"):
+        check_mother_options([100])
+
+
+# --------------------------------------------------------------------------------------
+# PRDP saving
+# --------------------------------------------------------------------------------------
+
+
+def test_saving_compares_only_prdp_runs_on_the_reference_problem(tmp_path):
+    small = tmp_path / "small.toml"
+    small.write_text(SMALL_STUDY.replace("STEPS", "5"))
+    assert saving_configurations(load_scene(small)) == ["converged", "prdp"]  # not fixed K=3
+    assert saving_configurations(load_scene("cube")) == ["converged", "prdp"]  # not n = 4
+    assert saving_configurations(load_scene("plate_hole")) == ["converged", "plate_hole"]
+    with pytest.raises(SceneError, match="expected an inverse study"):
+        saving_configurations(load_scene("poisson_h"))
+    no_prdp = tmp_path / "no_prdp.toml"
+    without_prdp_run = SMALL_STUDY.replace("STEPS", "5").split('[[study.runs]]\nname = "prdp"')[0]
+    no_prdp.write_text(without_prdp_run)
+    with pytest.raises(SceneError, match="no PRDP run comparable"):
+        saving_configurations(load_scene(no_prdp))
+
+
+def record(step, error, time, iterations, rtol=0.0):
+    return StepRecord(step=step, iterations=10, adjoint_iterations=10, rtol=rtol, refinements=0,
+                      primal_iterations=iterations, adjoint_iterations_total=iterations,
+                      validation_iterations=0, evaluations=step, time=time, compile_time=1.0,
+                      loss=error, misfit=error, parameter_error=error, state_error=float("nan"))
+
+
+def test_saving_rows_are_the_study_figures():
+    """The study's summary of known histories, read by the benchmark: the BENCHMARKS.md saving."""
+    scene = load_scene("mother")
+    converged_run = History(record(k, e, 2.0 * k, 100 * k, rtol=1e-10)
+                            for k, e in enumerate([0.5, 0.2, 0.1, 0.1], start=1))
+    # in the 1 % band from step 3 (0.1005), out of it at step 2 (0.15): reached at step 3
+    reaching = History(record(k, e, 0.1 * k, 5 * k)
+                       for k, e in enumerate([0.4, 0.15, 0.1005, 0.0995], start=1))
+    passing = History(record(k, e, 0.1 * k, 5 * k)
+                      for k, e in enumerate([0.4, 0.1, 0.2, 0.3], start=1))
+    # ends 5 % more accurate than the converged run: never in the +-1 % band, but below it
+    better = History(record(k, e, 0.1 * k, 5 * k)
+                     for k, e in enumerate([0.4, 0.2, 0.0999, 0.095], start=1))
+    histories = {"converged": converged_run, "prdp": reaching, "prdp passing": passing,
+                 "prdp better": better}
+    summary = study._inverse_summary(scene, histories, "parameter_error")
+    reached, passed, below = saving_rows("mother", "converged", summary, histories)
+    assert (reached.run, reached.reached_step, reached.below_step) == ("prdp", 3, 3)
+    assert reached.converged_s == 8.0 and reached.converged_iterations == 800
+    assert reached.time_saving == pytest.approx(1 - 0.3 / 8.0)
+    assert reached.iteration_saving == pytest.approx(1 - 30 / 800)
+    assert reached.below_time_saving == reached.time_saving
+    assert reached.error_difference == pytest.approx(-0.005)
+    assert reached.goal_met and reached.goal_met_at_or_below
+    assert passed.reached_step is None and np.isnan(passed.time_saving)  # only passed through
+    assert passed.below_step is None and np.isnan(passed.below_time_saving)
+    assert passed.error_difference == pytest.approx(2.0) and not passed.goal_met
+    assert not passed.goal_met_at_or_below
+    assert below.reached_step is None and below.below_step == 3
+    assert below.below_iteration_saving == pytest.approx(1 - 30 / 800)
+    assert below.error_difference == pytest.approx(-0.05)
+    assert not below.goal_met and below.goal_met_at_or_below
+
+
+@pytest.mark.slow  # two inversions compiled and a study's figures (about 15 s)
+def test_saving_rows_are_the_study_summary(tmp_path):
+    scene_file = tmp_path / "small.toml"  # no [[study.runs]]: converged + the scene's own PRDP
+    scene_file.write_text(SMALL_STUDY.replace("STEPS", "12").split("[[study.runs]]")[0])
+    scene = load_scene(scene_file)
+    [row] = prdp_saving(scene, out=tmp_path / "study")
+    with open(tmp_path / "study" / "summary.csv") as stream:
+        summary = {r["run"]: r for r in csv.DictReader(stream)}
+    assert set(summary) == {"converged", "small"}
+    base, prdp_row = summary["converged"], summary["small"]
+    assert row.run == "small" and row.converged_iterations == int(base["cg_iterations"])
+    assert row.prdp_iterations == int(prdp_row["cg_iterations"])
+    assert row.converged_error == pytest.approx(float(base["final_error"]), rel=1e-12)
+    assert row.error_difference == pytest.approx(
+        float(prdp_row["final_error"]) / float(base["final_error"]) - 1, rel=1e-9)
+    if prdp_row["reached_step"]:
+        assert row.reached_step == int(prdp_row["reached_step"])
+        assert row.iteration_saving == pytest.approx(
+            1 - float(prdp_row["iterations_to_target"]) / int(base["cg_iterations"]))
+        assert row.iteration_saving == pytest.approx(float(prdp_row["iteration_saving"]))
+    else:
+        assert row.reached_step is None and np.isnan(row.time_saving)
+    history = study.inverse_histories(scene, tmp_path / "study")["small"]
+    assert row.below_step == next(
+        r.step for r in history if all(later.parameter_error <= 1.01 * row.converged_error
+                                       for later in history[r.step - 1:]))
+    assert row.goal_met == (row.time_saving >= 0.8 and abs(row.error_difference) <= 0.01)
+
+
+def test_saving_goal_needs_both_the_time_and_the_error():
+    from prdp_fem.bench_inverse import SavingRow
+
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
+    assert row.goal_met and row.goal_met_at_or_below
+    assert not row._replace(prdp_error=1.02).goal_met
+    assert not row._replace(prdp_error=1.02).goal_met_at_or_below
+    assert not row._replace(prdp_error=0.95).goal_met  # 5 % better is outside the band ...
+    assert row._replace(prdp_error=0.95).goal_met_at_or_below  # ... and has reached e*
+    assert not row._replace(time_saving=0.79).goal_met
+    assert not row._replace(below_time_saving=0.79).goal_met_at_or_below
+    assert not row._replace(time_saving=float("nan"), reached_step=None).goal_met
+
+
+# --------------------------------------------------------------------------------------
+# the commands: bad options are one line and exit 2, before anything runs
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["bench", "mother", "--sizes", "1"], "--sizes 1: expected integers >= 2"),
+    (["bench", "mother", "--repeats", "0"], "--repeats 0: expected an integer >= 1"),
+    (["bench", "mother", "--iterations", "0"], "--iterations 0: expected an integer >= 1"),
+    (["bench", "mother", "--inner-rtol", "2"], "--inner-rtol 2.0: expected a number in (0, 1)"),
+    (["bench", "mother", "--preconditioner", "amg"], "--preconditioner 'amg': expected one of"),
+    (["bench", "mother", "--sizes", "100"], "--sizes 100: no peer error known"),
+    (["bench", "mother", "--sizes", "16", "--target", "0"], "--target 0.0: expected"),
+    (["bench", "prdp", "--scene", "poisson_h"], "expected an inverse study"),
+    (["bench", "prdp", "--scene", "torus"], "scene 'torus': expected"),
+    (["bench", "prdp", "--steps", "0"], "--steps 0: expected an integer >= 1"),
+    (["bench", "prdp", "--scene", "mother", "poisson_h"], "expected an inverse study"),
+])
+def test_bench_bad_options_are_one_line_and_exit_2(argv, message, capsys):
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""  # refused before the table header, before anything ran
+    assert captured.err.count("\n") == 1
+    assert captured.err.startswith("prdp-fem: error: ") and message in captured.err
+
+
+def test_bench_mother_prints_one_row_per_size(capsys):
+    assert main(["bench", "mother", "--sizes", "8", "--target", "0.5", "--repeats", "1"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("reduced-Hessian CG, inner jacobi-PCG: PRDP K0 = dK = 5")
+    row = lines[2].split()
+    assert row[:2] == ["8", "81"] and float(row[3]) <= 0.5 and row[-1] == "-"
+    start, imports, assembly, compile_, solve, whole = map(float, row[6:12])
+    assert min(start, imports, compile_) > 0  # whole = the phases + the rest, 2 decimals
+    assert whole == pytest.approx(start + imports + assembly + compile_ + solve, abs=0.03)
