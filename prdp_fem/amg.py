@@ -377,7 +377,7 @@ def _sparse(matrix):
     """The product kernel of a host matrix (explicit zeros dropped)."""
     csr = sp.csr_matrix(matrix, dtype=float)
     csr.eliminate_zeros()
-    return prepare(SparseMatrix.from_scipy(csr))
+    return prepare(SparseMatrix.from_scipy(csr).with_layout())  # P and R too: applied often
 
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:

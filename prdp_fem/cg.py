@@ -597,7 +597,7 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool | int) -
     # derivative of the last moving Krylov iterate, which lags the exact one (the CG
     # polynomial is small on the spectrum, its slope is not): differentiate implicitly there
     converged = jax.lax.stop_gradient(~_active(state) & ~state.broken)
-    x = jax.lax.cond(converged, lambda: _solution_map(matrix, precond, b, iterations),
+    x = jax.lax.cond(converged, lambda: _solution_map(matrix, krylov, b, iterations),
                      lambda: x)
     return Solution(x, jnp.sum(moved).astype(jnp.int32), history[-1],
                     jax.lax.stop_gradient(start.r0_norm), history,
@@ -648,14 +648,14 @@ def _scan_iterations(body, state, iterations: int, segment: int | None):
     return state, outputs
 
 
-def _solution_map(matrix, precond, b, max_iterations: int) -> jax.Array:
+def _solution_map(matrix, krylov: _Krylov, b, max_iterations: int) -> jax.Array:
     """``A^+ b`` by PCG to round-off, with exact implicit derivatives in both modes.
 
-    ``lax.custom_linear_solve`` differentiates ``x = A^{-1} b`` through ``A``'s matvec and
-    solves the tangent/adjoint systems with the same (symmetric) solver.
+    ``lax.custom_linear_solve`` differentiates ``x = A^{-1} b`` through ``A``'s product and
+    solves the tangent/adjoint systems with the same (symmetric) solver: the forward sweep's
+    prepared system, held constant.
     """
-    constant = jax.tree_util.tree_map(jax.lax.stop_gradient, (matrix, precond))
-    krylov = _krylov(*constant)
+    krylov = jax.tree_util.tree_map(jax.lax.stop_gradient, krylov)
     no_tolerance = jnp.zeros(2, b.dtype)
 
     def pcg(_, rhs):

@@ -13,8 +13,9 @@ applies in one go.
 
 Kernels
 -------
-``EllMatrix`` (matrices built by :meth:`SparseMatrix.from_coo` / :meth:`from_scipy`, which
-attach an :class:`EllLayout`): the diagonal as a vector (square matrices) and the other entries
+``EllMatrix`` (square matrices built by :meth:`SparseMatrix.from_coo` / :meth:`from_scipy`,
+which attach an :class:`EllLayout`, and any matrix given one by
+:meth:`SparseMatrix.with_layout`): the diagonal as a vector (square matrices) and the other entries
 in slot-major ELLPACK form ``(w, n)`` (row ``i`` of slot ``k`` holds its ``k``-th off-diagonal
 entry), so that
 
@@ -28,8 +29,8 @@ Measured on 2 CPU cores against one SciPy CSR SpMV of the 2-D P1 Laplacian:
 loop on both cores). ELL slot-major is also the coalesced layout on GPUs, so it is used on
 every backend.
 
-``CooMatrix`` (no layout: a matrix built inside ``jit`` from traced indices, or by the
-constructor): gather, multiply, sorted segment sum.
+``CooMatrix`` (no layout: rectangular matrices by default, a matrix built inside ``jit`` from
+traced indices, or by the constructor): gather, multiply, sorted segment sum.
 
 >>> import numpy as np, scipy.sparse as sp
 >>> from prdp_fem.operator import SparseMatrix, matvec
@@ -170,9 +171,18 @@ class SparseMatrix:
         return dataclasses.replace(self, values=values)
 
     def with_layout(self) -> SparseMatrix:
-        """The same matrix with its ELL layout attached (needs concrete, row-sorted indices)."""
+        """The same matrix with its ELL layout attached (needs concrete, row-sorted indices).
+
+        The constructors attach it to square matrices (operators, applied many times); a
+        rectangular one applied many times (an AMG transfer operator) asks for it here. A
+        one-off rectangular product (the assembly map ``G @ kappa``) is cheaper to *compile*
+        as a segment sum: the backward pass of each ELL slot's gather is a scatter.
+        """
         return dataclasses.replace(self, layout=ell_layout(
             np.asarray(self.rows), np.asarray(self.cols), *self.shape))
+
+    def _with_square_layout(self) -> SparseMatrix:
+        return self.with_layout() if self.shape[0] == self.shape[1] else self
 
     def astype(self, dtype) -> SparseMatrix:
         """The values in another precision (``solve`` then runs in it: e.g. float32, whose
@@ -187,7 +197,7 @@ class SparseMatrix:
         return cls(jnp.asarray(rows[order], dtype=jnp.int32),
                    jnp.asarray(cols[order], dtype=jnp.int32),
                    jnp.asarray(values, dtype=float)[order],
-                   (int(shape[0]), int(shape[1]))).with_layout()
+                   (int(shape[0]), int(shape[1])))._with_square_layout()
 
     @classmethod
     def from_scipy(cls, matrix: sp.spmatrix | sp.sparray) -> SparseMatrix:
@@ -196,7 +206,7 @@ class SparseMatrix:
         coo = csr.tocoo()  # from a canonical CSR: sorted by row, then column
         return cls(jnp.asarray(coo.row, dtype=jnp.int32), jnp.asarray(coo.col, dtype=jnp.int32),
                    jnp.asarray(coo.data, dtype=float),
-                   tuple(int(s) for s in csr.shape)).with_layout()
+                   tuple(int(s) for s in csr.shape))._with_square_layout()
 
     def to_scipy(self) -> sp.csr_matrix:
         return sp.csr_matrix(
