@@ -46,6 +46,7 @@ def _converged_error(problem, steps):
     return invert(problem, refinement=converged(1e-10), steps=steps).history[-1].parameter_error
 
 
+@pytest.mark.slow  # 20 s; the table rows and bench mother's tests pin the example by default
 def test_source_recovery_matches_the_peer_at_n128():
     source = load("source_recovery")
     _, problem = source.build(128)

@@ -276,6 +276,7 @@ def test_morozov_needs_a_noise_level():
         morozov(problem)
 
 
+@pytest.mark.slow  # 21 s; Morozov's choice is the default suite's parameter-choice test
 def test_l_curve_corner_is_interior_and_near_the_best_alpha():
     _, problem = _coefficient_problem(n=12, noise=0.02, alpha=1.0)
     alphas = np.logspace(-10, -3, 8)

@@ -63,6 +63,7 @@ def test_inverse_study_records_every_step_and_matches_the_scripting_api(tiny, tm
     assert len(result.figures) == 4
 
 
+@pytest.mark.slow  # 22 s; the kill -9 / --resume subprocess test covers resuming by default
 def test_resume_skips_finished_runs_and_ignores_unfinished_attempts(tiny, tmp_path,
                                                                     monkeypatch):
     out = tmp_path / "out"
