@@ -462,13 +462,9 @@ class _Krylov:
     precond: Any  # None: identity
     scale: jax.Array | None
 
-    def inner(self, vector: jax.Array) -> jax.Array:
-        """``S v`` (a right-hand side or residual into the scaled system)."""
+    def scaled(self, vector: jax.Array) -> jax.Array:
+        """``S v``: a right-hand side or residual into the scaled system, an iterate out of it."""
         return vector if self.scale is None else self.scale * vector
-
-    def outer(self, vector: jax.Array) -> jax.Array:
-        """``S y`` (a scaled iterate back to ``x``)."""
-        return self.inner(vector)
 
     def residual_norm(self, r: jax.Array) -> jax.Array:
         """``||S^{-1} r||_2``: the norm of the residual of ``A x = b``."""
@@ -522,7 +518,7 @@ def _init(krylov: _Krylov, b, x0) -> _Start:
     (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides.
     """
     y0 = x0 if krylov.scale is None else x0 / krylov.scale
-    r0 = krylov.inner(b) - krylov.operator(y0)
+    r0 = krylov.scaled(b) - krylov.operator(y0)
     if isinstance(krylov.precond, _Projected):  # round-off or a cotangent may leave a v part
         r0 = krylov.precond.project(r0)
     r0_scale = _norm(r0)
@@ -537,7 +533,7 @@ def _init(krylov: _Krylov, b, x0) -> _Start:
 
 def _solution(krylov: _Krylov, start: _Start, d: jax.Array) -> jax.Array:
     # x0 + S (r0_scale d), not S (y0 + ...): K = 0 returns x0 bit for bit
-    return start.x0 + krylov.outer(start.r0_scale * d)
+    return start.x0 + krylov.scaled(start.r0_scale * d)
 
 
 def _norm(v: jax.Array) -> jax.Array:

@@ -121,17 +121,17 @@ def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
 
 
 def _ell_width(counts: np.ndarray) -> int:
+    """The width ``w`` minimising ``n w + 4 spilled(w) + n [spilled(w) > 0]``."""
     if counts.size == 0 or counts.max() == 0:
         return 0
     # spilled(w) = sum over rows with c > w of (c - w), for every w at once from the histogram
     histogram = np.bincount(counts)
-    above = lambda weights: np.cumsum(weights[::-1])[::-1][1:]  # noqa: E731  (sum over c > w)
-    widths = np.arange(histogram.size - 1)
-    spilled = np.append(above(histogram * np.arange(histogram.size)) - widths * above(histogram),
-                        0)
-    widths = np.arange(histogram.size)
-    cost = counts.size * widths + _OVERFLOW_COST * spilled + counts.size * (spilled > 0)
-    return int(widths[np.argmin(cost)])
+    lengths = np.arange(histogram.size)
+    rows_longer = np.cumsum(histogram[::-1])[::-1] - histogram  # rows with c > w
+    entries_longer = np.cumsum((histogram * lengths)[::-1])[::-1] - histogram * lengths
+    spilled = entries_longer - lengths * rows_longer
+    cost = counts.size * lengths + _OVERFLOW_COST * spilled + counts.size * (spilled > 0)
+    return int(np.argmin(cost))
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values", "layout"],
