@@ -27,9 +27,10 @@ from skfem.models.poisson import laplace
 from .cg import TruncatedCG, solve
 from .errors import SolverConfigError
 from .generators import unit_cube, unit_square
-from .operator import SparseMatrix
+from .operator import KERNELS, SparseMatrix, default_kernel, prepare
 
-__all__ = ["CGIterationCost", "cg_iteration_cost", "poisson_operator", "scaling_slope"]
+__all__ = ["CGIterationCost", "DeviceIterationCost", "cg_iteration_cost",
+           "device_iteration_cost", "poisson_operator", "scaling_slope"]
 
 
 class CGIterationCost(NamedTuple):
@@ -101,6 +102,67 @@ def cg_iteration_cost(n_side: int, *, dim: int = 2, iterations: int = 100,
     return CGIterationCost(csr.shape[0], csr.nnz, median(spmv), median(ell_it),
                            median(ell_ratio), median(coo_it), median(coo_ratio),
                            max(first - median(steady), 0.0))
+
+
+class DeviceIterationCost(NamedTuple):
+    """One size on an accelerator: each kernel's PCG iteration against the vendor SpMV."""
+
+    n_dofs: int
+    nnz: int
+    spmv_s: float  # median device SpMV through the CSR kernel (cuSPARSE on NVIDIA GPUs)
+    iteration_s: float  # median PCG iteration, the backend's default kernel
+    ratio: float  # iteration_s / spmv_s
+    kernel_s: dict  # kernel name -> median PCG iteration time
+    compile_s: float  # as in CGIterationCost, default kernel
+
+
+def device_iteration_cost(n_side: int, *, dim: int = 2, iterations: int = 100,
+                          repeats: int = 7) -> DeviceIterationCost:
+    """:func:`cg_iteration_cost` for an accelerator (JAX's default backend), where SciPy's
+    host SpMV is no reference: the reference is the device's own CSR SpMV (``csr_matvec``,
+    cuSPARSE on NVIDIA GPUs) in a jitted loop, and every kernel of :data:`KERNELS` runs the
+    same Jacobi-PCG. Times are ``(t_K - t_0) / K`` medians over interleaved repeats."""
+    _check_counts(n_side=n_side, iterations=iterations, repeats=repeats)
+    base, b = poisson_operator(n_side, dim)
+    b = jnp.asarray(b)
+    csr = prepare(base.with_kernel("csr"))
+    # y <- A y / ||A||_inf stays bounded (no overflow, no denormals over K products)
+    shrink = 1.0 / float(np.abs(base.to_scipy()).sum(axis=1).max())
+
+    @jax.jit
+    def spmv_loop(kernel, y, k):
+        return jax.lax.fori_loop(0, k, lambda _, y: kernel(y) * shrink, y)
+
+    @jax.jit
+    def run(op, b, k):
+        return solve(op, b, TruncatedCG(k, gradient="implicit")).x
+
+    def timed(call, *args) -> float:
+        tic = time.perf_counter()
+        jax.block_until_ready(call(*args))
+        return time.perf_counter() - tic
+
+    def per_iteration(call, operand) -> float:
+        return max(timed(call, operand, b, iterations) - timed(call, operand, b, 0), 0.0) \
+            / iterations
+
+    chosen = default_kernel()
+    matrices = {name: base.with_kernel(name) for name in KERNELS}
+    first = timed(run, matrices[chosen], b, iterations)
+    for name in KERNELS:
+        timed(run, matrices[name], b, iterations)  # compile
+    timed(spmv_loop, csr, b, iterations)
+    spmv, kernel_s, steady = [], {name: [] for name in KERNELS}, []
+    for _ in range(repeats):
+        spmv.append(per_iteration(spmv_loop, csr))
+        for name in KERNELS:
+            kernel_s[name].append(per_iteration(run, matrices[name]))
+        steady.append(timed(run, matrices[chosen], b, iterations))
+    median = lambda values: float(np.median(values))  # noqa: E731
+    medians = {name: median(values) for name, values in kernel_s.items()}
+    return DeviceIterationCost(base.shape[0], base.nnz, median(spmv), medians[chosen],
+                               medians[chosen] / max(median(spmv), 1e-30), medians,
+                               max(first - median(steady), 0.0))
 
 
 def scaling_slope(costs: list[CGIterationCost]) -> float:

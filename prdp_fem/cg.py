@@ -727,33 +727,34 @@ def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond, rtol
     pattern = (matrix.rows, matrix.cols, matrix.layout)
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
                          jnp.asarray(adjoint_iterations, jnp.int32), pattern, precond,
-                         tolerances, matrix.shape, history_size, track_norm, counter)
+                         tolerances, (matrix.shape, matrix.kernel), history_size, track_norm,
+                         counter)
     diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
     return Solution(sol.x, *diagnostics)
 
 
-def _pattern_matrix(values, pattern, shape) -> SparseMatrix:
-    rows, cols, layout = pattern
-    return SparseMatrix(rows, cols, values, shape, layout)
+def _pattern_matrix(values, pattern, form) -> SparseMatrix:
+    (rows, cols, layout), (shape, kernel) = pattern, form  # form: static (shape, kernel)
+    return SparseMatrix(rows, cols, values, shape, layout, kernel)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(8, 9, 10, 11))
 def _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
-                   shape, history_size, track_norm, counter):
-    krylov = _krylov(_pattern_matrix(values, pattern, shape), precond)
+                   form, history_size, track_norm, counter):
+    krylov = _krylov(_pattern_matrix(values, pattern, form), precond)
     return _while_solve(krylov, b, x0, iterations, tolerances, history_size,
                         track_norm=track_norm)
 
 
 def _implicit_fwd(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
-                  shape, history_size, track_norm, counter):
-    krylov = _krylov(_pattern_matrix(values, pattern, shape), precond)
+                  form, history_size, track_norm, counter):
+    krylov = _krylov(_pattern_matrix(values, pattern, form), precond)
     sol = _while_solve(krylov, b, x0, iterations, tolerances, history_size,
                        track_norm=track_norm)
     return sol, (krylov, sol.x, adjoint_iterations, pattern, precond, tolerances)
 
 
-def _implicit_bwd(shape, history_size, track_norm, counter, residuals, cotangent: Solution):
+def _implicit_bwd(form, history_size, track_norm, counter, residuals, cotangent: Solution):
     krylov, x, adjoint_iterations, pattern, precond, tolerances = residuals
     rows, cols, _ = pattern
     # A is symmetric: the adjoint system is A lambda = x_bar, solved the same (truncated) way

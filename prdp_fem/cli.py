@@ -423,6 +423,10 @@ def _bench_cg(args) -> None:
         if any(v < minimum for v in values):
             shown = " ".join(map(str, values))
             raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return _bench_cg_device(args, sides)
     print(f"P1 Laplacian, {args.dim}-D; Jacobi-PCG iteration inside the jitted loop / one SciPy "
           f"CSR SpMV (median of {args.repeats} interleaved repeats)")
     print(f"{'dofs':>9} {'nnz':>9} {'SpMV [ms]':>10} {'PCG it [ms]':>12} {'ratio':>7} "
@@ -436,6 +440,32 @@ def _bench_cg(args) -> None:
               f"{1e3 * cost.iteration_s:>12.3f} {cost.ratio:>7.2f} "
               f"{1e3 * cost.coo_iteration_s:>12.3f} {cost.coo_ratio:>10.2f} "
               f"{cost.compile_s:>12.2f}", flush=True)
+    if len({c.n_dofs for c in costs}) > 1:
+        print(f"log-log slope of the PCG iteration time against dofs: "
+              f"{scaling_slope(costs):.2f}")
+
+
+def _bench_cg_device(args, sides: list[int]) -> None:
+    import jax
+
+    from .bench import device_iteration_cost, scaling_slope
+    from .operator import KERNELS, default_kernel
+
+    device = jax.devices()[0].device_kind
+    print(f"P1 Laplacian, {args.dim}-D, on {device}; Jacobi-PCG iteration inside the jitted "
+          f"loop per kernel / one device CSR SpMV (median of {args.repeats} interleaved "
+          f"repeats); default kernel: {default_kernel()}")
+    print(f"{'dofs':>9} {'nnz':>9} {'SpMV [us]':>10} "
+          + " ".join(f"{name + ' it [us]':>12}" for name in KERNELS)
+          + f" {'ratio':>7} {'compile [s]':>12}")
+    costs = []
+    for side in sides:
+        cost = device_iteration_cost(side, dim=args.dim, iterations=args.iterations,
+                                     repeats=args.repeats)
+        costs.append(cost)
+        print(f"{cost.n_dofs:>9} {cost.nnz:>9} {1e6 * cost.spmv_s:>10.1f} "
+              + " ".join(f"{1e6 * cost.kernel_s[name]:>12.1f}" for name in KERNELS)
+              + f" {cost.ratio:>7.2f} {cost.compile_s:>12.2f}", flush=True)
     if len({c.n_dofs for c in costs}) > 1:
         print(f"log-log slope of the PCG iteration time against dofs: "
               f"{scaling_slope(costs):.2f}")

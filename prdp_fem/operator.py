@@ -50,8 +50,11 @@ import numpy as np
 import scipy.sparse as sp
 from jax.experimental import sparse as jsparse
 
-__all__ = ["CooMatrix", "EllLayout", "EllMatrix", "SparseMatrix", "diagonal", "ell_layout",
-           "matvec", "prepare", "rmatvec"]
+__all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "SparseMatrix",
+           "default_kernel", "diagonal", "ell_layout", "matvec", "prepare", "rmatvec"]
+
+# the product kernels prepare() can build (see the module docstring)
+KERNELS = ("ell", "coo", "csr")
 
 # a COO-tail entry costs about this many ELL slots (a scatter-add against a streamed gather)
 _OVERFLOW_COST = 4
@@ -135,7 +138,7 @@ def _ell_width(counts: np.ndarray) -> int:
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values", "layout"],
-         meta_fields=["shape"])
+         meta_fields=["shape", "kernel"])
 @dataclasses.dataclass(frozen=True)
 class SparseMatrix:
     """COO matrix with entries sorted by row (duplicates allowed; they add up).
@@ -154,6 +157,9 @@ class SparseMatrix:
         ``(n_rows, n_cols)``, static.
     layout
         :class:`EllLayout` of the pattern, or ``None`` (the COO kernel is used).
+    kernel
+        ``None`` (:func:`prepare` chooses by backend) or one of :data:`KERNELS`, static:
+        benchmarks compare kernels with it (:meth:`with_kernel`).
     """
 
     rows: jax.Array
@@ -161,6 +167,7 @@ class SparseMatrix:
     values: jax.Array
     shape: tuple[int, int]
     layout: EllLayout | None = None
+    kernel: str | None = None
 
     @property
     def nnz(self) -> int:
@@ -180,6 +187,16 @@ class SparseMatrix:
         """
         return dataclasses.replace(self, layout=ell_layout(
             np.asarray(self.rows), np.asarray(self.cols), *self.shape))
+
+    def with_kernel(self, kernel: str | None) -> SparseMatrix:
+        """The same matrix, applied by ``kernel`` (one of :data:`KERNELS`; ``None``: chosen by
+        backend). ``"ell"`` needs a layout."""
+        if kernel is not None and kernel not in KERNELS:
+            raise ValueError(f"kernel={kernel!r}: expected None or one of {KERNELS}")
+        if kernel == "ell" and self.layout is None:
+            raise ValueError("kernel='ell' needs an ELL layout: build the matrix with "
+                             "from_scipy / from_coo, or call with_layout() first")
+        return dataclasses.replace(self, kernel=kernel)
 
     def _with_square_layout(self) -> SparseMatrix:
         return self.with_layout() if self.shape[0] == self.shape[1] else self
@@ -304,14 +321,57 @@ class CooMatrix:
                                    * scale[self.cols])
 
 
-def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix:
+@partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "indptr", "values"],
+         meta_fields=["shape"])
+@dataclasses.dataclass(frozen=True)
+class CsrMatrix:
+    """Row-sorted CSR through ``jax.experimental.sparse.csr_matvec``: cuSPARSE's SpMV on
+    NVIDIA GPUs (the vendor path), a segment sum elsewhere. JAX gives the call no batching
+    rule, so it does not ``vmap``: it is a benchmark's comparison, never the default."""
+
+    rows: jax.Array  # for scaled()
+    cols: jax.Array
+    indptr: jax.Array
+    values: jax.Array
+    shape: tuple[int, int]
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        csr = jsparse.CSR((self.values, self.cols, self.indptr), shape=self.shape)
+        return jsparse.csr_matvec(csr, jnp.asarray(x, self.values.dtype))
+
+    def scaled(self, scale: jax.Array) -> CsrMatrix:
+        """``S A S`` with ``S = diag(scale)`` (square matrices)."""
+        return dataclasses.replace(self, values=self.values * scale[self.rows]
+                                   * scale[self.cols])
+
+
+def default_kernel(backend: str | None = None) -> str:
+    """The kernel of a matrix with an ELL layout on ``backend`` (default: JAX's default).
+
+    ELL on CPU (one fused gather loop; measured against COO in ``prdp-fem bench cg``) and on
+    GPU (coalesced slot-major loads; measured against cuSPARSE's CSR SpMV and the COO
+    segment sum on an H100, see the README's Performance section).
+    """
+    backend = jax.default_backend() if backend is None else backend
+    return {"cpu": "ell"}.get(backend, "ell")
+
+
+def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
     """The product kernel of ``matrix``: the one place where the kernel is chosen.
 
-    ELL when the matrix carries a layout (any backend), else COO. Differentiable in the
-    values (a gather of them); prepare once per solve, not per product.
+    ``matrix.kernel`` when set; else :func:`default_kernel` of the backend when the matrix
+    carries a layout, and COO when it does not. Differentiable in the values (a gather of
+    them); prepare once per solve, not per product.
     """
-    if matrix.layout is None:
+    kernel = matrix.kernel
+    if kernel is None:
+        kernel = "coo" if matrix.layout is None else default_kernel()
+    if kernel == "coo" or (kernel == "ell" and matrix.layout is None):
         return CooMatrix(matrix.rows, matrix.cols, matrix.values, matrix.shape[0])
+    if kernel == "csr":
+        indptr = jnp.searchsorted(matrix.rows, jnp.arange(matrix.shape[0] + 1),
+                                  side="left").astype(matrix.rows.dtype)
+        return CsrMatrix(matrix.rows, matrix.cols, indptr, matrix.values, matrix.shape)
     layout = matrix.layout
     padded = jnp.concatenate([matrix.values, jnp.zeros((1,), matrix.values.dtype)])
     return EllMatrix(padded[layout.diagonal], padded[layout.slots], layout.columns,
