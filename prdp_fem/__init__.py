@@ -63,7 +63,18 @@ from .history import History, StepRecord
 from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
-from .operator import CooMatrix, EllMatrix, SparseMatrix, diagonal, matvec, prepare, rmatvec
+from .operator import (
+    KERNELS,
+    CooMatrix,
+    CsrMatrix,
+    EllMatrix,
+    SparseMatrix,
+    default_kernel,
+    diagonal,
+    matvec,
+    prepare,
+    rmatvec,
+)
 from .parameter_choice import AlphaChoice, l_curve, morozov
 from .parameters import Parameterization
 
@@ -89,6 +100,7 @@ from .taylor import TaylorResult, taylor_test
 enable_compilation_cache(_cache_directory())  # before anything compiles
 
 __all__ = [
+    "KERNELS",
     "AMGCost",
     "AMGCycle",
     "AlphaChoice",
@@ -96,6 +108,7 @@ __all__ = [
     "ComparisonRow",
     "ConvergedCG",
     "CooMatrix",
+    "CsrMatrix",
     "DataError",
     "DegenerateCellError",
     "Discretization",
@@ -150,6 +163,7 @@ __all__ = [
     "amg_solve",
     "boundary_values",
     "compare",
+    "default_kernel",
     "diagonal",
     "direct_solve",
     "discretize",

@@ -129,6 +129,10 @@ def _parser() -> argparse.ArgumentParser:
     cg.add_argument("--sides", type=int, nargs="+", default=None,
                     help="cells per side ((n-1)^dim dofs); default 2-D: 128 256 512 1024 "
                     "(16k .. 1M dofs), 3-D: 32 48 64 80 (30k .. 493k)")
+    cg.add_argument("--reference", choices=("auto", "scipy", "device"), default="auto",
+                    help="the SpMV an iteration is compared with: SciPy's CSR on the host, or "
+                    "the device's CSR SpMV timing every kernel (auto: device on an "
+                    "accelerator)")
     cg.add_argument("--iterations", type=int, default=100)
     cg.add_argument("--repeats", type=int, default=7)
     memory = bench_sub.add_parser(
@@ -425,7 +429,8 @@ def _bench_cg(args) -> None:
             raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
     import jax
 
-    if jax.default_backend() != "cpu":
+    if args.reference == "device" or (args.reference == "auto"
+                                      and jax.default_backend() != "cpu"):
         return _bench_cg_device(args, sides)
     print(f"P1 Laplacian, {args.dim}-D; Jacobi-PCG iteration inside the jitted loop / one SciPy "
           f"CSR SpMV (median of {args.repeats} interleaved repeats)")

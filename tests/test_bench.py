@@ -10,7 +10,13 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 import prdp_fem as pf
-from prdp_fem.bench import CGIterationCost, cg_iteration_cost, poisson_operator, scaling_slope
+from prdp_fem.bench import (
+    CGIterationCost,
+    cg_iteration_cost,
+    device_iteration_cost,
+    poisson_operator,
+    scaling_slope,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
@@ -49,3 +55,26 @@ def test_bench_cg_prints_one_row_per_size_and_the_slope():
     assert [int(row[0]) for row in rows] == [49, 121]
     assert all(len(row) == 8 and all(math.isfinite(float(v)) for v in row) for row in rows)
     assert "log-log slope" in out.splitlines()[-1]
+
+
+def test_device_cost_times_every_kernel_against_the_csr_spmv():
+    """The accelerator table's numbers (run here on the host backend): one time per kernel,
+    the ratio is the default kernel's time over the reference SpMV's."""
+    cost = device_iteration_cost(9, iterations=3, repeats=1)
+    assert cost.n_dofs == 64 and set(cost.kernel_s) == set(pf.KERNELS)
+    assert cost.iteration_s == cost.kernel_s[pf.default_kernel()]
+    assert math.isclose(cost.ratio, cost.iteration_s / cost.spmv_s, rel_tol=1e-12)
+    assert all(t >= 0 and math.isfinite(t) for t in (*cost.kernel_s.values(), cost.spmv_s))
+
+
+def test_bench_cg_device_reference_prints_one_column_per_kernel():
+    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli", "bench", "cg", "--sides", "8",
+                          "--iterations", "2", "--repeats", "1", "--reference", "device"],
+                         env=ENV, capture_output=True, text=True, timeout=300,
+                         check=True).stdout
+    header = next(line for line in out.splitlines() if line.split()[:1] == ["dofs"])
+    assert [f"{k}" for k in pf.KERNELS] == [w for w in header.split() if w in pf.KERNELS]
+    rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
+    assert len(rows) == 1 and int(rows[0][0]) == 49
+    assert len(rows[0]) == 3 + len(pf.KERNELS) + 2
+    assert all(math.isfinite(float(v)) for v in rows[0])

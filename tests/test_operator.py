@@ -124,15 +124,17 @@ def test_ell_and_coo_kernels_agree_in_value_jvp_and_vjp(random_spd, matrix):
     matrix = random_spd if matrix == "random" else _star(40)
     ell = pf.SparseMatrix.from_scipy(matrix)
     coo = pf.SparseMatrix(ell.rows, ell.cols, ell.values, ell.shape)
+    csr = ell.with_kernel("csr")
     assert isinstance(pf.prepare(ell), pf.EllMatrix) and isinstance(pf.prepare(coo),
                                                                      pf.CooMatrix)
+    assert isinstance(pf.prepare(csr), pf.CsrMatrix)
     rng = np.random.default_rng(1)
     x, dx, dv, y = (rng.normal(size=s) for s in (40, 40, ell.nnz, 40))
 
     def product(A):
         return lambda values, x: pf.matvec(A.with_values(values), x)
 
-    for A in (ell, coo):
+    for A in (ell, coo, csr):
         value, tangent = jax.jvp(product(A), (A.values, x), (dv, dx))
         np.testing.assert_allclose(value, matrix @ x, rtol=1e-12)
         np.testing.assert_allclose(tangent, A.with_values(dv).to_scipy() @ x + matrix @ dx,
@@ -153,7 +155,7 @@ def test_scaled_kernel_is_S_A_S(n, nnz, seed):
     s, x = rng.uniform(0.5, 2.0, n), rng.normal(size=n)
     scaled = sp.diags(s) @ reference @ sp.diags(s)
     coo = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
-    for kernel in (pf.prepare(A), pf.prepare(coo)):
+    for kernel in (pf.prepare(A), pf.prepare(coo), pf.prepare(A.with_kernel("csr"))):
         np.testing.assert_allclose(kernel.scaled(jnp.asarray(s))(x), scaled @ x, atol=1e-12)
 
 
@@ -181,3 +183,40 @@ def test_wide_rows_past_the_unrolled_slots_multiply_and_differentiate_right():
     np.testing.assert_allclose(tangent, matrix @ dx, rtol=1e-12)
     values_bar = jax.grad(lambda v: y @ pf.matvec(A.with_values(v), x))(A.values)
     np.testing.assert_allclose(values_bar, y[A.rows] * x[A.cols], rtol=1e-12)
+
+
+def test_kernel_choice_by_backend_and_by_name(random_spd):
+    """``prepare`` builds the named kernel; unnamed, the backend's default (ELL with a layout,
+    measured fastest on CPU and on an H100), COO without a layout; bad names are refused."""
+    A = pf.SparseMatrix.from_scipy(random_spd)
+    assert pf.default_kernel("cpu") == pf.default_kernel("gpu") == "ell"
+    assert type(pf.prepare(A)) is {"ell": pf.EllMatrix}[pf.default_kernel()]
+    assert type(pf.prepare(A.with_kernel("coo"))) is pf.CooMatrix
+    bare = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
+    assert type(pf.prepare(bare)) is pf.CooMatrix
+    with pytest.raises(ValueError, match="kernel='bcsr'"):
+        A.with_kernel("bcsr")
+    with pytest.raises(ValueError, match="needs an ELL layout"):
+        bare.with_kernel("ell")
+    assert A.with_kernel("csr").with_values(A.values * 2).kernel == "csr"  # kept
+
+
+@pytest.mark.parametrize("gradient", ["implicit", "unrolled"])
+def test_a_named_kernel_runs_forward_and_backward_and_changes_no_number(random_spd, gradient):
+    """The kernel rides through solve's custom derivative rules (a static field): the CSR
+    product appears in the forward and the backward sweep, and value and gradient equal the
+    ELL kernel's."""
+    A = pf.SparseMatrix.from_scipy(random_spd)
+    b = np.random.default_rng(2).normal(size=40)
+    solver = pf.TruncatedCG(8, gradient=gradient)
+
+    def loss(matrix):
+        return lambda values: jnp.sum(pf.solve(matrix.with_values(values), b, solver).x ** 2)
+
+    csr = A.with_kernel("csr")
+    assert "csr_matvec" in str(jax.make_jaxpr(jax.grad(loss(csr)))(csr.values))
+    assert "csr_matvec" not in str(jax.make_jaxpr(jax.grad(loss(A)))(A.values))
+    value, grad = jax.value_and_grad(loss(csr))(csr.values)
+    value_ell, grad_ell = jax.value_and_grad(loss(A))(A.values)
+    np.testing.assert_allclose(value, value_ell, rtol=1e-12)
+    np.testing.assert_allclose(grad, grad_ell, rtol=1e-10, atol=1e-14 * np.abs(grad_ell).max())
