@@ -80,3 +80,14 @@ def test_coefficient_recovery_errors_are_pinned():
     _, on_mesh_file = coefficient.build_mesh_file()
     assert on_mesh_file.observation.size == 60
     assert _converged_error(on_mesh_file, 100) < 0.06  # measured 0.053 (60 sensors, 1 %)
+
+
+def test_learned_inverse_example_trains_both_runs_from_one_start():
+    results = load("learned_inverse").run(n=8, epochs=8)
+    converged, prdp = results["converged"], results["prdp"]
+    assert len(converged) == len(prdp) == 8
+    # the same start: the first validation misfits differ only by epoch 1's truncation
+    assert abs(prdp[0].validation_misfit / converged[0].validation_misfit - 1) < 0.5
+    for records in (converged, prdp):
+        assert records[-1].validation_misfit < 0.5 * records[0].validation_misfit
+    assert prdp[-1].primal_iterations < 0.5 * converged[-1].primal_iterations
