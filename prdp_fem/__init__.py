@@ -62,6 +62,7 @@ from .generators import (
 from .history import History, StepRecord
 from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
+from .newton import NewtonCGState, gauss_newton, newton_cg, regularization_preconditioner
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
 from .operator import CooMatrix, EllMatrix, SparseMatrix, diagonal, matvec, prepare, rmatvec
 from .parameter_choice import AlphaChoice, l_curve, morozov
@@ -117,6 +118,7 @@ __all__ = [
     "MeshQuality",
     "MeshRepairWarning",
     "MixedDimensionError",
+    "NewtonCGState",
     "NonFiniteCoordinatesError",
     "Observation",
     "Parameterization",
@@ -157,6 +159,7 @@ __all__ = [
     "enable_compilation_cache",
     "format_table",
     "full_field",
+    "gauss_newton",
     "geometric_spacing",
     "h1_error",
     "h1_seminorm",
@@ -172,10 +175,12 @@ __all__ = [
     "mesh_from_arrays",
     "mesh_quality",
     "morozov",
+    "newton_cg",
     "point_sensors",
     "prepare",
     "rebuild_policy",
     "rectangle_with_hole",
+    "regularization_preconditioner",
     "regularizer",
     "relative_h1_error",
     "relative_l2_error",

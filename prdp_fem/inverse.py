@@ -115,6 +115,46 @@ class InverseProblem:
         reg = self.alpha * self.regularizer(self.field(z))
         return misfit + reg, LossParts(misfit, reg, sol)
 
+    def gauss_newton_operator(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                              counter: IterationCounter | None = None
+                              ) -> Callable[[jax.Array], jax.Array]:
+        r"""``v -> H_GN v``, the Gauss-Newton Hessian of ``J`` at ``z``, linearised once.
+
+        .. math::
+
+            H_{GN} v = J_r^\top W J_r v + \nabla^2 (\alpha R \circ \mathrm{field})(z)\, v,
+            \qquad J_r = \frac{\partial\, B u(z)}{\partial z},
+
+        the misfit's second-order (state curvature) term dropped, the regulariser's Hessian
+        kept exactly (for smoothed TV: its exact Hessian, positive semi-definite as TV is
+        convex). ``J_r v`` is a forward-mode tangent solve and ``J_r^T w`` its transpose, an
+        adjoint solve (``K_adj`` iterations each with a truncated solver, see
+        :mod:`prdp_fem.cg`); the state solve runs once, here. For a source (the state is
+        affine in ``f``) with an L2/H1 regulariser ``H_GN`` is the exact Hessian.
+        """
+        def observed(params):
+            sol = self.state(params, solver, x0, counter)
+            return matvec(self.observation.operator, self.system.expand(sol.x))
+
+        def regularization(params):
+            return self.alpha * self.regularizer(self.field(params))
+
+        _, forward = jax.linearize(observed, z)
+        adjoint = jax.linear_transpose(forward, z)
+        _, regularization_hessian = jax.linearize(jax.grad(regularization), z)
+
+        def apply(v: jax.Array) -> jax.Array:
+            (misfit_part,) = adjoint(matvec(self.observation.weight, forward(v)))
+            return misfit_part + regularization_hessian(v)
+
+        return apply
+
+    def gauss_newton_product(self, z: jax.Array, v: jax.Array, solver,
+                             x0: jax.Array | None = None,
+                             counter: IterationCounter | None = None) -> jax.Array:
+        """``H_GN(z) v`` (see :meth:`gauss_newton_operator`, which reuses the state solve)."""
+        return self.gauss_newton_operator(z, solver, x0, counter)(v)
+
     def parameter_error(self, z: jax.Array) -> jax.Array:
         """Relative L2 error of ``field(z)`` against ``truth`` (NaN when no truth)."""
         if self.truth is None:
@@ -236,8 +276,12 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
             value, grad = optax.value_and_grad_from_state(value_fn)(z, state=opt_state)
         else:
             value, grad = jax.value_and_grad(value_fn)(z)
-        updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
-                                              value_fn=value_fn)
+        # gauss_newton_fn: the Gauss-Newton operator for prdp_fem.newton (optax
+        # transformations ignore extra arguments they do not name)
+        updates, opt_state = optimizer.update(
+            grad, opt_state, z, value=value, grad=grad, value_fn=value_fn,
+            gauss_newton_fn=partial(problem.gauss_newton_operator, solver=solver,
+                                    counter=counter))
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return (z_next, opt_state, value, misfit, problem.parameter_error(z_next),
@@ -286,6 +330,11 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     ----------
     optimizer
         Any optax ``GradientTransformation``; default ``optax.lbfgs()`` (zoom line search).
+        Its update gets the extra arguments ``value``, ``grad``, ``value_fn`` and
+        ``gauss_newton_fn`` (``params -> (v -> H_GN v)``, :meth:`InverseProblem.
+        gauss_newton_operator` with the step's solver), which
+        :func:`prdp_fem.newton.gauss_newton` uses; transformations that do not name an extra
+        argument ignore it.
     refinement
         A :mod:`prdp_fem.prdp` controller; default :func:`~prdp_fem.prdp.prdp` (reference
         defaults). Use :func:`~prdp_fem.prdp.converged` for the converged baseline and
