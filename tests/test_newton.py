@@ -302,3 +302,51 @@ def test_newton_cg_on_the_hippylib_problem_at_16():
     assert result["parameter_error"] == pytest.approx(0.079, abs=0.003)
     # misfit at the noise level (the discrepancy principle's target for gamma = 1e-8)
     assert result["relative_misfit"] == pytest.approx(result["noise_level"], rel=0.05)
+
+
+# ------------------------------------------------------------------------------------------
+# scenes: [optimizer] name = "newton_cg" | "gauss_newton"
+# ------------------------------------------------------------------------------------------
+
+
+def newton_scene(**optimizer):
+    from prdp_fem.scene import parse_scene
+    return parse_scene({"mesh": {"n": 4},
+                        "inverse": {"unknown": "source", "truth": "x*y", "alpha": 1e-4,
+                                    "regularization": "h1"},
+                        "refinement": {"kind": "converged", "rtol": 1e-12},
+                        "optimizer": optimizer})
+
+
+def test_scene_selects_newton_and_its_options():
+    from prdp_fem import build
+    scene = newton_scene(name="gauss_newton", steps=1, max_cg=300, forcing=1e-12,
+                         c1=1e-3, max_backtracking=4, gradient_rtol=1e-8)
+    spec = scene.optimizer
+    assert (spec.name, spec.max_cg, spec.forcing, spec.c1, spec.max_backtracking,
+            spec.gradient_rtol) == ("gauss_newton", 300, 1e-12, 1e-3, 4, 1e-8)
+    setup = build.build_inverse(scene)
+    result = invert(setup.problem, **build.invert_options(scene, setup.disc))
+    # a quadratic problem (source, H1): the one Gauss-Newton step solves it, so the gradient
+    # at the result vanishes against the first one
+    problem = setup.problem
+    grad = jax.jit(jax.grad(lambda z, p: p.loss(z, ConvergedCG(rtol=1e-13))[0]))
+    g0 = np.linalg.norm(grad(jnp.zeros(problem.n_parameters), problem))
+    assert np.linalg.norm(grad(result.params, problem)) < 1e-9 * g0
+    assert int(result.optimizer_state.steps) == 1
+    assert newton_scene(name="newton_cg").optimizer.forcing == "eisenstat_walker"
+
+
+@pytest.mark.parametrize("key, value, expected", [
+    ("name", "newton", "optimizer.name = 'newton'"),
+    ("max_cg", 0, "optimizer.max_cg = 0: expected an integer >= 1"),
+    ("forcing", "ew", "optimizer.forcing = 'ew': expected 'eisenstat_walker', 'hippylib'"),
+    ("forcing", 1.0, "optimizer.forcing = 1.0"),
+    ("c1", 0.5, "optimizer.c1 = 0.5: expected a number in \\(0, 0.5\\)"),
+    ("max_backtracking", -1, "optimizer.max_backtracking = -1"),
+    ("gradient_rtol", -1e-3, "optimizer.gradient_rtol = -0.001"),
+])
+def test_scene_rejects_bad_newton_options(key, value, expected):
+    from prdp_fem.scene import SceneSolverConfigError
+    with pytest.raises(SceneSolverConfigError, match=expected):
+        newton_scene(**{"name": "newton_cg", key: value})
