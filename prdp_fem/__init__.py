@@ -60,7 +60,15 @@ from .generators import (
     unit_square,
 )
 from .history import History, StepRecord
-from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
+from .inverse import (
+    InverseProblem,
+    Inversion,
+    InversionError,
+    Objective,
+    Validation,
+    inverse_problem,
+    invert,
+)
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
 from .newton import NewtonCGState, gauss_newton, newton_cg, regularization_preconditioner
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
@@ -120,6 +128,7 @@ __all__ = [
     "MixedDimensionError",
     "NewtonCGState",
     "NonFiniteCoordinatesError",
+    "Objective",
     "Observation",
     "Parameterization",
     "PrdpFemError",

@@ -53,6 +53,7 @@ __all__ = [
     "InverseProblem",
     "Inversion",
     "InversionError",
+    "Objective",
     "Validation",
     "inverse_problem",
     "invert",
@@ -251,6 +252,28 @@ class Inversion(NamedTuple):
     history: History
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class Objective:
+    """``J`` with the solver of one step: the ``value_fn`` :func:`invert` hands to optax.
+
+    Calling it gives ``J(params)``; :meth:`gauss_newton_operator` gives the Gauss-Newton
+    Hessian there (:meth:`InverseProblem.gauss_newton_operator`), which
+    :mod:`prdp_fem.newton` looks for on ``value_fn``. An object rather than an extra update
+    argument: optax's zoom line search passes every extra argument on to ``value_fn`` and
+    refuses one it does not take.
+    """
+
+    problem: InverseProblem
+    solver: Any
+    counter: IterationCounter | None = None
+
+    def __call__(self, params: jax.Array) -> jax.Array:
+        return self.problem.loss(params, self.solver, counter=self.counter)[0]
+
+    def gauss_newton_operator(self, params: jax.Array) -> Callable[[jax.Array], jax.Array]:
+        return self.problem.gauss_newton_operator(params, self.solver, counter=self.counter)
+
+
 def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner):
     if tolerance_mode:
         return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
@@ -269,19 +292,14 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
     def step(problem, z, opt_state, K, K_adj, rtol):
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
 
-        def value_fn(params):
-            return problem.loss(params, solver, counter=counter)[0]
+        value_fn = Objective(problem, solver, counter)
 
         if _uses_stored_value(opt_state):
             value, grad = optax.value_and_grad_from_state(value_fn)(z, state=opt_state)
         else:
             value, grad = jax.value_and_grad(value_fn)(z)
-        # gauss_newton_fn: the Gauss-Newton operator for prdp_fem.newton (optax
-        # transformations ignore extra arguments they do not name)
-        updates, opt_state = optimizer.update(
-            grad, opt_state, z, value=value, grad=grad, value_fn=value_fn,
-            gauss_newton_fn=partial(problem.gauss_newton_operator, solver=solver,
-                                    counter=counter))
+        updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                              value_fn=value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return (z_next, opt_state, value, misfit, problem.parameter_error(z_next),
@@ -330,11 +348,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     ----------
     optimizer
         Any optax ``GradientTransformation``; default ``optax.lbfgs()`` (zoom line search).
-        Its update gets the extra arguments ``value``, ``grad``, ``value_fn`` and
-        ``gauss_newton_fn`` (``params -> (v -> H_GN v)``, :meth:`InverseProblem.
-        gauss_newton_operator` with the step's solver), which
-        :func:`prdp_fem.newton.gauss_newton` uses; transformations that do not name an extra
-        argument ignore it.
+        Its update gets the extra arguments ``value``, ``grad`` and ``value_fn``, an
+        :class:`Objective` (``J`` at the step's solver) whose ``gauss_newton_operator`` is
+        what :func:`prdp_fem.newton.gauss_newton` multiplies with.
     refinement
         A :mod:`prdp_fem.prdp` controller; default :func:`~prdp_fem.prdp.prdp` (reference
         defaults). Use :func:`~prdp_fem.prdp.converged` for the converged baseline and

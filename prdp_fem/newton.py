@@ -20,10 +20,11 @@ Hessian ``H`` is
 ``hessian="gauss_newton"``
     ``H_GN v = J_r^T W J_r v + \nabla^2 (\alpha R \circ \mathrm{field})(z)\, v`` for the misfit
     ``1/2 ||r(z)||_W^2`` with ``r(z) = B u(z) - d``: the second derivative of the state map is
-    dropped, the regulariser's Hessian is kept exactly. The operator comes from the extra
-    argument ``gauss_newton_fn`` (``params -> (v -> H_GN v)``), which
-    :func:`prdp_fem.inverse.invert` passes as
-    :meth:`~prdp_fem.inverse.InverseProblem.gauss_newton_operator`. ``H_GN`` is positive
+    dropped, the regulariser's Hessian is kept exactly. The operator
+    (``params -> (v -> H_GN v)``) is ``value_fn.gauss_newton_operator``:
+    :func:`prdp_fem.inverse.invert` passes an :class:`~prdp_fem.inverse.Objective`, whose
+    method is :meth:`~prdp_fem.inverse.InverseProblem.gauss_newton_operator`; other drivers
+    may pass the extra argument ``gauss_newton_fn`` instead. ``H_GN`` is positive
     semi-definite whenever ``alpha R o field`` is convex: L2 and H1 (quadratic), and smoothed TV
     ``int sqrt(|grad m|^2 + eps^2)`` (convex, not quadratic: Gauss-Newton keeps its exact
     Hessian, not a lagged-diffusivity approximation) with an unbounded parameterisation. With
@@ -267,12 +268,13 @@ def _hessian_operator(hessian: str, value_fn, params, extra_args) -> Callable:
     """``v -> H v`` at ``params``, linearised once (the products reuse the state solves)."""
     if hessian == "exact":
         return jax.linearize(jax.grad(value_fn), params)[1]
-    gauss_newton_fn = extra_args.get("gauss_newton_fn")
+    gauss_newton_fn = extra_args.get("gauss_newton_fn",
+                                     getattr(value_fn, "gauss_newton_operator", None))
     if gauss_newton_fn is None:
         raise SolverConfigError(
-            "newton_cg(hessian='gauss_newton'): update() needs the extra argument "
-            "gauss_newton_fn (params -> (v -> H_GN v)); prdp_fem.invert passes "
-            "InverseProblem.gauss_newton_operator, other drivers must pass their own")
+            "newton_cg(hessian='gauss_newton'): expected value_fn with a "
+            "gauss_newton_operator method (prdp_fem.inverse.Objective, what invert passes) or "
+            "the extra argument gauss_newton_fn (params -> (v -> H_GN v))")
     return gauss_newton_fn(params)
 
 
