@@ -60,8 +60,17 @@ from .generators import (
     unit_square,
 )
 from .history import History, StepRecord
-from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
+from .inverse import (
+    InverseProblem,
+    Inversion,
+    InversionError,
+    Objective,
+    Validation,
+    inverse_problem,
+    invert,
+)
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
+from .newton import NewtonCGState, gauss_newton, newton_cg, regularization_preconditioner
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
 from .operator import (
     KERNELS,
@@ -130,7 +139,9 @@ __all__ = [
     "MeshQuality",
     "MeshRepairWarning",
     "MixedDimensionError",
+    "NewtonCGState",
     "NonFiniteCoordinatesError",
+    "Objective",
     "Observation",
     "Parameterization",
     "PrdpFemError",
@@ -171,6 +182,7 @@ __all__ = [
     "enable_compilation_cache",
     "format_table",
     "full_field",
+    "gauss_newton",
     "geometric_spacing",
     "h1_error",
     "h1_seminorm",
@@ -186,10 +198,12 @@ __all__ = [
     "mesh_from_arrays",
     "mesh_quality",
     "morozov",
+    "newton_cg",
     "point_sensors",
     "prepare",
     "rebuild_policy",
     "rectangle_with_hole",
+    "regularization_preconditioner",
     "regularizer",
     "relative_h1_error",
     "relative_l2_error",

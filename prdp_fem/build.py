@@ -28,6 +28,7 @@ from .errors import DiscretizationError, SceneError, SensorError, ShapeError
 from .expressions import compile_field
 from .inverse import InverseProblem, Validation, inverse_problem
 from .mesh import load_mesh
+from .newton import newton_cg
 from .observations import boundary_values, full_field, point_sensors, with_noise
 from .operator import SparseMatrix
 from .prdp import Refinement, converged, fixed, prdp
@@ -236,6 +237,10 @@ def optimizer(scene: Scene) -> optax.GradientTransformation:
     spec = scene.optimizer
     if spec.name == "lbfgs":
         return optax.lbfgs(memory_size=spec.memory_size)
+    if spec.name in ("newton_cg", "gauss_newton"):
+        return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
+                         max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
+                         max_backtracking=spec.max_backtracking, rtol=spec.gradient_rtol)
     return getattr(optax, spec.name)(spec.learning_rate)
 
 

@@ -38,11 +38,19 @@ Gradient modes
     scales below ~1e-7 in kappa: its exact derivative can differ from finite differences taken
     at larger steps.
 ``"implicit"``
-    ``jax.custom_vjp``: the backward pass solves ``A lambda = x_bar`` with ``adjoint_iterations``
-    PCG iterations and returns ``b_bar = lambda``, ``values_bar[k] = -lambda[row_k] x[col_k]``
-    (and zero for ``x0``: at convergence ``x`` does not depend on it). Exact at convergence, the
-    PRDP approximation when truncated. ``K`` and ``K_adj`` are traced: changing them does not
-    recompile, and iterations stop early once the residual reaches round-off.
+    The solve is a ``jax.custom_jvp`` whose tangent is ``dx = A^{-1} (db - dA x)``, the
+    tangent system solved with ``adjoint_iterations`` PCG iterations through
+    ``lax.custom_linear_solve`` (same prepared operator and preconditioner, same tolerances).
+    Reverse mode transposes that linear map: the adjoint solve ``A lambda = x_bar``
+    (``K_adj`` iterations) with ``b_bar = lambda``, ``values_bar[k] = -lambda[row_k] x[col_k]``
+    (and zero for ``x0``: at convergence ``x`` does not depend on it). Forward mode
+    (``jax.jvp``: ``J v``) solves the tangent system with ``K_adj`` iterations too, and both
+    compose to any order: ``jax.jvp(jax.grad(f))`` (a Hessian-vector product) runs one tangent
+    and one second-order adjoint solve per product. Exact at convergence, the PRDP
+    approximation when truncated: a truncated CG sweep is not a linear map of its right-hand
+    side (its Krylov polynomial depends on it), so ``<J v, w> = <v, J^T w>`` holds to
+    round-off only where the sweeps converge. ``K`` and ``K_adj`` are traced: changing them
+    does not recompile, and iterations stop early once the residual reaches round-off.
 
 Status and bad input
 --------------------
@@ -68,8 +76,7 @@ of ``v``: the initial residual and every preconditioned residual are projected
 (``z = P M P r``, still symmetric), and the returned ``x`` is orthogonal to ``v``. Both
 gradient modes differentiate ``x = P A^+ P b``.
 
-Limits (by design): implicit mode is first-order reverse mode only (``jax.jvp`` raises; a
-Hessian through it is not exact). In unrolled mode at ``b - A x0 = 0`` the K-iteration map is
+Limits (by design): in unrolled mode at ``b - A x0 = 0`` the K-iteration map is
 not differentiable (it is positively homogeneous in the residual) and the gradient returned
 there is zero: start a source inversion from a non-zero residual, or use implicit mode, whose
 gradient at zero residual is the (truncated) adjoint solution as usual.
@@ -147,7 +154,8 @@ class IterationCounter:
 
     Pass one to :func:`solve` (``counter=``): every forward solve adds its iterations to
     ``primal`` and every backward (adjoint) solve -- the truncated adjoint PCG in implicit mode,
-    the reversed scan in unrolled mode -- adds its own to ``adjoint``, through
+    the reversed scan in unrolled mode -- adds its own to ``adjoint``; so does every
+    forward-mode tangent solve of implicit mode (a Hessian-vector product adds two), through
     ``jax.experimental.io_callback``, so the tally is exact even inside jitted line searches that
     evaluate the objective an unknown number of times. One counter belongs to one run (it is
     hashed by identity and is part of the compiled function); read it after the results are
@@ -222,7 +230,8 @@ class TruncatedCG:
     gradient
         ``"unrolled"`` or ``"implicit"`` (see module docstring).
     adjoint_iterations
-        ``K_adj`` for the implicit backward solve; ``None`` means ``K_adj = K``.
+        ``K_adj`` for the implicit adjoint (reverse mode) and tangent (forward mode) solves;
+        ``None`` means ``K_adj = K``.
     checkpoint
         Unrolled mode: bound the memory of reverse mode by recomputing iterations in the
         backward pass. ``False`` stores every iteration's intermediates (``O(K)`` n-vectors);
@@ -680,7 +689,7 @@ _adjoint_tap.defvjp(_adjoint_tap_fwd, _adjoint_tap_bwd)
 
 
 # --------------------------------------------------------------------------------------
-# implicit: while loop forward, truncated adjoint solve backward
+# implicit: while loop forward, truncated tangent / adjoint solves for the derivatives
 # --------------------------------------------------------------------------------------
 
 
@@ -738,36 +747,68 @@ def _pattern_matrix(values, pattern, form) -> SparseMatrix:
     return SparseMatrix(rows, cols, values, shape, layout, kernel)
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(8, 9, 10, 11))
+@partial(jax.custom_jvp, nondiff_argnums=(8, 9, 10, 11))
 def _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
                    form, history_size, track_norm, counter):
+    """The truncated solve; derivatives by :func:`_implicit_jvp` (any order, both modes)."""
     krylov = _krylov(_pattern_matrix(values, pattern, form), precond)
     return _while_solve(krylov, b, x0, iterations, tolerances, history_size,
                         track_norm=track_norm)
 
 
-def _implicit_fwd(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
-                  form, history_size, track_norm, counter):
-    krylov = _krylov(_pattern_matrix(values, pattern, form), precond)
-    sol = _while_solve(krylov, b, x0, iterations, tolerances, history_size,
-                       track_norm=track_norm)
-    return sol, (krylov, sol.x, adjoint_iterations, pattern, precond, tolerances)
+@_implicit_core.defjvp
+def _implicit_jvp(form, history_size, track_norm, counter, primals, tangents):
+    """``dx = A^{-1} (db - dA x)`` by ``lax.custom_linear_solve`` with ``K_adj`` iterations.
 
-
-def _implicit_bwd(form, history_size, track_norm, counter, residuals, cotangent: Solution):
-    krylov, x, adjoint_iterations, pattern, precond, tolerances = residuals
+    Differentiating ``A x = b`` gives ``A dx = db - dA x``. The tangent system is solved by
+    the same truncated PCG as the adjoint (``adjoint_iterations``, the forward sweep's
+    tolerances), on a :class:`_Krylov` prepared from the same operator and preconditioner, and
+    ``custom_linear_solve`` supplies the rest: reverse mode transposes the tangent map, which
+    turns its solve into the adjoint solve ``A lambda = x_bar`` (``A`` symmetric) and the
+    ``-dA x`` term into ``values_bar[k] = -lambda[row_k] x[col_k]``; higher orders
+    differentiate the tangent and adjoint solves in turn. ``x0`` gets no derivative: at
+    convergence ``x`` does not depend on it. The primal is this function called again, so a
+    derivative of a derivative (``jax.jvp(jax.grad(f))``) sees the tangent of ``x`` too.
+    """
+    values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances = primals
+    values_dot, b_dot = tangents[0], tangents[1]
+    sol = _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond,
+                         tolerances, form, history_size, track_norm, counter)
+    x = sol.x
     rows, cols, _ = pattern
-    # A is symmetric: the adjoint system is A lambda = x_bar, solved the same (truncated) way
-    # with the kernel prepared forward (with a nullspace, _init projects x_bar:
-    # lambda = P A^+ P x_bar)
-    adjoint_solution = _while_solve(krylov, cotangent.x, jnp.zeros_like(cotangent.x),
-                                    adjoint_iterations, tolerances, 0, track_norm=track_norm)
-    _tap(counter, "adjoint", adjoint_solution.iterations)
-    adjoint = adjoint_solution.x
-    values_bar = -adjoint[rows] * x[cols]
-    zeros = partial(jax.tree_util.tree_map, jnp.zeros_like)
-    return (values_bar, adjoint, jnp.zeros_like(x), None, None, None, zeros(precond),
-            jnp.zeros_like(tolerances))
+    # -dA x: the tangent of the product with x held fixed (values enter linearly)
+    minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0],
+                                      indices_are_sorted=True)
+    x_dot = _linear_solve(values, b_dot + minus_dA_x, adjoint_iterations, pattern, precond,
+                          tolerances, form, track_norm, counter)
+    return sol, Solution(x_dot, *(_zero_tangent(leaf) for leaf in sol[1:]))
 
 
-_implicit_core.defvjp(_implicit_fwd, _implicit_bwd)
+def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, track_norm,
+                  counter) -> jax.Array:
+    """``A^{-1} rhs`` by ``iterations`` PCG sweeps, with exact linear-solve derivatives.
+
+    ``lax.custom_linear_solve`` with ``symmetric=True``: the transpose solve is the same sweep,
+    every sweep taps ``counter`` as an adjoint solve (tangent and adjoint solves alike), and
+    ``A``'s dependence on ``values`` is differentiated through its product, so this map can be
+    differentiated again.
+    """
+    matrix = _pattern_matrix(values, pattern, form)
+    # the solver is a fixed linear map: its arrays get no derivative (custom_linear_solve
+    # ignores them anyway; stopping them keeps the solve's inputs out of the tangent trace)
+    krylov = _krylov(jax.lax.stop_gradient(matrix), precond)
+
+    def sweep(_, right):
+        sol = _while_solve(krylov, right, jnp.zeros_like(right), iterations, tolerances, 0,
+                           track_norm=track_norm)
+        _tap(counter, "adjoint", sol.iterations)
+        return sol.x
+
+    return jax.lax.custom_linear_solve(prepare(matrix), rhs, sweep, symmetric=True)
+
+
+def _zero_tangent(leaf: jax.Array) -> jax.Array:
+    """A zero tangent for a diagnostic (``float0`` for integers, as JAX requires)."""
+    if jnp.issubdtype(leaf.dtype, jnp.inexact):
+        return jnp.zeros_like(leaf)
+    return np.zeros(leaf.shape, dtype=jax.dtypes.float0)

@@ -53,6 +53,7 @@ __all__ = [
     "InverseProblem",
     "Inversion",
     "InversionError",
+    "Objective",
     "Validation",
     "inverse_problem",
     "invert",
@@ -114,6 +115,46 @@ class InverseProblem:
         misfit = self.observation.misfit(self.system.expand(sol.x))
         reg = self.alpha * self.regularizer(self.field(z))
         return misfit + reg, LossParts(misfit, reg, sol)
+
+    def gauss_newton_operator(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                              counter: IterationCounter | None = None
+                              ) -> Callable[[jax.Array], jax.Array]:
+        r"""``v -> H_GN v``, the Gauss-Newton Hessian of ``J`` at ``z``, linearised once.
+
+        .. math::
+
+            H_{GN} v = J_r^\top W J_r v + \nabla^2 (\alpha R \circ \mathrm{field})(z)\, v,
+            \qquad J_r = \frac{\partial\, B u(z)}{\partial z},
+
+        the misfit's second-order (state curvature) term dropped, the regulariser's Hessian
+        kept exactly (for smoothed TV: its exact Hessian, positive semi-definite as TV is
+        convex). ``J_r v`` is a forward-mode tangent solve and ``J_r^T w`` its transpose, an
+        adjoint solve (``K_adj`` iterations each with a truncated solver, see
+        :mod:`prdp_fem.cg`); the state solve runs once, here. For a source (the state is
+        affine in ``f``) with an L2/H1 regulariser ``H_GN`` is the exact Hessian.
+        """
+        def observed(params):
+            sol = self.state(params, solver, x0, counter)
+            return matvec(self.observation.operator, self.system.expand(sol.x))
+
+        def regularization(params):
+            return self.alpha * self.regularizer(self.field(params))
+
+        _, forward = jax.linearize(observed, z)
+        adjoint = jax.linear_transpose(forward, z)
+        _, regularization_hessian = jax.linearize(jax.grad(regularization), z)
+
+        def apply(v: jax.Array) -> jax.Array:
+            (misfit_part,) = adjoint(matvec(self.observation.weight, forward(v)))
+            return misfit_part + regularization_hessian(v)
+
+        return apply
+
+    def gauss_newton_product(self, z: jax.Array, v: jax.Array, solver,
+                             x0: jax.Array | None = None,
+                             counter: IterationCounter | None = None) -> jax.Array:
+        """``H_GN(z) v`` (see :meth:`gauss_newton_operator`, which reuses the state solve)."""
+        return self.gauss_newton_operator(z, solver, x0, counter)(v)
 
     def parameter_error(self, z: jax.Array) -> jax.Array:
         """Relative L2 error of ``field(z)`` against ``truth`` (NaN when no truth)."""
@@ -211,6 +252,28 @@ class Inversion(NamedTuple):
     history: History
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class Objective:
+    """``J`` with the solver of one step: the ``value_fn`` :func:`invert` hands to optax.
+
+    Calling it gives ``J(params)``; :meth:`gauss_newton_operator` gives the Gauss-Newton
+    Hessian there (:meth:`InverseProblem.gauss_newton_operator`), which
+    :mod:`prdp_fem.newton` looks for on ``value_fn``. An object rather than an extra update
+    argument: optax's zoom line search passes every extra argument on to ``value_fn`` and
+    refuses one it does not take.
+    """
+
+    problem: InverseProblem
+    solver: Any
+    counter: IterationCounter | None = None
+
+    def __call__(self, params: jax.Array) -> jax.Array:
+        return self.problem.loss(params, self.solver, counter=self.counter)[0]
+
+    def gauss_newton_operator(self, params: jax.Array) -> Callable[[jax.Array], jax.Array]:
+        return self.problem.gauss_newton_operator(params, self.solver, counter=self.counter)
+
+
 def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner):
     if tolerance_mode:
         return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
@@ -229,8 +292,7 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
     def step(problem, z, opt_state, K, K_adj, rtol):
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
 
-        def value_fn(params):
-            return problem.loss(params, solver, counter=counter)[0]
+        value_fn = Objective(problem, solver, counter)
 
         if _uses_stored_value(opt_state):
             value, grad = optax.value_and_grad_from_state(value_fn)(z, state=opt_state)
@@ -286,6 +348,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     ----------
     optimizer
         Any optax ``GradientTransformation``; default ``optax.lbfgs()`` (zoom line search).
+        Its update gets the extra arguments ``value``, ``grad`` and ``value_fn``, an
+        :class:`Objective` (``J`` at the step's solver) whose ``gauss_newton_operator`` is
+        what :func:`prdp_fem.newton.gauss_newton` multiplies with.
     refinement
         A :mod:`prdp_fem.prdp` controller; default :func:`~prdp_fem.prdp.prdp` (reference
         defaults). Use :func:`~prdp_fem.prdp.converged` for the converged baseline and

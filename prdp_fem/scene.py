@@ -14,7 +14,9 @@ takes the default written in the dataclass below):
                   ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
 ``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
 ``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
-``[optimizer]``   ``name`` (lbfgs | adam | sgd), ``steps``, ``learning_rate``, ``memory_size``
+``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton), ``steps``,
+                  ``learning_rate``, ``memory_size``; Newton: ``max_cg``, ``forcing``, ``c1``,
+                  ``max_backtracking``, ``gradient_rtol`` (see :mod:`.newton`)
 ``[study]``       ``kind`` (inverse | forward | h), ``[[study.runs]]`` (``name`` plus tables
                   that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
                   ``solver``, ``optimizer`` merge key by key), ``reference``, ``target_error``,
@@ -289,6 +291,13 @@ class OptimizerSpec:
     steps: int = 100
     learning_rate: float = 1e-2   # adam, sgd
     memory_size: int = 10         # lbfgs
+    # newton_cg, gauss_newton (prdp_fem.newton): inner CG cap, forcing term ("eisenstat_walker",
+    # "hippylib" or a number in (0, 1)), Armijo c1, halvings, stop at ||g|| <= rtol ||g_0||
+    max_cg: int = 100
+    forcing: str | float = "eisenstat_walker"
+    c1: float = 1e-4
+    max_backtracking: int = 10
+    gradient_rtol: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -494,12 +503,29 @@ def _refinement(t: _Table) -> RefinementSpec:
 
 
 def _optimizer(t: _Table) -> OptimizerSpec:
-    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd")),
+    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd", *_NEWTON)),
                          t.integer("steps", 100, 0),
                          t.number("learning_rate", 1e-2, low=0.0, open_low=True),
-                         t.integer("memory_size", 10, 1))
+                         t.integer("memory_size", 10, 1), **_newton_options(t))
     t.finish()
     return spec
+
+
+_NEWTON = ("newton_cg", "gauss_newton")
+
+
+def _newton_options(t: _Table) -> dict[str, Any]:
+    """The Newton-CG / Gauss-Newton keys of ``[optimizer]`` (read whatever the name)."""
+    forcing = t.get("forcing", "eisenstat_walker", lambda v: v in ("eisenstat_walker",
+                                                                   "hippylib")
+                    or (_is_number(v) and 0 < v < 1),
+                    "'eisenstat_walker', 'hippylib' or a number in (0, 1)")
+    return dict(max_cg=t.integer("max_cg", 100, 1),
+                forcing=forcing if isinstance(forcing, str) else float(forcing),
+                c1=float(t.get("c1", 1e-4, lambda v: _is_number(v) and 0 < v < 0.5,
+                               "a number in (0, 0.5)")),
+                max_backtracking=t.integer("max_backtracking", 10, 0),
+                gradient_rtol=t.number("gradient_rtol", 0.0, low=0.0))
 
 
 def _runs(t: _Table) -> tuple[tuple[str, str], ...]:
