@@ -670,22 +670,29 @@ def _solution_map(matrix, krylov: _Krylov, b, max_iterations: int) -> jax.Array:
     return jax.lax.custom_linear_solve(prepare(matrix), b, pcg, symmetric=True)
 
 
-@partial(jax.custom_vjp, nondiff_argnums=(2,))
+@partial(jax.custom_jvp, nondiff_argnums=(2,))
 def _adjoint_tap(x, iterations, counter):
-    """Identity on ``x`` whose backward pass counts the reversed scan's iterations."""
+    """Identity on ``x`` whose transpose (the backward pass) counts the reversed scan.
+
+    A ``custom_jvp`` whose tangent is the identity written as a ``custom_linear_solve``: its
+    forward solve is the identity (forward mode through the scan runs no extra sweep, so it
+    counts nothing) and its transpose solve taps ``counter``. Unlike a ``custom_vjp`` it lets
+    forward mode (``jax.jvp``, Gauss-Newton products) through.
+    """
     return x
 
 
-def _adjoint_tap_fwd(x, iterations, counter):
-    return x, iterations
+@_adjoint_tap.defjvp
+def _adjoint_tap_jvp(counter, primals, tangents):
+    x, iterations = primals
 
+    def count_backward(_, cotangent):
+        _tap(counter, "adjoint", iterations)
+        return cotangent
 
-def _adjoint_tap_bwd(counter, iterations, x_bar):
-    _tap(counter, "adjoint", iterations)
-    return x_bar, None
-
-
-_adjoint_tap.defvjp(_adjoint_tap_fwd, _adjoint_tap_bwd)
+    x_dot = jax.lax.custom_linear_solve(lambda v: v, tangents[0], lambda _, v: v,
+                                        count_backward)
+    return _adjoint_tap(x, iterations, counter), x_dot
 
 
 # --------------------------------------------------------------------------------------

@@ -198,6 +198,13 @@ class _Interrupted(Exception):
     """Ctrl-C during a study: the message says where the finished records are."""
 
 
+def _is_interrupt(error: BaseException) -> bool:
+    """Ctrl-C, also when it lands inside a JAX host callback (the iteration counter's taps):
+    JAX re-raises it there wrapped in a ``JaxRuntimeError`` that names ``KeyboardInterrupt``."""
+    return isinstance(error, KeyboardInterrupt) or (
+        type(error).__name__ == "JaxRuntimeError" and "KeyboardInterrupt" in str(error))
+
+
 class _Bars:
     """tqdm bars over configurations and optimiser steps (:class:`prdp_fem.study.Progress`)."""
 
@@ -288,7 +295,9 @@ def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
     bars = _Bars(len(configurations(scene)))
     try:
         result = run_study(scene, out, resume=resume, progress=bars)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, RuntimeError) as error:  # JaxRuntimeError is a RuntimeError
+        if not _is_interrupt(error):
+            raise
         bars.close()
         raise _Interrupted(f"interrupted; finished records are kept in {out}/{RESULTS} "
                            f"(continue with: prdp-fem study {scene.source} --out {out} "
@@ -668,7 +677,9 @@ def main(argv: list[str] | None = None) -> int:
     except _Interrupted as message:
         print(f"prdp-fem: {message}", file=sys.stderr)
         return 130
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, RuntimeError) as error:
+        if not _is_interrupt(error):
+            raise
         print("prdp-fem: interrupted", file=sys.stderr)
         return 130
     return code or 0

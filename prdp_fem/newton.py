@@ -190,8 +190,10 @@ def newton_cg(*, hessian: str = "exact", max_cg: int = 100,
             raise SolverConfigError(
                 "newton_cg: update() needs params, value= and value_fn= (as optax.lbfgs "
                 "does); prdp_fem.invert passes them")
-        hvp = _hessian_operator(options.hessian, value_fn, params, extra_args)
-        return _update(options, updates, state, params, jnp.asarray(value), value_fn, hvp)
+        def hessian():  # linearised inside the Newton branch: a skipped update solves nothing
+            return _hessian_operator(options.hessian, value_fn, params, extra_args)
+
+        return _update(options, updates, state, params, jnp.asarray(value), value_fn, hessian)
 
     return optax.GradientTransformationExtraArgs(init_fn, update_fn)
 
@@ -293,7 +295,8 @@ class _Step(NamedTuple):
     failed: jax.Array
 
 
-def _update(options: _Options, grad, state: NewtonCGState, params, value, value_fn, hvp):
+def _update(options: _Options, grad, state: NewtonCGState, params, value, value_fn,
+            hessian: Callable[[], Callable]):
     grad_norm = otu.tree_norm(grad)
     first = state.steps == 0
     initial = jnp.where(jnp.isnan(state.initial_grad_norm), grad_norm, state.initial_grad_norm)
@@ -303,7 +306,8 @@ def _update(options: _Options, grad, state: NewtonCGState, params, value, value_
     precondition = _preconditioner_map(state.preconditioner)
 
     def newton(_):
-        p, iterations, negative = _inner_cg(hvp, grad, precondition, forcing, options.max_cg)
+        p, iterations, negative = _inner_cg(hessian(), grad, precondition, forcing,
+                                            options.max_cg)
         # CG iterates descend for a symmetric H; Hessian products through truncated solves
         # are not exactly symmetric, so check, and fall back to preconditioned steepest descent
         descent = otu.tree_vdot(grad, p) < 0

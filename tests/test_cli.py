@@ -60,3 +60,16 @@ def test_bench_cg_reports_the_operator(capsys):
     assert int(row[0]) == 15 * 15  # interior dofs of a 16 x 16 square
     assert int(row[1]) == 15 * 15 + 4 * 15 * 14  # five-point pattern of P1 on right triangles
     assert len(row) == 8  # dofs, nnz, SpMV, iteration, ratio, COO iteration, COO ratio, compile
+
+
+def test_ctrl_c_inside_a_jax_host_callback_counts_as_an_interrupt():
+    """The iteration counter taps run as host callbacks; a Ctrl-C landing in one reaches the
+    CLI as a JaxRuntimeError naming KeyboardInterrupt, which must exit 130 like any Ctrl-C."""
+    import jax
+
+    from prdp_fem.cli import _is_interrupt
+    wrapped = jax.errors.JaxRuntimeError(
+        "INTERNAL: CpuCallback error calling callback: ... KeyboardInterrupt: ")
+    assert _is_interrupt(KeyboardInterrupt()) and _is_interrupt(wrapped)
+    assert not _is_interrupt(jax.errors.JaxRuntimeError("INTERNAL: out of memory"))
+    assert not _is_interrupt(RuntimeError("KeyboardInterrupt"))
