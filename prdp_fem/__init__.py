@@ -59,6 +59,7 @@ from .generators import (
     unit_cube,
     unit_square,
 )
+from .hig import HigInfo, HigState, hig, hig_update, randomized_svd, residual_jacobian
 from .history import History, StepRecord
 from .inverse import InverseProblem, Inversion, InversionError, Validation, inverse_problem, invert
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
@@ -83,6 +84,7 @@ from .reference import (
     relative_l2_error,
 )
 from .regularizers import Regularizer, regularizer
+from .residuals import ResidualFactors
 from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
 
@@ -102,6 +104,8 @@ __all__ = [
     "DiscretizationError",
     "DuplicateNodeError",
     "EllMatrix",
+    "HigInfo",
+    "HigState",
     "History",
     "IdentityPreconditioner",
     "IncompatibleDataError",
@@ -128,6 +132,7 @@ __all__ = [
     "Refinement",
     "RefinementState",
     "Regularizer",
+    "ResidualFactors",
     "SceneError",
     "Schedule",
     "SensorError",
@@ -160,6 +165,8 @@ __all__ = [
     "geometric_spacing",
     "h1_error",
     "h1_seminorm",
+    "hig",
+    "hig_update",
     "inverse_problem",
     "invert",
     "jacobi",
@@ -174,11 +181,13 @@ __all__ = [
     "morozov",
     "point_sensors",
     "prepare",
+    "randomized_svd",
     "rebuild_policy",
     "rectangle_with_hole",
     "regularizer",
     "relative_h1_error",
     "relative_l2_error",
+    "residual_jacobian",
     "rmatvec",
     "save_mesh",
     "solve",

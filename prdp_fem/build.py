@@ -26,6 +26,7 @@ from .cg import ConvergedCG, Solution, TruncatedCG, solve
 from .discretization import Discretization, discretize
 from .errors import DiscretizationError, SceneError, SensorError, ShapeError
 from .expressions import compile_field
+from .hig import hig
 from .inverse import InverseProblem, Validation, inverse_problem
 from .mesh import load_mesh
 from .observations import boundary_values, full_field, point_sensors, with_noise
@@ -201,7 +202,7 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
             observation = with_noise(observation, spec.noise, spec.seed)
     problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
                               regularization=spec.regularization, known=known, truth=truth,
-                              bounds=spec.bounds)
+                              bounds=spec.bounds, residual=scene.optimizer.name == "hig")
     return InverseSetup(disc, problem, truth)
 
 
@@ -236,6 +237,8 @@ def optimizer(scene: Scene) -> optax.GradientTransformation:
     spec = scene.optimizer
     if spec.name == "lbfgs":
         return optax.lbfgs(memory_size=spec.memory_size)
+    if spec.name == "hig":
+        return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank)
     return getattr(optax, spec.name)(spec.learning_rate)
 
 

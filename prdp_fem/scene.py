@@ -14,7 +14,9 @@ takes the default written in the dataclass below):
                   ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
 ``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
 ``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
-``[optimizer]``   ``name`` (lbfgs | adam | sgd), ``steps``, ``learning_rate``, ``memory_size``
+``[optimizer]``   ``name`` (lbfgs | adam | sgd | hig), ``steps``, ``learning_rate``,
+                  ``memory_size``; hig (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``,
+                  ``rank``
 ``[study]``       ``kind`` (inverse | forward | h), ``[[study.runs]]`` (``name`` plus tables
                   that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
                   ``solver``, ``optimizer`` merge key by key), ``reference``, ``target_error``,
@@ -141,9 +143,8 @@ class _Table:
     def number(self, key: str, default: float | None, *, low: float = float("-inf"),
                high: float = float("inf"), open_low: bool = False,
                error: type[SceneError] | None = None) -> float | None:
-        def check(v):
-            ok_low = v > low if open_low else v >= low
-            return _is_number(v) and ok_low and v <= high
+        def check(v):  # the type first: a string must fail the check, not the comparison
+            return _is_number(v) and (v > low if open_low else v >= low) and v <= high
         bound = f"> {low}" if open_low else f">= {low}"
         value = self.get(key, default, check, f"a finite number {bound} and <= {high}", error)
         return None if value is None else float(value)
@@ -289,6 +290,9 @@ class OptimizerSpec:
     steps: int = 100
     learning_rate: float = 1e-2   # adam, sgd
     memory_size: int = 10         # lbfgs
+    exponent: float = -0.5        # hig: -0.5 half-inverse, -1 Gauss-Newton, +1 gradient descent
+    tau: float = 1e-6             # hig: singular values below tau * s_max are dropped
+    rank: int | None = None       # hig: None explicit Jacobian, k matrix-free rank-k SVD
 
 
 @dataclasses.dataclass(frozen=True)
@@ -494,10 +498,14 @@ def _refinement(t: _Table) -> RefinementSpec:
 
 
 def _optimizer(t: _Table) -> OptimizerSpec:
-    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd")),
+    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd", "hig")),
                          t.integer("steps", 100, 0),
                          t.number("learning_rate", 1e-2, low=0.0, open_low=True),
-                         t.integer("memory_size", 10, 1))
+                         t.integer("memory_size", 10, 1),
+                         t.number("exponent", -0.5),
+                         float(t.get("tau", 1e-6, lambda v: _is_number(v) and 0 <= v < 1,
+                                     "a number in [0, 1) (relative singular-value cut-off)")),
+                         t.integer("rank", None, 1))
     t.finish()
     return spec
 
