@@ -238,7 +238,8 @@ def optimizer(scene: Scene) -> optax.GradientTransformation:
     if spec.name == "lbfgs":
         return optax.lbfgs(memory_size=spec.memory_size)
     if spec.name == "hig":
-        return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank)
+        return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank,
+                   relative=spec.relative)
     return getattr(optax, spec.name)(spec.learning_rate)
 
 

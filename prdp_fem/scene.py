@@ -16,7 +16,7 @@ takes the default written in the dataclass below):
 ``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
 ``[optimizer]``   ``name`` (lbfgs | adam | sgd | hig), ``steps``, ``learning_rate``,
                   ``memory_size``; hig (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``,
-                  ``rank``
+                  ``rank``, ``relative``
 ``[study]``       ``kind`` (inverse | forward | h), ``[[study.runs]]`` (``name`` plus tables
                   that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
                   ``solver``, ``optimizer`` merge key by key), ``reference``, ``target_error``,
@@ -288,11 +288,12 @@ class RefinementSpec:
 class OptimizerSpec:
     name: str = "lbfgs"
     steps: int = 100
-    learning_rate: float = 1e-2   # adam, sgd
+    learning_rate: float = 1e-2   # adam, sgd, hig
     memory_size: int = 10         # lbfgs
     exponent: float = -0.5        # hig: -0.5 half-inverse, -1 Gauss-Newton, +1 gradient descent
     tau: float = 1e-6             # hig: singular values below tau * s_max are dropped
     rank: int | None = None       # hig: None explicit Jacobian, k matrix-free rank-k SVD
+    relative: bool = False        # hig: learning_rate relative to s_max^-(1+exponent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -505,7 +506,8 @@ def _optimizer(t: _Table) -> OptimizerSpec:
                          t.number("exponent", -0.5),
                          float(t.get("tau", 1e-6, lambda v: _is_number(v) and 0 <= v < 1,
                                      "a number in [0, 1) (relative singular-value cut-off)")),
-                         t.integer("rank", None, 1))
+                         t.integer("rank", None, 1),
+                         t.boolean("relative", False))
     t.finish()
     return spec
 

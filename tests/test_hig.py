@@ -348,7 +348,10 @@ def test_scene_selects_hig_and_validates_its_options():
                            "tau": 1e-9}}
     scene = parse_scene(table)
     spec = scene.optimizer
-    assert (spec.name, spec.exponent, spec.tau, spec.rank) == ("hig", -1.0, 1e-9, None)
+    assert (spec.name, spec.exponent, spec.tau, spec.rank, spec.relative) == (
+        "hig", -1.0, 1e-9, None, False)
+    relative = parse_scene({**table, "optimizer": {"name": "hig", "relative": True}})
+    assert relative.optimizer.relative is True
     setup = build.build_inverse(scene)
     assert setup.problem.residual_factors is not None
     run = invert(setup.problem, **build.invert_options(scene, setup.disc))
@@ -356,8 +359,29 @@ def test_scene_selects_hig_and_validates_its_options():
     assert run.history[-1].parameter_error < 0.05
     for key, value, message in [("tau", 1.5, "optimizer.tau = 1.5: expected a number in [0, 1)"),
                                 ("rank", 0, "optimizer.rank = 0: expected an integer >= 1"),
-                                ("exponent", "half", "optimizer.exponent = 'half'")]:
+                                ("exponent", "half", "optimizer.exponent = 'half'"),
+                                ("relative", 1, "optimizer.relative = 1: expected true or false")]:
         bad = {**table, "optimizer": {"name": "hig", key: value}}
         with pytest.raises(SceneSolverConfigError) as info:
             parse_scene(bad)
         assert message in str(info.value)
+
+
+@pytest.mark.slow  # ~25 s: three inversions of the example, compiled separately
+def test_comparison_example_pins_gauss_newton_and_hig():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "hig_comparison.py"
+    spec = importlib.util.spec_from_file_location("hig_comparison", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    result = example.main(n=6, steps=3, methods=("gauss-newton", "hig"), solvers=("converged",))
+    rows = result["rows"]
+    assert (result["n_parameters"], result["n_observations"]) == (49, 169)
+    assert np.allclose(rows[("gauss-newton", "converged")]["errors"], [0.5681, 0.2335, 0.0796],
+                       rtol=1e-3)
+    hig_row = rows[("hig", "converged")]
+    assert hig_row["rate"] == "1 rel"
+    assert np.allclose(hig_row["errors"], [0.6081, 0.3196, 0.1717], rtol=1e-3)
+    assert "gauss-newton" in example.format_rows(result)
