@@ -123,9 +123,14 @@ def hig_update(jacobian: Any, residual: jax.Array, *, learning_rate: float = 1.0
     ``residual.shape + params.shape``, or a pytree of such leaves for pytree parameters. The
     update has the structure of the parameters (apply it with ``optax.apply_updates``).
 
-    Raises :class:`~prdp_fem.errors.SolverConfigError` for bad options or shapes.
+    A non-finite Jacobian or residual gives a non-finite update (the SVD does not hide it):
+    check the loss, as :func:`~prdp_fem.inverse.invert` does. Raises
+    :class:`~prdp_fem.errors.SolverConfigError` for bad options or shapes.
     """
     _check_exponent_tau(exponent, tau)
+    if callable(learning_rate):
+        raise SolverConfigError(f"learning_rate={learning_rate!r}: expected a number > 0 "
+                                "(hig_update takes no schedule: evaluate it at the step)")
     _check_learning_rate(learning_rate)
     residual = jnp.asarray(residual)
     m = residual.size

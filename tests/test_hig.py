@@ -185,7 +185,7 @@ def test_matrix_free_through_an_unrolled_solve_matches_explicit():
 
 
 def test_forward_mode_through_an_implicit_solve_is_a_clear_error_or_reverse():
-    disc, problem = _coefficient_problem()
+    disc, problem = _coefficient_problem(n=4)
     solver = TruncatedCG(40, gradient="implicit")
     z = problem.parameterization.from_field(0.5 * np.asarray(problem.truth))
 
@@ -194,10 +194,10 @@ def test_forward_mode_through_an_implicit_solve_is_a_clear_error_or_reverse():
 
     for transformation in (hig(1.0, rank=3), hig(1.0, jacobian="forward")):
         with pytest.raises(SolverConfigError, match="forward mode"):
-            _apply(transformation, z, residual)
+            jax.jit(lambda z, t=transformation: _apply(t, z, residual))(z)
     # auto falls back to reverse mode: the same Jacobian
-    _, automatic = residual_jacobian(residual, z, "auto")
-    _, reverse = residual_jacobian(residual, z, "reverse")
+    _, automatic = jax.jit(lambda z: residual_jacobian(residual, z, "auto"))(z)
+    _, reverse = jax.jit(lambda z: residual_jacobian(residual, z, "reverse"))(z)
     assert automatic.shape == (disc.n_dofs, problem.n_parameters)
     assert _rel(automatic, reverse) == 0.0
 
@@ -331,6 +331,13 @@ def test_lbfgs_and_adam_still_run_next_to_the_residual():
 def test_bad_options_name_the_option(kwargs, message):
     with pytest.raises(SolverConfigError, match=message):
         hig(**kwargs)
+
+
+def test_hig_update_rejects_schedules_and_mismatched_jacobians():
+    with pytest.raises(SolverConfigError, match=r"learning_rate=.*no schedule"):
+        hig_update(jnp.eye(2), jnp.ones(2), learning_rate=optax.constant_schedule(1.0))
+    with pytest.raises(SolverConfigError, match=r"residual.shape = \(3,\)"):
+        hig_update(jnp.eye(2), jnp.ones(3))
 
 
 def test_update_without_a_residual_is_a_clear_error():
