@@ -59,6 +59,7 @@ from .generators import (
     unit_cube,
     unit_square,
 )
+from .hig import HigInfo, HigState, hig, hig_update, randomized_svd, residual_jacobian
 from .history import History, StepRecord
 from .inverse import (
     InverseProblem,
@@ -103,6 +104,7 @@ from .reference import (
     relative_l2_error,
 )
 from .regularizers import Regularizer, regularizer
+from .residuals import ResidualFactors
 from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
 
@@ -124,6 +126,8 @@ __all__ = [
     "DiscretizationError",
     "DuplicateNodeError",
     "EllMatrix",
+    "HigInfo",
+    "HigState",
     "History",
     "IdentityPreconditioner",
     "IncompatibleDataError",
@@ -152,6 +156,7 @@ __all__ = [
     "Refinement",
     "RefinementState",
     "Regularizer",
+    "ResidualFactors",
     "SceneError",
     "Schedule",
     "SensorError",
@@ -186,6 +191,8 @@ __all__ = [
     "geometric_spacing",
     "h1_error",
     "h1_seminorm",
+    "hig",
+    "hig_update",
     "inverse_problem",
     "invert",
     "jacobi",
@@ -201,12 +208,14 @@ __all__ = [
     "newton_cg",
     "point_sensors",
     "prepare",
+    "randomized_svd",
     "rebuild_policy",
     "rectangle_with_hole",
     "regularization_preconditioner",
     "regularizer",
     "relative_h1_error",
     "relative_l2_error",
+    "residual_jacobian",
     "rmatvec",
     "save_mesh",
     "solve",

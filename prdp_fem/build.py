@@ -26,6 +26,7 @@ from .cg import ConvergedCG, Solution, TruncatedCG, solve
 from .discretization import Discretization, discretize
 from .errors import DiscretizationError, SceneError, SensorError, ShapeError
 from .expressions import compile_field
+from .hig import hig
 from .inverse import InverseProblem, Validation, inverse_problem
 from .mesh import load_mesh
 from .newton import newton_cg
@@ -202,7 +203,7 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
             observation = with_noise(observation, spec.noise, spec.seed)
     problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
                               regularization=spec.regularization, known=known, truth=truth,
-                              bounds=spec.bounds)
+                              bounds=spec.bounds, residual=scene.optimizer.name == "hig")
     return InverseSetup(disc, problem, truth)
 
 
@@ -241,6 +242,9 @@ def optimizer(scene: Scene) -> optax.GradientTransformation:
         return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                          max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
                          max_backtracking=spec.max_backtracking, rtol=spec.gradient_rtol)
+    if spec.name == "hig":
+        return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank,
+                   relative=spec.relative)
     return getattr(optax, spec.name)(spec.learning_rate)
 
 

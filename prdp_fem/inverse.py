@@ -46,6 +46,7 @@ from .parameters import Parameterization, parameter_basis, parameter_mass
 from .prdp import Refinement, RefinementState, prdp
 from .reference import amg_solve
 from .regularizers import Regularizer, regularizer
+from .residuals import ResidualFactors, residual_factors
 from .system import LinearSystem
 from .validation import finite_vector
 
@@ -72,7 +73,7 @@ class LossParts(NamedTuple):
 
 @partial(jax.tree_util.register_dataclass,
          data_fields=["system", "observation", "regularizer", "alpha", "known", "truth",
-                      "parameter_mass"],
+                      "parameter_mass", "residual_factors"],
          meta_fields=["parameterization"])
 @dataclasses.dataclass(frozen=True)
 class InverseProblem:
@@ -81,6 +82,8 @@ class InverseProblem:
     ``known`` is the other coefficient: ``kappa`` when the source is unknown, ``f`` (nodal in
     the solution space) when log-kappa is. ``truth`` is the parameter *field* to measure errors
     against (``None`` when unknown). ``alpha`` is a leaf: sweeping it does not recompile.
+    ``residual_factors`` (:mod:`prdp_fem.residuals`, from :meth:`with_residual`) let
+    :meth:`residual` write ``J`` as a sum of squares for Gauss-Newton-type optimisers.
     """
 
     system: LinearSystem
@@ -91,6 +94,7 @@ class InverseProblem:
     known: jax.Array
     truth: jax.Array | None
     parameter_mass: SparseMatrix
+    residual_factors: ResidualFactors | None = None
 
     @property
     def n_parameters(self) -> int:
@@ -156,6 +160,43 @@ class InverseProblem:
         """``H_GN(z) v`` (see :meth:`gauss_newton_operator`, which reuses the state solve)."""
         return self.gauss_newton_operator(z, solver, x0, counter)(v)
 
+    def with_residual(self) -> InverseProblem:
+        """The problem with the factors :meth:`residual` needs (built once, on the host)."""
+        return dataclasses.replace(
+            self, residual_factors=residual_factors(self.observation, self.regularizer))
+
+    def misfit_residual(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                        counter: IterationCounter | None = None) -> jax.Array:
+        """``L_W (B u(z) - d)``: half its squared norm is the misfit."""
+        u = self.system.expand(self.state(z, solver, x0, counter).x)
+        return matvec(self._factors().misfit, self.observation.residual(u))
+
+    def regularization_residual(self, z: jax.Array) -> jax.Array:
+        """``r_R(z)`` with ``1/2 ||r_R||^2 = alpha R`` (see :mod:`prdp_fem.residuals`)."""
+        reg, field = self.regularizer, self.field(z)
+        factor = self._factors().regularization
+        if factor is not None:  # L2, H1: linear in the field
+            return jnp.sqrt(self.alpha) * matvec(factor, field - reg.reference)
+        g = matvec(reg.matrix, field).reshape(-1, reg.dim)
+        # (|g|^2 + eps^2)^(1/4) is smooth (eps > 0); sqrt(2 alpha w) is a constant factor,
+        # so alpha = 0 or w = 0 give zero rows with finite derivatives
+        return jnp.sqrt(2.0 * self.alpha * reg.weights) * \
+            (jnp.sum(g * g, axis=1) + reg.epsilon ** 2) ** 0.25
+
+    def residual(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                 counter: IterationCounter | None = None) -> jax.Array:
+        """``r(z)`` with ``1/2 ||r||^2 = J(z)``: misfit rows, then regulariser rows."""
+        return jnp.concatenate([self.misfit_residual(z, solver, x0, counter),
+                                self.regularization_residual(z)])
+
+    def _factors(self) -> ResidualFactors:
+        if self.residual_factors is None:
+            raise SolverConfigError(
+                "InverseProblem.residual needs the factors of the misfit weight and the "
+                "regulariser: build the problem with inverse_problem(..., residual=True) or "
+                "call problem.with_residual() (outside jit)")
+        return self.residual_factors
+
     def parameter_error(self, z: jax.Array) -> jax.Array:
         """Relative L2 error of ``field(z)`` against ``truth`` (NaN when no truth)."""
         if self.truth is None:
@@ -168,12 +209,16 @@ class InverseProblem:
 def inverse_problem(disc: Discretization, observation: Observation, *, unknown: str,
                     alpha: float, regularization: str | Regularizer = "h1",
                     known: np.ndarray | float | None = None, truth: np.ndarray | None = None,
-                    bounds: tuple[float, float] | None = None) -> InverseProblem:
+                    bounds: tuple[float, float] | None = None,
+                    residual: bool = False) -> InverseProblem:
     """Assemble an :class:`InverseProblem` on ``disc`` (checks sizes at the edge).
 
     ``unknown="source"``: ``f`` nodal in the solution space, ``known`` is ``kappa`` in the
     kappa space (default 1, the identity for a tensor ``kappa``). ``unknown="log_kappa"``:
     ``m = log kappa`` in the kappa space, ``known`` is the nodal source ``f`` (default 0).
+    ``residual=True`` also factors the misfit weight and the regulariser, for
+    :meth:`InverseProblem.residual` (needed by :func:`prdp_fem.hig.hig`; a sparse factor of
+    a mass-matrix weight costs about three times its memory, so it is off by default).
 
     Raises :class:`~prdp_fem.errors.CoefficientError` for a ``kappa`` (``known``) that is not
     finite and positive, or a NaN log-kappa ``truth``; :class:`~prdp_fem.errors.DataError` for a
@@ -216,9 +261,10 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     if regularization.reference.shape != (n_param,):
         raise ShapeError(f"regularization: built for {regularization.reference.shape[0]} "
                          f"parameters, expected {n_param}")
-    return InverseProblem(disc.system, parameterization, observation, regularization,
-                          jnp.asarray(float(alpha)), jnp.asarray(known), truth,
-                          SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
+    problem = InverseProblem(disc.system, parameterization, observation, regularization,
+                             jnp.asarray(float(alpha)), jnp.asarray(known), truth,
+                             SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
+    return problem.with_residual() if residual else problem
 
 
 # --------------------------------------------------------------------------------------
@@ -258,7 +304,8 @@ class Objective:
 
     Calling it gives ``J(params)``; :meth:`gauss_newton_operator` gives the Gauss-Newton
     Hessian there (:meth:`InverseProblem.gauss_newton_operator`), which
-    :mod:`prdp_fem.newton` looks for on ``value_fn``. An object rather than an extra update
+    :mod:`prdp_fem.newton` looks for on ``value_fn``, and :meth:`residual_blocks` the residual
+    that :func:`prdp_fem.hig.hig` differentiates. An object rather than an extra update
     argument: optax's zoom line search passes every extra argument on to ``value_fn`` and
     refuses one it does not take.
     """
@@ -272,6 +319,15 @@ class Objective:
 
     def gauss_newton_operator(self, params: jax.Array) -> Callable[[jax.Array], jax.Array]:
         return self.problem.gauss_newton_operator(params, self.solver, counter=self.counter)
+
+    def residual_blocks(self) -> tuple[Callable[[jax.Array], jax.Array], ...]:
+        """``(r_misfit, r_R)``: the blocks of :meth:`InverseProblem.residual` at this solver.
+
+        :func:`prdp_fem.hig.hig` differentiates them apart, so that the regulariser's block
+        costs no solves.
+        """
+        return (partial(self.problem.misfit_residual, solver=self.solver, counter=self.counter),
+                self.problem.regularization_residual)
 
 
 def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner):

@@ -14,9 +14,10 @@ takes the default written in the dataclass below):
                   ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
 ``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
 ``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
-``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton), ``steps``,
+``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton | hig), ``steps``,
                   ``learning_rate``, ``memory_size``; Newton: ``max_cg``, ``forcing``, ``c1``,
-                  ``max_backtracking``, ``gradient_rtol`` (see :mod:`.newton`)
+                  ``max_backtracking``, ``gradient_rtol`` (see :mod:`.newton`); hig
+                  (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``
 ``[study]``       ``kind`` (inverse | forward | h), ``[[study.runs]]`` (``name`` plus tables
                   that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
                   ``solver``, ``optimizer`` merge key by key), ``reference``, ``target_error``,
@@ -143,9 +144,8 @@ class _Table:
     def number(self, key: str, default: float | None, *, low: float = float("-inf"),
                high: float = float("inf"), open_low: bool = False,
                error: type[SceneError] | None = None) -> float | None:
-        def check(v):
-            ok_low = v > low if open_low else v >= low
-            return _is_number(v) and ok_low and v <= high
+        def check(v):  # the type first: a string must fail the check, not the comparison
+            return _is_number(v) and (v > low if open_low else v >= low) and v <= high
         bound = f"> {low}" if open_low else f">= {low}"
         value = self.get(key, default, check, f"a finite number {bound} and <= {high}", error)
         return None if value is None else float(value)
@@ -289,7 +289,7 @@ class RefinementSpec:
 class OptimizerSpec:
     name: str = "lbfgs"
     steps: int = 100
-    learning_rate: float = 1e-2   # adam, sgd
+    learning_rate: float = 1e-2   # adam, sgd, hig
     memory_size: int = 10         # lbfgs
     # newton_cg, gauss_newton (prdp_fem.newton): inner CG cap, forcing term ("eisenstat_walker",
     # "hippylib" or a number in (0, 1)), Armijo c1, halvings, stop at ||g|| <= rtol ||g_0||
@@ -298,6 +298,10 @@ class OptimizerSpec:
     c1: float = 1e-4
     max_backtracking: int = 10
     gradient_rtol: float = 0.0
+    exponent: float = -0.5        # hig: -0.5 half-inverse, -1 Gauss-Newton, +1 gradient descent
+    tau: float = 1e-6             # hig: singular values below tau * s_max are dropped
+    rank: int | None = None       # hig: None explicit Jacobian, k matrix-free rank-k SVD
+    relative: bool = False        # hig: learning_rate relative to s_max^-(1+exponent)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -503,15 +507,25 @@ def _refinement(t: _Table) -> RefinementSpec:
 
 
 def _optimizer(t: _Table) -> OptimizerSpec:
-    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd", *_NEWTON)),
+    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd", *_NEWTON, "hig")),
                          t.integer("steps", 100, 0),
                          t.number("learning_rate", 1e-2, low=0.0, open_low=True),
-                         t.integer("memory_size", 10, 1), **_newton_options(t))
+                         t.integer("memory_size", 10, 1), **_newton_options(t),
+                         **_hig_options(t))
     t.finish()
     return spec
 
 
 _NEWTON = ("newton_cg", "gauss_newton")
+
+
+def _hig_options(t: _Table) -> dict[str, Any]:
+    """The half-inverse-gradient keys of ``[optimizer]`` (read whatever the name)."""
+    return dict(exponent=t.number("exponent", -0.5),
+                tau=float(t.get("tau", 1e-6, lambda v: _is_number(v) and 0 <= v < 1,
+                                "a number in [0, 1) (relative singular-value cut-off)")),
+                rank=t.integer("rank", None, 1),
+                relative=t.boolean("relative", False))
 
 
 def _newton_options(t: _Table) -> dict[str, Any]:
