@@ -1,6 +1,7 @@
 """Shared fixtures: manufactured solutions and small discretisations."""
 
 import atexit
+import importlib.util
 import logging
 import os
 import shutil
@@ -20,6 +21,7 @@ if "PRDP_FEM_COMPILATION_CACHE" not in os.environ:
 import prdp_fem as pf
 
 MESH_DIR = Path(__file__).resolve().parent.parent / "meshes"
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 SHIPPED_MESHES = sorted(MESH_DIR.glob("*.msh"))
 
 # a three-configuration study of the mother problem on an 8 x 8 mesh (STEPS: optimiser steps)
@@ -92,3 +94,16 @@ def small_problem():
     kappa = disc.interpolate_kappa(lambda x: 1.0 + x[0] + 0.5 * np.sin(3 * x[1]))
     f = disc.interpolate(lambda x: np.cos(2 * x[0]) + x[1])
     return disc, kappa, f
+
+
+@pytest.fixture(scope="session")
+def load_example():
+    """``load_example(name)`` imports ``examples/<name>.py`` (plain scripts, not a package)."""
+
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

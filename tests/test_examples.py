@@ -1,24 +1,13 @@
 """The example scripts, imported and pinned to their numbers."""
 
-import importlib.util
 import itertools
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
-
-def load(name):
-    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_forward_convergence_example():
-    result = load("forward_convergence").main()
+def test_forward_convergence_example(load_example):
+    result = load_example("forward_convergence").main()
     errors = result["errors"]
     assert result["n_free"] == 1823
     values = [errors[k] for k in sorted(errors)]
@@ -28,8 +17,8 @@ def test_forward_convergence_example():
     assert 5 <= result["amg_iterations"] <= 30
 
 
-def test_gradient_check_example():
-    result = load("gradient_check").main()
+def test_gradient_check_example(load_example):
+    result = load_example("gradient_check").main()
     unrolled, implicit = result["unrolled"], result["implicit"]
     assert unrolled["value"] == pytest.approx(implicit["value"], rel=1e-12)
     # unrolled differentiates the truncated map exactly: second-order Taylor remainder
@@ -47,8 +36,8 @@ def _converged_error(problem, steps):
 
 
 @pytest.mark.slow  # 20 s; the table rows and bench mother's tests pin the example by default
-def test_source_recovery_matches_the_peer_at_n128():
-    source = load("source_recovery")
+def test_source_recovery_matches_the_peer_at_n128(load_example):
+    source = load_example("source_recovery")
     _, problem = source.build(128)
     error = _converged_error(problem, 200)
     # dolfin-adjoint reports 6.4e-4; our discrete optimum (same P1/P1 problem) is 6.69e-4
@@ -56,16 +45,16 @@ def test_source_recovery_matches_the_peer_at_n128():
 
 
 @pytest.mark.slow
-def test_source_recovery_at_n256_is_no_worse_than_the_peer():
-    source = load("source_recovery")
+def test_source_recovery_at_n256_is_no_worse_than_the_peer(load_example):
+    source = load_example("source_recovery")
     _, problem = source.build(256)
     # the peer's 2.2e-4 sits above the P1 discrete optimum (1.67e-4, an O(h^2) drop from
     # n = 128): L-BFGS-B stopped early there; we must not be worse by more than 10 %
     assert _converged_error(problem, 300) <= 1.10 * source.PEER_ERROR[256]
 
 
-def test_source_recovery_table_rows():
-    rows = load("source_recovery").run(n=32, steps=40)
+def test_source_recovery_table_rows(load_example):
+    rows = load_example("source_recovery").run(n=32, steps=40)
     by_name = {r.method: r for r in rows}
     assert set(by_name) == {"converged", "fixed K=5", "prdp"}
     # CG work is deterministic: truncated runs do a small fraction of the converged work
@@ -73,8 +62,8 @@ def test_source_recovery_table_rows():
     assert by_name["converged"].reached_step is not None
 
 
-def test_coefficient_recovery_errors_are_pinned():
-    coefficient = load("coefficient_recovery")
+def test_coefficient_recovery_errors_are_pinned(load_example):
+    coefficient = load_example("coefficient_recovery")
     _, problem = coefficient.build(16)
     assert _converged_error(problem, 100) < 0.09  # measured 0.079 (5 % noise, gamma 1e-8)
     _, on_mesh_file = coefficient.build_mesh_file()
@@ -82,8 +71,8 @@ def test_coefficient_recovery_errors_are_pinned():
     assert _converged_error(on_mesh_file, 100) < 0.06  # measured 0.053 (60 sensors, 1 %)
 
 
-def test_learned_inverse_example_trains_both_runs_from_one_start():
-    results = load("learned_inverse").run(n=8, epochs=8)
+def test_learned_inverse_example_trains_both_runs_from_one_start(load_example):
+    results = load_example("learned_inverse").run(n=8, epochs=8)
     converged, prdp = results["converged"], results["prdp"]
     assert len(converged) == len(prdp) == 8
     # the same start: the first validation misfits differ only by epoch 1's truncation

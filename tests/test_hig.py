@@ -391,14 +391,8 @@ def test_scene_selects_hig_and_validates_its_options():
 
 
 @pytest.mark.slow  # ~25 s: three inversions of the example, compiled separately
-def test_comparison_example_pins_gauss_newton_and_hig():
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parent.parent / "examples" / "hig_comparison.py"
-    spec = importlib.util.spec_from_file_location("hig_comparison", path)
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
+def test_comparison_example_pins_gauss_newton_and_hig(load_example):
+    example = load_example("hig_comparison")
     result = example.main(n=6, steps=3, methods=("gauss-newton", "hig"), solvers=("converged",))
     rows = result["rows"]
     assert (result["n_parameters"], result["n_observations"]) == (49, 169)

@@ -1,8 +1,6 @@
 """Newton-CG and Gauss-Newton (prdp_fem.newton): against dense solves, closed forms and hIPPYlib."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -16,8 +14,6 @@ from prdp_fem.inverse import inverse_problem, invert
 from prdp_fem.newton import gauss_newton, newton_cg
 from prdp_fem.observations import full_field, point_sensors, with_noise
 from prdp_fem.prdp import converged
-
-EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 def update(optimizer, state, z, fn, **extra):
@@ -285,14 +281,7 @@ def test_gauss_newton_needs_its_operator():
 # ------------------------------------------------------------------------------------------
 
 
-def load_example(name):
-    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_newton_cg_on_the_hippylib_problem_at_16():
+def test_newton_cg_on_the_hippylib_problem_at_16(load_example):
     result = load_example("newton_coefficient").run(16)
     # measured: 8 Newton steps, 38 CG, ||g||/||g_0|| = 5.4e-7 (hIPPYlib at 64 x 64: 7 / 41)
     assert result["converged"] and result["gradient_reduction"] <= 1e-6
