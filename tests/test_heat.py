@@ -1,0 +1,291 @@
+"""Heat equation: implicit Euler against SciPy and the discrete eigenmodes, warm starts, the
+ONE / NOG / WIG training modes (NOG provably never differentiates the solver, WIG's gradient
+passes a Taylor test), the exact iteration tally and bad options."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+import scipy.linalg
+import scipy.sparse.linalg as spla
+import skfem
+
+import prdp_fem as pf
+from prdp_fem import heat, learned
+from prdp_fem.errors import ShapeError, SolverConfigError
+from prdp_fem.inverse import InversionError
+from prdp_fem.prdp import fixed, prdp
+
+DT = 0.02
+
+
+@pytest.fixture(scope="module")
+def small():
+    """6x6 P1 (25 free dofs), 12 training and 4 validation trajectories of 6 steps."""
+    disc = pf.discretize(pf.unit_square(6), dirichlet=0.0)
+    problem = heat.heat_problem(disc, DT)
+    initial = learned.random_sources(disc, 16, seed=0, width=0.2, amplitude=1.0)
+    trajectories = heat.reference_trajectories(disc, initial, dt=DT, steps=6)
+    return disc, problem, trajectories.take(np.arange(12)), trajectories.take(np.arange(12, 16))
+
+
+def network_for(problem, hidden=32, seed=0, output_scale=0.05):
+    return learned.mlp_init(jax.random.PRNGKey(seed), [problem.n_free, hidden, problem.n_free],
+                            output_scale=output_scale)
+
+
+# --------------------------------------------------------------------------------------
+# the step
+# --------------------------------------------------------------------------------------
+
+
+def test_step_matches_a_scipy_solve_of_the_full_system():
+    """Non-zero Dirichlet data, a source, kappa = 2: the condensed step against skfem's
+    condense + spsolve of (M + dt A) u' = M u + dt M f on all dofs."""
+    disc = pf.discretize(pf.unit_square(8), dirichlet=lambda x: 0.5 + x[0])
+    f = disc.interpolate(lambda x: np.cos(2 * x[0]) + x[1])
+    problem = heat.heat_problem(disc, 0.05, kappa=2.0, source=f)
+    g = disc.expand(np.zeros(disc.n_free))  # the Dirichlet data, zero inside
+    u_full = disc.interpolate(lambda x: np.sin(3 * x[0]) * x[1]) + 0.0
+    u_full[disc.dirichlet_dofs] = g[disc.dirichlet_dofs]
+    M, A = disc.mass_matrix, 2.0 * disc.laplace_matrix
+    system = (M + 0.05 * A).tocsr()
+    rhs = M @ u_full + 0.05 * (M @ f)
+    reference = skfem.solve(*skfem.condense(system, rhs, x=g, D=disc.dirichlet_dofs))
+    u_next, iterations = heat.heat_step(problem, u_full[disc.free_dofs],
+                                        pf.ConvergedCG(rtol=1e-13))
+    np.testing.assert_allclose(np.asarray(u_next), reference[disc.free_dofs], rtol=0,
+                               atol=1e-11 * np.abs(reference).max())
+    assert 0 < int(iterations) < 100
+
+
+def test_a_discrete_eigenmode_decays_like_the_implicit_euler_factor():
+    """A v = lambda_h M v: n steps from v give (1 + dt lambda_h)^-n v; lambda_h of the lowest
+    mode is within 3 % of the continuous 2 pi^2 (kappa = 1)."""
+    disc = pf.discretize(pf.unit_square(12), dirichlet=0.0)
+    problem = heat.heat_problem(disc, DT)
+    free = disc.free_dofs
+    A = disc.laplace_matrix[free][:, free].toarray()
+    M = disc.mass_matrix[free][:, free].toarray()
+    eigenvalues, vectors = scipy.linalg.eigh(A, M)
+    lam, v = eigenvalues[0], vectors[:, 0]
+    assert lam == pytest.approx(2 * np.pi**2, rel=0.03)
+    u, solver = jnp.asarray(v), pf.ConvergedCG(rtol=1e-13)
+    for _ in range(5):
+        u, _ = heat.heat_step(problem, u, solver)
+    np.testing.assert_allclose(np.asarray(u), (1 + DT * lam) ** -5 * v, rtol=0,
+                               atol=1e-11 * np.abs(v).max())
+
+
+def test_the_warm_start_from_u_n_saves_iterations():
+    """From u_n the initial residual is dt (b - A u_n), against M u_n from zero: for a smooth
+    state and a small step (dt lambda ~ 0.04) that is ~25 times smaller."""
+    disc = pf.discretize(pf.unit_square(16), dirichlet=0.0)
+    problem = heat.heat_problem(disc, 0.002)
+    u = jnp.asarray(disc.interpolate(lambda x: np.sin(np.pi * x[0]) * np.sin(np.pi * x[1])
+                                     * (1 + x[0]))[disc.free_dofs])
+    solver = pf.ConvergedCG(rtol=1e-8)
+    warm = heat.heat_step(problem, u, solver)[1]
+    cold = pf.solve(problem.matrix, problem.rhs(u), solver).iterations
+    assert int(warm) <= int(cold) - 3, (int(warm), int(cold))
+    # and at a fixed K the warm start is the more accurate
+    exact = heat.heat_step(problem, u, pf.ConvergedCG(rtol=1e-13))[0]
+    truncated = pf.TruncatedCG(2)
+    warm_error = jnp.linalg.norm(heat.heat_step(problem, u, truncated)[0] - exact)
+    cold_error = jnp.linalg.norm(pf.solve(problem.matrix, problem.rhs(u), truncated).x - exact)
+    assert float(warm_error) < 0.3 * float(cold_error), (float(warm_error), float(cold_error))
+
+
+def test_reference_trajectories_are_substepped_direct_solves(small):
+    disc, _, trajectories, _ = small
+    fine = heat.heat_problem(disc, DT / 4)
+    u = trajectories.states[3, 0]
+    for _ in range(4):
+        u = spla.spsolve(fine.matrix.to_scipy().tocsc(), np.asarray(fine.rhs(u)))
+    np.testing.assert_allclose(np.asarray(trajectories.states[3, 1]), u, rtol=1e-10,
+                               atol=1e-14)
+    # the coarse step (one solve of size dt) has a real, learnable error: several percent
+    coarse = heat.heat_step(heat.heat_problem(disc, DT), trajectories.states[3, 0],
+                            pf.ConvergedCG(rtol=1e-13))[0]
+    relative = float(jnp.linalg.norm(coarse - trajectories.states[3, 1])
+                     / jnp.linalg.norm(trajectories.states[3, 1]))
+    assert 0.01 < relative < 0.5
+
+
+def test_windows_cover_every_start_of_every_trajectory(small):
+    _, _, trajectories, _ = small
+    w = heat.windows(trajectories, 3)
+    assert w.shape == (12 * 4, 4, trajectories.states.shape[-1])
+    np.testing.assert_array_equal(np.asarray(w[5]), np.asarray(trajectories.states[1, 1:5]))
+
+
+# --------------------------------------------------------------------------------------
+# the training modes
+# --------------------------------------------------------------------------------------
+
+
+class SolverDifferentiated(Exception):
+    pass
+
+
+def jvp_raising_step(problem, u, solver):
+    """heat_step whose forward-mode derivative raises (custom_jvp)."""
+
+    @jax.custom_jvp
+    def step(problem, u):
+        return heat.heat_step(problem, u, solver)
+
+    @step.defjvp
+    def _(primals, tangents):
+        raise SolverDifferentiated("jvp of the solver")
+
+    return step(problem, u)
+
+
+def vjp_raising_step(problem, u, solver):
+    """heat_step whose reverse-mode derivative raises (custom_vjp)."""
+
+    @jax.custom_vjp
+    def step(problem, u):
+        return heat.heat_step(problem, u, solver)
+
+    def forward(problem, u):
+        return step(problem, u), None
+
+    def backward(_, cotangent):
+        raise SolverDifferentiated("vjp of the solver")
+
+    step.defvjp(forward, backward)
+    return step(problem, u)
+
+
+@pytest.mark.parametrize("stand_in", [jvp_raising_step, vjp_raising_step])
+def test_nog_and_one_never_differentiate_the_solver_and_wig_does(small, stand_in):
+    _, problem, trajectories, _ = small
+    network = network_for(problem)
+    batch = heat.windows(trajectories, 2)[:6]
+    solver = pf.TruncatedCG(3, gradient="implicit")
+
+    def gradient(mode, step):
+        return jax.jit(jax.grad(lambda net: heat.batch_loss(
+            net, problem, batch, solver, setup="correction", mode=mode, step=step)[0]))(
+                network)
+
+    for mode in ("nog", "one"):
+        real, standin = gradient(mode, heat.heat_step), gradient(mode, stand_in)
+        for a, b in zip(jax.tree_util.tree_leaves(real), jax.tree_util.tree_leaves(standin),
+                        strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(SolverDifferentiated):  # the stand-in has teeth
+        gradient("wig", stand_in)
+
+
+@pytest.mark.parametrize("solver", [pf.TruncatedCG(3, gradient="unrolled"),
+                                    pf.ConvergedCG(rtol=1e-13)], ids=["unrolled-K3", "converged"])
+def test_wig_gradient_over_a_two_step_unroll_passes_a_taylor_test(small, solver):
+    _, problem, trajectories, _ = small
+    network = network_for(problem)
+    batch = heat.windows(trajectories, 2)[:4]
+
+    def loss(layers, mode="wig"):
+        return heat.batch_loss(network._replace(layers=layers), problem, batch, solver,
+                               setup="correction", mode=mode)[0]
+
+    wig = jax.jit(jax.grad(loss))(network.layers)
+    result = pf.taylor_test(jax.jit(loss), network.layers, gradient=wig, h0=1e-2)
+    assert result.passed(), result.rates
+    # the temporal path matters: NOG's gradient (no gradient between the steps) is another one
+    nog = jax.jit(jax.grad(lambda layers: loss(layers, "nog")))(network.layers)
+    difference = jnp.sqrt(sum(jnp.sum((a - b) ** 2) for a, b in zip(
+        jax.tree_util.tree_leaves(wig), jax.tree_util.tree_leaves(nog), strict=True)))
+    assert float(difference) > 1e-3 * float(optax.tree.norm(wig))
+
+
+@pytest.mark.parametrize(("setup", "mode", "fraction"), [
+    ("correction", "one", 0.6), ("correction", "nog", 0.6), ("correction", "wig", 0.6),
+    ("prediction", "wig", 0.4)])
+def test_training_lowers_the_validation_rollout_error(small, setup, mode, fraction):
+    """40 epochs of 5 batches: the rollout error of the validation trajectories (converged
+    coarse solves) falls below ``fraction`` of the untrained network's (measured: 0.43,
+    0.46, 0.46 and 0.25). NOG trains with the black-box stand-in: it needs no derivative."""
+    _, problem, trajectories, validation = small
+    network = network_for(problem, output_scale=0.05 if setup == "correction" else 0.3)
+    start = heat.rollout_error(network, problem, validation, pf.ConvergedCG(rtol=1e-10),
+                               setup=setup)[0]
+    training = heat.train(problem, network, trajectories, validation, setup=setup, mode=mode,
+                          unroll=2, optimizer=optax.adam(3e-3), refinement=prdp(K0=1, dK=1),
+                          epochs=40, batch_size=12,
+                          step=vjp_raising_step if mode == "nog" else heat.heat_step)
+    last = training.records[-1]
+    assert last.validation_error < fraction * float(start), (float(start), last)
+    times = [r.time for r in training.records]
+    assert times == sorted(times)
+    if setup == "prediction":  # no solver ran
+        assert last.primal_iterations == 0 and last.iterations == 0
+    else:  # PRDP refined from K0 = 1
+        assert int(training.refinement.iterations) > 1
+
+
+def test_the_iteration_tally_is_exact(small):
+    """fixed K: K per solve, unroll solves per window, every full batch of every epoch."""
+    _, problem, trajectories, validation = small
+    training = heat.train(problem, network_for(problem), trajectories, validation,
+                          setup="correction", mode="wig", unroll=2, refinement=fixed(3),
+                          epochs=2, batch_size=20)
+    n_windows = 12 * (6 - 2 + 1)  # 60: three full batches of 20
+    assert [r.primal_iterations for r in training.records] == [3 * 2 * n_windows,
+                                                               2 * 3 * 2 * n_windows]
+    assert {r.iterations for r in training.records} == {3}
+    _, iterations = heat.rollout_error(None, problem, validation, pf.TruncatedCG(3))
+    assert int(iterations) == 3 * 6 * 4
+
+
+def test_a_non_finite_loss_raises_with_the_setup_and_mode(small):
+    _, problem, trajectories, validation = small
+
+    def poisoned(problem, u, solver):
+        return u * jnp.nan, jnp.zeros((), jnp.int32)
+
+    with pytest.raises(InversionError, match=r"non-finite.*setup='correction', mode='nog'"):
+        heat.train(problem, network_for(problem), trajectories, validation, mode="nog",
+                   unroll=2, epochs=1, batch_size=12, step=poisoned)
+
+
+def test_bad_options_are_refused_with_their_names(small):
+    disc, problem, trajectories, validation = small
+    network = network_for(problem)
+
+    def train(**kwargs):
+        heat.train(problem, kwargs.pop("network", network), kwargs.pop("train", trajectories),
+                   validation, **kwargs)
+
+    with pytest.raises(SolverConfigError, match="setup='hybrid'"):
+        train(setup="hybrid")
+    with pytest.raises(SolverConfigError, match="mode='full'"):
+        train(mode="full")
+    with pytest.raises(SolverConfigError, match="gradient='forward'"):
+        train(gradient="forward")
+    with pytest.raises(SolverConfigError, match="unroll=7: expected at most the 6 steps"):
+        train(unroll=7)
+    with pytest.raises(SolverConfigError, match="unroll=0"):
+        train(unroll=0)
+    with pytest.raises(SolverConfigError, match="batch_size=99: expected at most the 48"):
+        train(batch_size=99)
+    with pytest.raises(SolverConfigError, match="epochs=0"):
+        train(epochs=0)
+    with pytest.raises(ShapeError, match="network maps 25 -> 7"):
+        train(network=learned.mlp_init(jax.random.PRNGKey(0), [25, 4, 7]))
+    with pytest.raises(ShapeError, match="train_set"):
+        train(train=heat.Trajectories(trajectories.states[..., :5]))
+    with pytest.raises(SolverConfigError, match="dt=0"):
+        heat.heat_problem(disc, 0.0)
+    with pytest.raises(SolverConfigError, match="dt=nan"):
+        heat.heat_problem(disc, float("nan"))
+    with pytest.raises(SolverConfigError, match="substeps=0"):
+        heat.reference_trajectories(disc, np.zeros((1, disc.n_dofs)), dt=0.1, steps=2,
+                                    substeps=0)
+    with pytest.raises(ShapeError, match="initial"):
+        heat.reference_trajectories(disc, np.zeros((2, 3)), dt=0.1, steps=2)
+    with pytest.raises(pf.CoefficientError, match="kappa"):
+        heat.heat_problem(disc, 0.1, kappa=-1.0)
