@@ -59,6 +59,7 @@ from .generators import (
     unit_cube,
     unit_square,
 )
+from .heat import HeatProblem, heat_problem, heat_step
 from .hig import HigInfo, HigState, hig, hig_update, randomized_svd, residual_jacobian
 from .history import History, StepRecord
 from .inverse import (
@@ -126,6 +127,7 @@ __all__ = [
     "DiscretizationError",
     "DuplicateNodeError",
     "EllMatrix",
+    "HeatProblem",
     "HigInfo",
     "HigState",
     "History",
@@ -191,6 +193,8 @@ __all__ = [
     "geometric_spacing",
     "h1_error",
     "h1_seminorm",
+    "heat_problem",
+    "heat_step",
     "hig",
     "hig_update",
     "inverse_problem",

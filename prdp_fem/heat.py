@@ -90,6 +90,7 @@ __all__ = [
     "correction",
     "heat_problem",
     "heat_step",
+    "random_initial_states",
     "reference_trajectories",
     "rollout",
     "rollout_error",
@@ -184,6 +185,25 @@ class Trajectories(NamedTuple):
     @property
     def steps(self) -> int:
         return int(self.states.shape[1]) - 1
+
+
+def random_initial_states(disc: Discretization, n_states: int, *, seed: int = 0,
+                          bumps: int = 3, width: float = 0.15) -> np.ndarray:
+    """``n_states`` smooth nodal fields ``(n_states, n_dofs)``: sums of ``bumps`` Gaussians
+    (widths ``width`` times the mesh's diameter) at uniform random centres, with *positive*
+    amplitudes uniform in ``[0.5, 1]``. Positive, so that the slowest-decaying mode is always
+    present: bumps of both signs can cancel it, and such a trajectory decays to round-off
+    relative to its start within a few steps. Seeded."""
+    n_states, bumps = _count(n_states, "n_states"), _count(bumps, "bumps")
+    width = _positive(width, "width")
+    x = disc.basis.doflocs  # (dim, n_dofs)
+    low, high = x.min(axis=1), x.max(axis=1)
+    sigma = width * float(np.linalg.norm(high - low))
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(low, high, size=(n_states, bumps, x.shape[0]))
+    weights = rng.uniform(0.5, 1.0, size=(n_states, bumps))
+    distance2 = ((x.T[None, None] - centres[:, :, None]) ** 2).sum(axis=-1)
+    return np.einsum("sb,sbn->sn", weights, np.exp(-distance2 / (2 * sigma**2)))
 
 
 def reference_trajectories(disc: Discretization, initial, *, dt: float, steps: int,
