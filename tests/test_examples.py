@@ -80,3 +80,21 @@ def test_learned_inverse_example_trains_both_runs_from_one_start(load_example):
     for records in (converged, prdp):
         assert records[-1].validation_misfit < 0.5 * records[0].validation_misfit
     assert prdp[-1].primal_iterations < 0.5 * converged[-1].primal_iterations
+
+
+def test_heat_hybrid_example_correction_nog_beats_prediction_wig_and_prdp_saves():
+    """6x6 mesh, 12 training trajectories, 30 epochs: the pinned small case of the table."""
+    results = load("heat_hybrid").run(n=6, epochs=30, hidden=32, n_train=12,
+                                      rows=(("correction", "nog"), ("prediction", "wig")),
+                                      converged_modes=("nog",))
+    rows = results["rows"]
+    assert set(rows) == {("correction", "nog", "prdp"), ("correction", "nog", "converged"),
+                         ("prediction", "wig", "none")}
+    assert results["coarse_alone"] == pytest.approx(0.337, rel=1e-2)  # measured 0.3370
+    hybrid = rows["correction", "nog", "prdp"]["test_error"]
+    assert hybrid < 0.2 * results["coarse_alone"]  # measured 0.046
+    assert hybrid < 0.1 * rows["prediction", "wig", "none"]["test_error"]  # 0.046 vs 6.2
+    assert rows["prediction", "wig", "none"]["cg_iterations"] == 0
+    equal = results["saving"]["nog"]["equal_epochs"]
+    assert equal["iterations"] < 0.5  # measured 0.23
+    assert equal["test_error"] < 1.1  # measured 1.01
