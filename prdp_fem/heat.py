@@ -39,8 +39,9 @@ Budgets are fair by construction: every mode sees the same windows in the same m
 the same epochs, and each window costs ``m`` network evaluations and ``m`` coarse solves (ONE's
 ``m`` one-step samples per window are the "m times the batch" of the reference study).
 
-PRDP on the inner solves: a refinement controller (:mod:`prdp_fem.prdp`) picks ``K`` once per
-epoch from the *validation rollout error*: full held-out trajectories rolled out from
+PRDP on the inner solves: a refinement controller (:mod:`prdp_fem.prdp`) picks ``K`` (or, in
+tolerance mode, a relative residual tolerance) once per epoch from the *validation rollout
+error*: full held-out trajectories rolled out from
 :math:`u^*_0` with *converged* coarse solves, so the monitored value does not move when ``K``
 does (:func:`rollout_error`: the mean over trajectories and steps of
 :math:`\|u_n - u^*_n\|_M / \|u^*_n\|_M`). The CG iterations of the training solves are returned
@@ -248,6 +249,11 @@ def windows(trajectories: Trajectories, unroll: int) -> jax.Array:
 # --------------------------------------------------------------------------------------
 
 
+def _check_choice(value: Any, name: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise SolverConfigError(f"{name}={value!r}: expected one of {allowed}")
+
+
 def correction(network: Network | None, u: jax.Array) -> jax.Array:
     """``N(u) = rho(u) MLP(u / rho(u))``, ``rho`` the RMS of ``u`` (zero at ``u = 0``, with
     finite gradients); ``network=None``: zero."""
@@ -263,6 +269,7 @@ def stepper(setup: str, network: Network | None, problem: HeatProblem, u: jax.Ar
             *, stop_solver: bool = False, step: Step = heat_step):
     """``G(u)`` of ``setup`` and the CG iterations it ran. ``stop_solver`` stops the gradient
     at the solver's input and output (NOG: the solver is never differentiated)."""
+    _check_choice(setup, "setup", SETUPS)
     if setup == "prediction":
         return u + correction(network, u), jnp.zeros((), jnp.int32)
     if stop_solver:
@@ -283,6 +290,7 @@ def window_loss(network: Network, problem: HeatProblem, window: jax.Array, solve
                 setup: str, mode: str, step: Step = heat_step):
     """The loss of one window ``(m + 1, n_free)`` (see the module docstring) and its CG
     iterations."""
+    _check_choice(mode, "mode", MODES)
     m = window.shape[0] - 1
     s, total, iterations = window[0], 0.0, jnp.zeros((), jnp.int32)
     for k in range(m):
@@ -390,10 +398,8 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     """
     from .inverse import InversionError
 
-    if setup not in SETUPS:
-        raise SolverConfigError(f"setup={setup!r}: expected one of {SETUPS}")
-    if mode not in MODES:
-        raise SolverConfigError(f"mode={mode!r}: expected one of {MODES}")
+    _check_choice(setup, "setup", SETUPS)
+    _check_choice(mode, "mode", MODES)
     if gradient not in ("implicit", "unrolled"):
         raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
     epochs, batch_size = _count(epochs, "epochs"), _count(batch_size, "batch_size")

@@ -15,7 +15,7 @@ import prdp_fem as pf
 from prdp_fem import heat, learned
 from prdp_fem.errors import ShapeError, SolverConfigError
 from prdp_fem.inverse import InversionError
-from prdp_fem.prdp import fixed, prdp
+from prdp_fem.prdp import prdp
 
 DT = 0.02
 
@@ -232,20 +232,15 @@ def test_training_lowers_the_validation_rollout_error(small, setup, mode, fracti
     assert times == sorted(times)
     if setup == "prediction":  # no solver ran
         assert last.primal_iterations == 0 and last.iterations == 0
-    else:  # PRDP refined from K0 = 1
+    else:  # PRDP refined from K0 = 1; the tally is exact: K per solve, 2 solves per window,
+        # all 60 windows (5 full batches of 12) per epoch
         assert int(training.refinement.iterations) > 1
+        assert last.primal_iterations == sum(r.iterations * 2 * 60 for r in training.records)
 
 
-def test_the_iteration_tally_is_exact(small):
-    """fixed K: K per solve, unroll solves per window, every full batch of every epoch."""
-    _, problem, trajectories, validation = small
-    training = heat.train(problem, network_for(problem), trajectories, validation,
-                          setup="correction", mode="nog", unroll=2, refinement=fixed(3),
-                          epochs=2, batch_size=20)
-    n_windows = 12 * (6 - 2 + 1)  # 60: three full batches of 20
-    assert [r.primal_iterations for r in training.records] == [3 * 2 * n_windows,
-                                                               2 * 3 * 2 * n_windows]
-    assert {r.iterations for r in training.records} == {3}
+def test_the_rollout_iteration_tally_is_exact(small):
+    """K per step, every step of every trajectory (the training tally is checked above)."""
+    _, problem, _, validation = small
     _, iterations = heat.rollout_error(None, problem, validation, pf.TruncatedCG(3))
     assert int(iterations) == 3 * 6 * 4
 
@@ -287,6 +282,12 @@ def test_bad_options_are_refused_with_their_names(small):
         train(network=learned.mlp_init(jax.random.PRNGKey(0), [25, 4, 7]))
     with pytest.raises(ShapeError, match="train_set"):
         train(train=heat.Trajectories(trajectories.states[..., :5]))
+    batch = heat.windows(trajectories, 2)[:2]
+    with pytest.raises(SolverConfigError, match="mode='two'"):
+        heat.batch_loss(network, problem, batch, pf.TruncatedCG(2), setup="correction",
+                        mode="two")
+    with pytest.raises(SolverConfigError, match="setup='both'"):
+        heat.rollout(network, problem, batch[0, 0], 2, pf.TruncatedCG(2), setup="both")
     with pytest.raises(SolverConfigError, match="dt=0"):
         heat.heat_problem(disc, 0.0)
     with pytest.raises(SolverConfigError, match="dt=nan"):
