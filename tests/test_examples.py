@@ -82,9 +82,9 @@ def test_learned_inverse_example_trains_both_runs_from_one_start(load_example):
     assert prdp[-1].primal_iterations < 0.5 * converged[-1].primal_iterations
 
 
-def test_heat_hybrid_example_correction_nog_beats_prediction_wig_and_prdp_saves():
+def test_heat_hybrid_example_correction_nog_beats_prediction_wig_and_prdp_saves(load_example):
     """6x6 mesh, 12 training trajectories, 30 epochs: the pinned small case of the table."""
-    results = load("heat_hybrid").run(n=6, epochs=30, hidden=32, n_train=12,
+    results = load_example("heat_hybrid").run(n=6, epochs=30, hidden=32, n_train=12,
                                       rows=(("correction", "nog"), ("prediction", "wig")),
                                       converged_modes=("nog",))
     rows = results["rows"]
