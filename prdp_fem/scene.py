@@ -319,7 +319,7 @@ class LearnedSpec:
     bumps of width ``width`` times the mesh diameter, seeded by ``seed``), observed through
     ``[inverse]``'s observation operator with ``noise`` times each sample's RMS; an MLP
     ``[n_obs, *hidden, n_dofs]`` trained for ``epochs`` epochs of mini-batches of
-    ``batch_size`` (``batch_size = samples``: full batch, required by L-BFGS);
+    ``batch_size`` (default ``samples``: the full batch, which L-BFGS requires);
     ``supervised``: the weight of the supervised source term.
     """
 
@@ -329,7 +329,7 @@ class LearnedSpec:
     width: float = 0.2
     hidden: tuple[int, ...] = (32,)
     epochs: int = 30
-    batch_size: int = 16
+    batch_size: int = 64      # default: samples (full batch)
     seed: int = 0
     supervised: float = 1e-2
 
@@ -611,7 +611,7 @@ def _learned(t: _Table) -> LearnedSpec:
         tuple(t.get("hidden", list(LearnedSpec.hidden), lambda v: isinstance(v, list) and all(
             _is_int(n) and n >= 1 for n in v), "a list of hidden layer sizes (integers >= 1)")),
         t.integer("epochs", LearnedSpec.epochs, 1),
-        t.get("batch_size", min(LearnedSpec.batch_size, samples),
+        t.get("batch_size", samples,
               lambda v: _is_int(v) and 1 <= v <= samples,
               f"an integer from 1 to learned.samples = {samples}"),
         t.integer("seed", LearnedSpec.seed, 0),

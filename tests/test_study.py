@@ -135,3 +135,90 @@ def test_forward_study_errors_fall_with_K(tmp_path):
     for run in ("jacobi", "identity"):
         errors = [r["relative_energy_error"] for r in rows if r["run"] == run]
         assert errors[0] == pytest.approx(1.0) and errors[1] < 0.5 and errors[2] < 1e-10
+
+
+# --------------------------------------------------------------------------------------
+# learned studies
+# --------------------------------------------------------------------------------------
+
+TINY_LEARNED = """
+name = "tiny_learned"
+[mesh]
+n = 6
+[inverse]
+unknown = "source"
+[learned]
+samples = 8
+validation_samples = 4
+hidden = [4]
+epochs = 3
+batch_size = 4
+[refinement]
+kind = "prdp"
+K0 = 2
+dK = 2
+[optimizer]
+name = "adam"
+learning_rate = 3e-3
+[[study.runs]]
+name = "converged"
+refinement = { kind = "converged" }
+[[study.runs]]
+name = "prdp"
+[[study.runs]]
+name = "gauss_newton"
+optimizer = { name = "gauss_newton", max_cg = 10 }
+learned = { batch_size = 8 }
+"""
+
+
+def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, monkeypatch):
+    from prdp_fem.build import build_learned, train_options
+    from prdp_fem.learned import train
+
+    path = tmp_path / "learned.toml"
+    path.write_text(TINY_LEARNED)
+    scene = load_scene(path)
+    out = tmp_path / "out"
+    result = run_study(scene, out)
+    records = ResultsLog(out / "results.jsonl").records()
+    epochs = [r for r in records if r["type"] == "epoch"]
+    assert [r["run"] for r in records if r["type"] == "done"] == ["converged", "prdp",
+                                                                  "gauss_newton"]
+    assert len(epochs) == 3 * 3
+    for run in ("converged", "prdp", "gauss_newton"):
+        mine = [r for r in epochs if r["run"] == run]
+        for key in ("primal_iterations", "adjoint_iterations_total", "time", "steps"):
+            values = [r[key] for r in mine]
+            assert values == sorted(values) and values[0] > 0, (run, key)
+    # the study's PRDP run is what train() gives from a script, epoch by epoch
+    variant = dict(scene.runs())["prdp"]
+    setup = build_learned(variant)
+    direct = train(setup.problem, setup.network, setup.train_set, setup.validation_set,
+                   **train_options(variant)).records
+    mine = [r for r in epochs if r["run"] == "prdp"]
+    np.testing.assert_allclose([r["validation_misfit"] for r in mine],
+                               [r.validation_misfit for r in direct], rtol=1e-10)
+    assert [r["primal_iterations"] for r in mine] == [r.primal_iterations for r in direct]
+    assert [r["iterations"] for r in mine] == [r.iterations for r in direct]
+    # PRDP's K = 2 solves cost less than converged ones; the summary reads the last records
+    rows = {row["run"]: row for row in result.summary}
+    assert rows["prdp"]["cg_iterations"] < rows["converged"]["cg_iterations"]
+    assert rows["gauss_newton"]["final_error"] == [r for r in epochs if r["run"] ==
+                                                  "gauss_newton"][-1]["validation_error"]
+    assert rows["gauss_newton"]["optimizer_steps"] == 3 and rows["prdp"]["optimizer_steps"] == 6
+    assert sorted(p.name for p in result.figures) == [
+        "error_vs_iterations.png", "error_vs_time.png", "iterations_over_steps.png"]
+    # resume: nothing left to run; a run whose 'done' record is lost runs again, alone
+    assert run_study(scene, out, resume=True).ran == []
+    kept = [r for r in records if not (r["type"] == "done" and r["run"] == "gauss_newton")]
+    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in kept))
+    calls = []
+    original = study_module._run_learned
+    monkeypatch.setattr(study_module, "_run_learned",
+                        lambda name, *a: (calls.append(name), original(name, *a)))
+    resumed = run_study(scene, out, resume=True)
+    assert calls == ["gauss_newton"] and resumed.ran == ["gauss_newton"]
+    again = {row["run"]: row for row in resumed.summary}
+    assert again["gauss_newton"]["final_error"] == pytest.approx(
+        rows["gauss_newton"]["final_error"], rel=1e-9)
