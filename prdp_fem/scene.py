@@ -27,7 +27,8 @@ takes the default written in the dataclass below):
                   ``learned`` the default), ``[[study.runs]]`` (``name`` plus tables
                   that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
                   ``solver``, ``optimizer``, ``learned`` merge key by key), ``reference``,
-                  ``target_error``, ``band``, ``levels``, ``elements``
+                  ``target_error``, ``band``, ``reached`` (band | at_or_below: when a run
+                  counts as at the target), ``levels``, ``elements``
 
 Unknown keys and bad values raise :class:`SceneError` naming the file, the key and what is
 allowed. Where the value belongs to a kind the Python API has a typed error for, the error is
@@ -345,6 +346,7 @@ class StudySpec:
     band: float = 0.01
     levels: tuple[int, ...] = (4, 8, 16, 32)
     elements: tuple[str, ...] = ("P1", "P2")
+    reached: str = "band"     # band: |e - t| <= band t; at_or_below: e <= (1 + band) t
 
 
 @dataclasses.dataclass(frozen=True)
@@ -641,7 +643,8 @@ def _study(t: _Table, has_inverse: bool, default_kind: str) -> StudySpec:
                     "an increasing list of at least two mesh levels (n, or refinements "
                     "of a mesh file)")),
         tuple(t.get("elements", ["P1", "P2"], lambda v: isinstance(v, list) and v and all(
-            e in ("P1", "P2", "Q1", "Q2") for e in v), "a list of P1, P2, Q1, Q2")))
+            e in ("P1", "P2", "Q1", "Q2") for e in v), "a list of P1, P2, Q1, Q2")),
+        t.choice("reached", "band", ("band", "at_or_below")))
     t.finish()
     if kind in ("inverse", "learned") and not has_inverse:
         raise SceneError(f"{t.source}: study.kind = {kind!r} needs an [inverse] section"

@@ -220,7 +220,9 @@ class _Setups:
         self._cache: dict = {}
 
     def __call__(self, variant: Scene):
-        key = (variant.mesh, variant.pde, variant.inverse, variant.directory)
+        # hig needs the residual factors: a problem built without them is not shared with it
+        key = (variant.mesh, variant.pde, variant.inverse, variant.directory,
+               variant.optimizer.name == "hig")
         if key not in self._cache:
             self._cache[key] = build_inverse(variant)
         return self._cache[key]
@@ -473,7 +475,8 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
         if not len(history):
             continue
         last = history[-1]
-        hit = _settled(history, target, scene.study.band, metric)
+        hit = _settled(history, target, scene.study.band, metric,
+                       scene.study.reached == "at_or_below")
         iterations = last.primal_iterations + last.adjoint_iterations_total
         hit_iterations = hit.primal_iterations + hit.adjoint_iterations_total if hit \
             else math.nan
@@ -495,10 +498,11 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
     return rows
 
 
-def _settled(history: History, target: float, band: float, metric: str):
+def _settled(history: History, target: float, band: float, metric: str,
+             at_or_below: bool = False):
     if metric != "parameter_error":  # settled() reads parameter_error: give it the metric
         history = History(r._replace(parameter_error=getattr(r, metric)) for r in history)
-    return settled(history, target, band)
+    return settled(history, target, band, at_or_below=at_or_below)
 
 
 def _h_summary(by_run: dict[str, list[dict]]) -> list[dict]:
