@@ -252,9 +252,9 @@ def test_observing_only_dirichlet_dofs_is_refused():
 
 def test_learned_scene_reads_its_table_and_runs_merge_it():
     scene = load_scene(ROOT / "examples" / "scenes" / "learned.toml")
-    assert scene.study.kind == "learned" and scene.learned.hidden == (16,)
+    assert scene.study.kind == "learned" and scene.learned.hidden == (8,)
     runs = dict(scene.runs())
     assert runs["converged"].refinement.kind == "converged"
-    assert runs["prdp"].learned.batch_size == 16 < runs["lbfgs prdp"].learned.batch_size == 64
-    assert runs["lbfgs prdp"].learned.samples == 64 and runs["lbfgs prdp"].learned.epochs == 30
+    assert runs["prdp"].learned.batch_size == 8 < runs["lbfgs prdp"].learned.batch_size == 32
+    assert runs["lbfgs prdp"].learned.samples == 32 and runs["lbfgs prdp"].learned.epochs == 30
     assert runs["hig prdp"].optimizer.name == "hig" and runs["hig prdp"].study.kind == "learned"
