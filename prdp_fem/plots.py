@@ -150,7 +150,7 @@ def inverse_figures(name: str, histories: dict[str, History], metric: str, out: 
     if not histories:
         return []
     figures = out / "figures"
-    title = f"{name}: {metric.replace('_', ' ')}"
+    title = f"{name}: {metric_label or metric.replace('_', ' ')}"
     made = [
         _curves(histories, "time", metric, "wall time without compilation [s]", title,
                 figures / "error_vs_time.png", metric_label),
