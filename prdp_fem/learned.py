@@ -559,7 +559,10 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
         run_time += time.perf_counter() - start
         if _uses_stored_value(opt_state) and _solver_changed(previous, control):
             # the stored value/gradient belong to the old solver: recompute them next step
-            opt_state = optax.tree_utils.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+            # (same dtype and weak type as stored, or the jitted step would recompile, timed)
+            stored = optax.tree_utils.tree_get(opt_state, "value")
+            opt_state = optax.tree_utils.tree_set(opt_state,
+                                                  value=jax.lax.full_like(stored, jnp.inf))
         record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
                              float(previous.rtol), counter.primal, run_time,
                              float(np.mean(losses)), float(misfit), float(error),
