@@ -13,8 +13,9 @@ A grid's best run by final parameter error is reported (the same tuning for ever
 has a grid). All three SVD methods pay for an explicit Jacobian: the misfit block has more
 rows (observed dofs) than columns (parameters), so it is taken in forward mode, one tangent
 solve per parameter, and a step costs about ``n_parameters`` solves -- the point of the table is
-what a step buys, and what it costs here. Times exclude compilation and were taken on a shared machine (noisy); the CG
-iteration count (primal + adjoint, batched Jacobian solves included) is the stable measure.
+what a step buys, and what it costs here. Times exclude compilation and were taken on a shared
+machine (noisy); the CG iteration count (primal + adjoint, batched Jacobian solves included) is
+the stable measure.
 
     python examples/hig_comparison.py [n] [steps]
 """
