@@ -159,9 +159,11 @@ class IterationCounter:
     ``jax.experimental.io_callback``, so the tally is exact even inside jitted line searches that
     evaluate the objective an unknown number of times. One counter belongs to one run (it is
     hashed by identity and is part of the compiled function); read it after the results are
-    ready (``jax.block_until_ready``). Under ``vmap`` every batch member counts (the tap's
-    operands include a value of the solve, so a batched solve taps once per member, at one
-    host call each).
+    ready (``jax.block_until_ready``). Under ``vmap`` every batch member counts, in one host
+    call per batched solve (see :func:`_tap`). Known gap: an implicit-mode transpose solve under
+    *two* nested ``vmap`` s (e.g. ``vmap`` over samples of a ``jacrev``) counts the inner batch
+    only; map the outer axis with ``lax.map`` (as :class:`prdp_fem.learned.BatchObjective`
+    does) to keep the tally exact.
     """
 
     def __init__(self):

@@ -292,6 +292,10 @@ def test_line_search_trials_are_counted_exactly(tiny):
     assert trials >= 1
     # value_and_grad: B solves; the Gauss-Newton linearisation: B; each trial: B
     assert counter.primal == K * B * (2 + trials)
+    # adjoint: the gradient's B, then a tangent and an adjoint solve per sample and product
+    products = int(state.cg_iterations)
+    assert products >= 1
+    assert counter.adjoint == K * B * (1 + 2 * products)
 
 
 def test_bad_optimiser_combinations_are_refused(tiny):
