@@ -212,6 +212,7 @@ def test_hig_network_step_equals_the_svd_of_the_explicitly_stacked_jacobian(tiny
                                atol=1e-12 * np.abs(matrix).max())
 
 
+@pytest.mark.slow  # 9 s: two Jacobians through 60-iteration solves, each compiled
 def test_forward_and_reverse_jacobians_agree_with_converged_solves(tiny):
     """Truncated, a tangent solve (CG on J's column) and an adjoint solve (CG on a row) are
     different polynomials in A; converged (K = 60 > 25 free dofs) they are both A^-1."""
