@@ -14,8 +14,8 @@ has a grid). All three SVD methods pay for an explicit Jacobian: the misfit bloc
 rows (observed dofs) than columns (parameters), so it is taken in forward mode, one tangent
 solve per parameter, and a step costs about ``n_parameters`` solves -- the point of the table is
 what a step buys, and what it costs here. Times exclude compilation and were taken on a shared
-machine (noisy); the CG iteration count (primal + adjoint, batched Jacobian solves included)
-is the stable measure.
+machine (noisy); the CG iteration count (primal + adjoint, batched Jacobian solves included) is
+the stable measure.
 
     python examples/hig_comparison.py [n] [steps]
 """

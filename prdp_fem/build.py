@@ -6,6 +6,8 @@
   reference solve is made unless ``reference=True``; nothing is differentiated.
 * :func:`build_inverse`: the :class:`~prdp_fem.inverse.InverseProblem` (synthetic data come from
   one direct solve of the truth).
+* :func:`build_learned`: a learned inverse (:mod:`~prdp_fem.learned`): the problem, seeded
+  training and validation sets, and an untrained network.
 * :func:`controller`, :func:`optimizer`, :func:`invert_options`: the refinement controller, the
   optax optimiser and the keyword arguments of :func:`~prdp_fem.inverse.invert`.
 """
@@ -28,6 +30,15 @@ from .errors import DiscretizationError, SceneError, SensorError, ShapeError
 from .expressions import compile_field
 from .hig import hig
 from .inverse import InverseProblem, Validation, inverse_problem
+from .learned import (
+    LearnedInverse,
+    Network,
+    SourceSamples,
+    learned_inverse,
+    mlp_init,
+    random_sources,
+    source_samples,
+)
 from .mesh import load_mesh
 from .newton import newton_cg
 from .observations import boundary_values, full_field, point_sensors, with_noise
@@ -46,12 +57,14 @@ __all__ = [
     "ForwardResult",
     "build_discretization",
     "build_inverse",
+    "build_learned",
     "build_mesh",
     "controller",
     "field_function",
     "forward_solve",
     "invert_options",
     "optimizer",
+    "train_options",
 ]
 
 DIRECT_SOLVE_LIMIT = 200_000  # free dofs up to which synthetic data use SuperLU (else pyamg)
@@ -188,23 +201,68 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
     else:
         kappa, f = (known, truth) if source_unknown else (np.exp(truth), known)
         u_true = _true_state(disc, kappa, f)
-        if spec.observations == "full_field":
-            observation = full_field(disc, norm=spec.norm, u_true=u_true)
-        else:
-            key = "sensors" if spec.observations == "sensors" else "boundaries"
-            try:
-                observation = point_sensors(disc, _sensor_points(scene, disc), u_true=u_true) \
-                    if key == "sensors" else boundary_values(disc, spec.boundaries, u_true=u_true)
-            except (SensorError, ShapeError) as exc:
-                if isinstance(exc, SceneError):
-                    raise
-                raise SceneSensorError(f"{scene.source}: inverse.{key}: {exc}") from None
+        observation = _observation(scene, disc, u_true)
         if spec.noise > 0:
             observation = with_noise(observation, spec.noise, spec.seed)
     problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
                               regularization=spec.regularization, known=known, truth=truth,
                               bounds=spec.bounds, residual=scene.optimizer.name == "hig")
     return InverseSetup(disc, problem, truth)
+
+
+def _observation(scene: Scene, disc: Discretization, u: np.ndarray):
+    """``[inverse]``'s observation operator, with ``u`` as its data."""
+    spec = scene.inverse
+    if spec.observations == "full_field":
+        return full_field(disc, norm=spec.norm, u_true=u)
+    key = "sensors" if spec.observations == "sensors" else "boundaries"
+    try:
+        return point_sensors(disc, _sensor_points(scene, disc), u_true=u) \
+            if key == "sensors" else boundary_values(disc, spec.boundaries, u_true=u)
+    except (SensorError, ShapeError) as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise SceneSensorError(f"{scene.source}: inverse.{key}: {exc}") from None
+
+
+class LearnedSetup(NamedTuple):
+    disc: Discretization
+    problem: LearnedInverse
+    train_set: SourceSamples
+    validation_set: SourceSamples
+    network: Network          # untrained (seeded), scales from the training data
+
+
+def build_learned(scene: Scene) -> LearnedSetup:
+    """The learned inverse of the scene: ``[learned]`` samples observed through ``[inverse]``'s
+    observation operator (converged reference solves plus noise), an MLP
+    ``[n_obs, *hidden, n_dofs]`` with LeCun-normal weights seeded by ``learned.seed``."""
+    spec = scene.learned
+    if spec is None or scene.inverse is None:
+        raise SceneError(f"{scene.source}: expected study.kind = 'learned' with an [inverse] "
+                         "section (the observations)")
+    disc = build_discretization(scene)
+    observation = _observation(scene, disc, np.zeros(disc.n_dofs))
+    problem = learned_inverse(disc, observation, kappa=coefficient(scene, disc),
+                              supervised=spec.supervised)
+    n = spec.samples + spec.validation_samples
+    sources = random_sources(disc, n, seed=spec.seed, width=spec.width)
+    samples = source_samples(problem, sources, noise=spec.noise, seed=spec.seed + 1)
+    train_set = samples.take(np.arange(spec.samples))
+    validation_set = samples.take(np.arange(spec.samples, n))
+    network = mlp_init(jax.random.PRNGKey(spec.seed),
+                       [int(observation.operator.shape[0]), *spec.hidden, disc.n_dofs],
+                       input_scale=float(np.std(np.asarray(train_set.observations))),
+                       output_scale=float(np.std(sources[:spec.samples])))
+    return LearnedSetup(disc, problem.with_residual(), train_set, validation_set, network)
+
+
+def train_options(scene: Scene) -> dict[str, Any]:
+    """Keyword arguments of :func:`~prdp_fem.learned.train` for this scene."""
+    return dict(optimizer=optimizer(scene), refinement=controller(scene),
+                epochs=scene.learned.epochs, batch_size=scene.learned.batch_size,
+                gradient=scene.solver.gradient, preconditioner=scene.solver.preconditioner,
+                seed=scene.learned.seed, validation_rtol=scene.refinement.validation_rtol)
 
 
 def initial_field(scene: Scene, disc: Discretization) -> np.ndarray | None:

@@ -81,7 +81,8 @@ def _parser() -> argparse.ArgumentParser:
                        "numbered when it exists)")
     study.add_argument("--resume", action="store_true",
                        help="continue the study in --out, skipping finished configurations")
-    study.add_argument("--steps", type=int, help="optimiser steps (overrides the scene)")
+    study.add_argument("--steps", type=int,
+                       help="optimiser steps, or epochs of a learned study (overrides the scene)")
 
     invert = _command(sub, "invert", "one inversion with the scene's settings")
     invert.add_argument("scene", help="a scene .toml file or a built-in scene name")
@@ -249,7 +250,13 @@ def _scene(name_or_path: str, steps: int | None):
     if steps is not None:
         if steps < 0:
             raise SolverConfigError(f"--steps {steps}: expected an integer >= 0")
-        scene = with_overrides(scene, {"optimizer": {"steps": steps}})
+        if scene.study.kind == "learned":  # a learned study counts epochs
+            if steps < 1:
+                raise SolverConfigError(f"--steps {steps}: a learned study's epochs; "
+                                        "expected an integer >= 1")
+            scene = with_overrides(scene, {"learned": {"epochs": steps}})
+        else:
+            scene = with_overrides(scene, {"optimizer": {"steps": steps}})
     return scene
 
 
@@ -281,6 +288,9 @@ SUMMARY_COLUMNS = {
                 "relative_l2_error", "relative_energy_error"],
     "h": ["element", "level", "dofs", "l2_error", "rate", "cg_iterations", "cg_time",
           "amg_time"],
+    "learned": ["run", "final_error", "validation_misfit", "final_K", "time_s", "cg_iterations",
+                "optimizer_steps", "reached_step", "time_to_target_s", "time_saving",
+                "iteration_saving"],
 }
 
 

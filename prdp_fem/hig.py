@@ -33,9 +33,12 @@ Two ways to the SVD:
   through the residual, which both PCG gradient modes support (an implicit solve's tangent is
   a truncated tangent solve, :mod:`prdp_fem.cg`).
 
-:func:`hig` is an optax ``GradientTransformationExtraArgs`` that takes ``residual_fn=`` from
-:func:`prdp_fem.inverse.invert`; :func:`hig_update` is the plain function for a training loop
-that already holds the (batch-stacked) Jacobian.
+:func:`hig` is an optax ``GradientTransformationExtraArgs`` that takes ``residual_fn=``, or
+a ``value_fn`` with ``residual_blocks()`` (:func:`prdp_fem.inverse.invert`'s objective) and,
+for a batch, ``residual_jacobian(params, mode)`` giving ``(r, J)`` with ``J`` stacked over the
+samples, each sample's block taken on its own (:class:`prdp_fem.learned.BatchObjective`,
+what :func:`prdp_fem.learned.train` passes); :func:`hig_update` is the plain function for a
+training loop that already holds the (batch-stacked) Jacobian.
 
 >>> import jax.numpy as jnp
 >>> A, b = jnp.array([[2.0, 0.0], [0.0, 0.5], [0.0, 0.0]]), jnp.array([1.0, 1.0, 1.0])
@@ -320,8 +323,10 @@ def hig(learning_rate: optax.ScalarOrSchedule, exponent: float = -0.5, tau: floa
     def update_fn(updates, state: HigState, params=None, *, residual_fn=None, value_fn=None,
                   **extra_args):
         del updates, extra_args  # the step comes from the residual, not from the gradient
+        stacked = residual_fn is None and rank is None and hasattr(value_fn,
+                                                                  "residual_jacobian")
         if residual_fn is None and hasattr(value_fn, "residual_blocks"):
-            residual_fn = value_fn.residual_blocks()  # prdp_fem.inverse.invert's Objective
+            residual_fn = value_fn.residual_blocks()  # invert's Objective, train's BatchObjective
         if params is None or residual_fn is None:
             raise SolverConfigError(
                 "hig: update needs params and residual_fn= (the residual vector r with "
@@ -332,7 +337,10 @@ def hig(learning_rate: optax.ScalarOrSchedule, exponent: float = -0.5, tau: floa
         flat_fn = [lambda y, fn=fn: fn(unravel(y)) for fn in _blocks(residual_fn)]
 
         key = state.key
-        if rank is None:
+        if stacked:  # a batch: the value_fn stacks per-sample Jacobians (learned.BatchObjective)
+            r, matrix = value_fn.residual_jacobian(params, jacobian)
+            u, s, vt = jnp.linalg.svd(matrix, full_matrices=False)
+        elif rank is None:
             r, matrix = residual_jacobian(flat_fn, x, jacobian)
             u, s, vt = jnp.linalg.svd(matrix, full_matrices=False)
         else:

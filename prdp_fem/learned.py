@@ -39,18 +39,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.flatten_util import ravel_pytree
 
+from .cg import IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
-from .inverse import _solver
+from .hig import JACOBIAN_MODES
+from .inverse import _solver, _uses_stored_value
 from .observations import Observation
 from .operator import SparseMatrix, matvec
 from .prdp import Refinement, RefinementState, prdp
 from .reference import amg_solve
+from .residuals import square_root_factor
 from .system import LinearSystem
 
 __all__ = [
+    "BatchObjective",
     "EpochRecord",
+    "LearnedFactors",
     "LearnedInverse",
     "Network",
     "SourceSamples",
@@ -164,15 +170,27 @@ def mlp_apply(network: Network, observation: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------------------
 
 
+class LearnedFactors(NamedTuple):
+    """Square-root factors for the residual form of the loss: ``L_W^T L_W = W`` (misfit
+    weight) and ``L_M^T L_M = M`` (nodal mass, the supervised term); see
+    :mod:`prdp_fem.residuals`."""
+
+    misfit: SparseMatrix
+    source: SparseMatrix
+
+
 @partial(jax.tree_util.register_dataclass,
-         data_fields=["system", "kappa", "observation", "mass", "supervised"], meta_fields=[])
+         data_fields=["system", "kappa", "observation", "mass", "supervised", "factors"],
+         meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class LearnedInverse:
     """The fixed physics of a learned source inversion (a pytree: a jit argument).
 
     ``observation`` gives ``B`` and ``W`` (its data is not used: each sample has its own);
     ``mass`` is the nodal mass matrix (source errors and the supervised term);
-    ``supervised`` is the weight ``beta`` of the supervised term (0: observations only).
+    ``supervised`` is the weight ``beta`` of the supervised term (0: observations only);
+    ``factors`` (from :meth:`with_residual`) write the loss as a sum of squares for
+    Gauss-Newton-type optimisers (:class:`BatchObjective`).
     """
 
     system: LinearSystem
@@ -180,10 +198,12 @@ class LearnedInverse:
     observation: Observation
     mass: SparseMatrix
     supervised: jax.Array
+    factors: LearnedFactors | None = None
 
-    def misfit(self, f: jax.Array, d: jax.Array, solver) -> tuple[jax.Array, jax.Array]:
+    def misfit(self, f: jax.Array, d: jax.Array, solver,
+               counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
         """``1/2 ||B u(f) - d||_W^2`` with ``u`` from ``solver``, and its iteration count."""
-        sol = self.system.solve(self.kappa, f, solver)
+        sol = self.system.solve(self.kappa, f, solver, counter=counter)
         r = matvec(self.observation.operator, self.system.expand(sol.x)) - d
         return 0.5 * jnp.vdot(r, matvec(self.observation.weight, r)), sol.iterations
 
@@ -192,6 +212,32 @@ class LearnedInverse:
         e = f - truth
         return jnp.sqrt(jnp.vdot(e, matvec(self.mass, e))
                         / jnp.maximum(jnp.vdot(truth, matvec(self.mass, truth)), 1e-300))
+
+    def with_residual(self) -> LearnedInverse:
+        """The problem with the factors of ``W`` and ``M`` (built once, on the host)."""
+        return dataclasses.replace(self, factors=LearnedFactors(
+            SparseMatrix.from_scipy(square_root_factor(self.observation.weight.to_scipy(),
+                                                       "observation weight W")),
+            SparseMatrix.from_scipy(square_root_factor(self.mass.to_scipy(),
+                                                       "nodal mass M"))))
+
+    def misfit_residual(self, f: jax.Array, d: jax.Array, solver,
+                        counter: IterationCounter | None = None) -> jax.Array:
+        """``L_W (B u_K(f) - d)``: half its squared norm is :meth:`misfit`."""
+        sol = self.system.solve(self.kappa, f, solver, counter=counter)
+        r = matvec(self.observation.operator, self.system.expand(sol.x)) - d
+        return matvec(self._factors().misfit, r)
+
+    def supervised_residual(self, f: jax.Array, f_true: jax.Array) -> jax.Array:
+        """``sqrt(beta) L_M (f - f*)``: half its squared norm is the supervised term."""
+        return jnp.sqrt(self.supervised) * matvec(self._factors().source, f - f_true)
+
+    def _factors(self) -> LearnedFactors:
+        if self.factors is None:
+            raise SolverConfigError(
+                "LearnedInverse: the residual form needs the factors of W and M; call "
+                "problem.with_residual() (outside jit) or let train() build them")
+        return self.factors
 
 
 def learned_inverse(disc: Discretization, observation: Observation, *, kappa=1.0,
@@ -209,19 +255,121 @@ def learned_inverse(disc: Discretization, observation: Observation, *, kappa=1.0
 
 
 def batch_loss(network: Network, problem: LearnedInverse, batch: SourceSamples,
-               solver) -> tuple[jax.Array, jax.Array]:
+               solver, counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
     """The training loss over ``batch`` (solves batched with ``vmap``) and the CG
-    iterations its forward solves ran."""
+    iterations its forward solves ran (``counter`` also tallies every solve on the host)."""
 
     def one(f_true, d):
         f = mlp_apply(network, d)
-        misfit, iterations = problem.misfit(f, d, solver)
+        misfit, iterations = problem.misfit(f, d, solver, counter)
         e = f - f_true
         return misfit + problem.supervised * 0.5 * jnp.vdot(e, matvec(problem.mass, e)), \
             iterations
 
     losses, iterations = jax.vmap(one)(batch.sources, batch.observations)
     return jnp.mean(losses), jnp.sum(iterations)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class BatchObjective:
+    r"""The batch loss as a function of the network's *weights*: the ``value_fn`` that
+    :func:`train` hands to optax (like :class:`prdp_fem.inverse.Objective` for one inversion).
+
+    Only ``layers`` are arguments; the input and output scales of ``network`` stay frozen.
+    Calling it gives ``L(theta)`` (:func:`batch_loss`). Its residual, stacked over the batch,
+
+    .. math::
+
+        r(\theta) = \frac{1}{\sqrt{|\mathcal B|}} \begin{pmatrix}
+            L_W \big(B u_K(N_\theta(d_i)) - d_i\big) \\
+            \sqrt{\beta}\, L_M \big(N_\theta(d_i) - f_i\big) \end{pmatrix}_{i \in \mathcal B},
+        \qquad \tfrac12 \|r\|^2 = L(\theta),
+
+    feeds :func:`prdp_fem.hig.hig` (:meth:`residual_jacobian` for the explicit Jacobian,
+    :meth:`residual_blocks` for the matrix-free one) and :mod:`prdp_fem.newton`
+    (:meth:`gauss_newton_operator`, ``J^T J``). Every solve taps ``counter``, so line-search
+    trials and Jacobian solves are in the tally. It closes over nothing mutable but the
+    host-side counter; build one per step (it holds the batch and the step's solver).
+    """
+
+    problem: LearnedInverse
+    network: Network           # its scales are used; its layers are replaced by the argument
+    batch: SourceSamples
+    solver: Any
+    counter: IterationCounter | None = None
+
+    def __call__(self, layers) -> jax.Array:
+        return batch_loss(self.network._replace(layers=layers), self.problem, self.batch,
+                          self.solver, self.counter)[0]
+
+    def _scale(self) -> jax.Array:
+        return 1.0 / jnp.sqrt(jnp.asarray(self.batch.sources.shape[0], jnp.float64))
+
+    def _sample_misfit(self, layers, d) -> jax.Array:
+        f = mlp_apply(self.network._replace(layers=layers), d)
+        return self._scale() * self.problem.misfit_residual(f, d, self.solver, self.counter)
+
+    def _sample_supervised(self, layers, f_true, d) -> jax.Array:
+        f = mlp_apply(self.network._replace(layers=layers), d)
+        return self._scale() * self.problem.supervised_residual(f, f_true)
+
+    def misfit_residual(self, layers) -> jax.Array:
+        """The misfit rows of ``r``, sample after sample (``|B| n_obs``)."""
+        return jax.vmap(self._sample_misfit, in_axes=(None, 0))(
+            layers, self.batch.observations).ravel()
+
+    def supervised_residual(self, layers) -> jax.Array:
+        """The supervised rows of ``r`` (``|B| n_dofs``; zero rows when ``beta = 0``)."""
+        return jax.vmap(self._sample_supervised, in_axes=(None, 0, 0))(
+            layers, self.batch.sources, self.batch.observations).ravel()
+
+    def residual(self, layers) -> jax.Array:
+        """``r(theta)``: the misfit rows of every sample, then the supervised rows."""
+        return jnp.concatenate([self.misfit_residual(layers), self.supervised_residual(layers)])
+
+    def residual_blocks(self) -> tuple:
+        """``(r_misfit, r_supervised)`` as functions of the layers (:func:`~prdp_fem.hig.hig`'s
+        matrix-free path: ``J v`` is one tangent solve per sample, ``J^T w`` one adjoint)."""
+        return (self.misfit_residual, self.supervised_residual)
+
+    def residual_jacobian(self, layers, mode: str = "auto") -> tuple[jax.Array, jax.Array]:
+        """``(r, J)`` with ``J`` stacked over the batch, columns in ``ravel_pytree`` order.
+
+        Per sample (``lax.map``): reverse mode costs one adjoint solve per observation, forward
+        mode one tangent solve per weight; ``"auto"`` picks the cheaper (rows vs weights), so
+        the Jacobian never pays the batch twice (a stacked ``jacrev`` would run every
+        sample's adjoint solve for each row). The supervised rows need no solve.
+        """
+        if mode not in JACOBIAN_MODES:
+            raise SolverConfigError(f"jacobian={mode!r}: expected one of {JACOBIAN_MODES}")
+        n = ravel_pytree(layers)[0].size
+        n_obs = self.problem.observation.operator.shape[0]
+        reverse = mode == "reverse" or (mode == "auto" and n_obs < n)
+        jacobian = jax.jacrev if reverse else jax.jacfwd
+        # samples in sequence (lax.map), each sample's rows batched: a vmap over the samples
+        # around the rows' vmap would hide the samples from the iteration counter's tally
+        misfit = jax.lax.map(partial(jacobian(self._sample_misfit), layers),
+                             self.batch.observations)
+        supervised = jax.vmap(jax.jacrev(self._sample_supervised), in_axes=(None, 0, 0))(
+            layers, self.batch.sources, self.batch.observations)
+        matrix = jnp.concatenate([_stacked(misfit), _stacked(supervised)], axis=0)
+        return self.residual(layers), matrix
+
+    def gauss_newton_operator(self, layers):
+        r"""``v -> J^T J v`` at ``layers`` (``J = dr/dtheta``), linearised once: each product
+        is one tangent and one adjoint solve per sample; the Hessian of ``L`` less the
+        second derivatives of the network and of nothing else (the solve is linear)."""
+        _, forward = jax.linearize(self.residual, layers)
+        adjoint = jax.linear_transpose(forward, layers)
+        return lambda v: adjoint(forward(v))[0]
+
+
+def _stacked(jacobian) -> jax.Array:
+    """A per-sample Jacobian pytree (leaves ``(batch, rows, *weight shape)``) as the matrix
+    ``(batch * rows, n_weights)`` whose columns follow ``ravel_pytree``."""
+    leaves = jax.tree_util.tree_leaves(jacobian)
+    rows = leaves[0].shape[0] * leaves[0].shape[1]
+    return jnp.concatenate([jnp.reshape(leaf, (rows, -1)) for leaf in leaves], axis=1)
 
 
 def validation(network: Network, problem: LearnedInverse, samples: SourceSamples,
@@ -253,6 +401,8 @@ class EpochRecord(NamedTuple):
     train_loss: float         # mean over the epoch's batches
     validation_misfit: float  # the monitored signal (converged solves)
     validation_error: float   # mean relative L2 error of the predicted sources
+    adjoint_iterations_total: int = 0  # cumulative adjoint and tangent CG iterations
+    steps: int = 0            # cumulative optimiser steps
 
 
 class Training(NamedTuple):
@@ -261,61 +411,118 @@ class Training(NamedTuple):
     records: list[EpochRecord]
 
 
-def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
-    def step(network, opt_state, problem, batch, K, K_adj, rtol):
+class _StepResult(NamedTuple):
+    layers: Any
+    opt_state: Any
+    loss: jax.Array
+    grad_norm: jax.Array
+
+
+def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner,
+               counter: IterationCounter):
+    """One optimiser step on the weights of ``network`` over ``batch``; the update gets
+    ``value``, ``grad`` and ``value_fn`` (a :class:`BatchObjective`) like
+    :func:`prdp_fem.inverse.invert`'s, so L-BFGS, Newton-CG and HIG work as Adam does."""
+
+    def step(layers, opt_state, network, problem, batch, K, K_adj, rtol) -> _StepResult:
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
-        (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
-            network, problem, batch, solver)
-        # only the weights train; the scales stay as set
-        grads = grads._replace(input_scale=jnp.zeros(()), output_scale=jnp.zeros(()))
-        updates, opt_state = optimizer.update(grads, opt_state, network)
-        return optax.apply_updates(network, updates), opt_state, loss, iterations, \
-            optax.tree.norm(grads)
+        value_fn = BatchObjective(problem, network, batch, solver, counter)
+        if _uses_stored_value(opt_state):
+            value, grad = optax.value_and_grad_from_state(value_fn)(layers, state=opt_state)
+        else:
+            value, grad = jax.value_and_grad(value_fn)(layers)
+        updates, opt_state = optimizer.update(grad, opt_state, layers, value=value, grad=grad,
+                                              value_fn=value_fn)
+        return _StepResult(optax.apply_updates(layers, updates), opt_state, value,
+                           optax.tree.norm(grad))
 
     return step
+
+
+def _uncounted(counter: IterationCounter, fn, *args):
+    """Run ``fn(*args)`` (a compile warm-up) without leaving its solves in ``counter``."""
+    before = (counter.primal, counter.adjoint, counter.primal_solves, counter.adjoint_solves)
+    result = jax.block_until_ready(fn(*args))
+    counter.primal, counter.adjoint, counter.primal_solves, counter.adjoint_solves = before
+    return result
+
+
+def _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement, layers):
+    if gradient not in ("implicit", "unrolled"):
+        raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
+    for name, value in (("epochs", epochs), ("batch_size", batch_size)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise SolverConfigError(f"{name}={value!r}: expected an integer >= 1")
+    if batch_size > n:
+        raise SolverConfigError(f"batch_size={batch_size}: expected at most the {n} training "
+                                "samples")
+    if refinement.tolerance_mode and gradient == "unrolled":
+        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
+    if not isinstance(optimizer, optax.GradientTransformation):
+        raise SolverConfigError(f"optimizer={optimizer!r}: expected an optax "
+                                "GradientTransformation (optax.adam(...), optax.lbfgs(), "
+                                "prdp_fem.newton_cg(...), prdp_fem.hig(...))")
+    if batch_size < n and _uses_stored_value(optimizer.init(layers)):
+        raise SolverConfigError(
+            f"optimizer=optax.lbfgs with batch_size={batch_size} < {n} training samples: its "
+            "curvature pairs difference gradients of different batches; expected "
+            f"batch_size={n} (full batch) for L-BFGS (Newton-CG, Gauss-Newton and HIG take "
+            "mini-batches)")
 
 
 def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
           validation_set: SourceSamples, *, optimizer: optax.GradientTransformation | None = None,
           refinement: Refinement | None = None, epochs: int = 50, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
-          validation_rtol: float = 1e-10) -> Training:
+          validation_rtol: float = 1e-10,
+          callback=None) -> Training:
     """Train ``network`` for ``epochs`` epochs of shuffled mini-batches (``seed``) while
     ``refinement`` (default :func:`~prdp_fem.prdp.prdp` with ``K0=5, dK=5``) picks the CG
     iterations once per epoch from the validation misfit.
 
-    Raises :class:`~prdp_fem.errors.SolverConfigError` for bad options and
-    :class:`~prdp_fem.inverse.InversionError` when a step produces a non-finite loss or
-    gradient.
+    Only the weights train (the input and output scales are frozen: the optimiser sees
+    ``network.layers`` alone). ``optimizer`` is any optax transformation: its update gets
+    ``value``, ``grad`` and ``value_fn`` (a :class:`BatchObjective`), so besides
+    ``optax.adam``/``optax.sgd`` it can be ``optax.lbfgs()`` (zoom line search; full batch
+    only: ``batch_size`` equal to the training samples), :func:`~prdp_fem.newton.newton_cg`
+    (``hessian="exact"`` or ``"gauss_newton"``; full batch is the natural setting, mini-batches
+    give subsampled Newton steps) or :func:`~prdp_fem.hig.hig` (the Jacobian of the residual
+    stacked over the batch). With a full batch the samples are not shuffled, so the loss is
+    one fixed function and L-BFGS may reuse its line search's last value.
+
+    The iteration tally is exact: every solve -- gradient, line-search trials, Hessian or
+    Jacobian products -- adds its iterations on the host (:class:`~prdp_fem.cg.IterationCounter`);
+    tangent solves count as adjoint iterations. ``callback(record)`` runs after every epoch.
+
+    Raises :class:`~prdp_fem.errors.SolverConfigError` for bad options (including L-BFGS with
+    mini-batches) and :class:`~prdp_fem.inverse.InversionError` when a step produces a
+    non-finite loss or gradient.
     """
     from .inverse import InversionError
 
-    if gradient not in ("implicit", "unrolled"):
-        raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
-    for name, value in (("epochs", epochs), ("batch_size", batch_size)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise SolverConfigError(f"{name}={value!r}: expected an integer >= 1")
     n = int(train_set.sources.shape[0])
-    if batch_size > n:
-        raise SolverConfigError(f"batch_size={batch_size}: expected at most the {n} training "
-                                "samples")
     refinement = prdp(K0=5, dK=5) if refinement is None else refinement
-    if refinement.tolerance_mode and gradient == "unrolled":
-        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
-    step = jax.jit(_make_step(optimizer, gradient, refinement.tolerance_mode, preconditioner),
-                   static_argnums=(4,) if gradient == "unrolled" else ())
+    _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
+                            network.layers)
+    optimizer = optax.with_extra_args_support(optimizer)
+    if problem.factors is None:
+        problem = problem.with_residual()
+    counter = IterationCounter()
+    step = jax.jit(_make_step(optimizer, gradient, refinement.tolerance_mode, preconditioner,
+                              counter), static_argnums=(5,) if gradient == "unrolled" else ())
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
     update_control = jax.jit(refinement.update)  # one dispatch per epoch, not dozens
     compiled: set = set()
-    opt_state, control = optimizer.init(network), refinement.init()
+    layers = network.layers
+    opt_state, control = optimizer.init(layers), refinement.init()
     rng = np.random.default_rng(seed)
-    records, run_time, primal = [], 0.0, 0
+    records, run_time, steps = [], 0.0, 0
     for epoch in range(1, epochs + 1):
         K = int(control.iterations) if gradient == "unrolled" else control.iterations
         K_adj, rtol = control.adjoint_iterations, control.rtol
-        order = rng.permutation(n)
+        order = rng.permutation(n) if batch_size < n else np.arange(n)
         batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
         losses = []
         for index in batches:
@@ -323,20 +530,25 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             key = K if gradient == "unrolled" else None
             if key not in compiled:  # compile outside the timed region: twice, since the
                 # optimiser state returned by a step may differ in weak types from init's
-                warm = step(network, opt_state, problem, batch, K, K_adj, rtol)
-                jax.block_until_ready(step(*warm[:2], problem, batch, K, K_adj, rtol))
+                warm = _uncounted(counter, step, layers, opt_state, network, problem, batch,
+                                  K, K_adj, rtol)
+                _uncounted(counter, step, warm.layers, warm.opt_state, network, problem,
+                           batch, K, K_adj, rtol)
                 compiled.add(key)
             start = time.perf_counter()
-            network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                step(network, opt_state, problem, batch, K, K_adj, rtol))
+            result = jax.block_until_ready(
+                step(layers, opt_state, network, problem, batch, K, K_adj, rtol))
             run_time += time.perf_counter() - start
-            if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
+            if not (math.isfinite(float(result.loss))
+                    and math.isfinite(float(result.grad_norm))):
                 raise InversionError(
-                    f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, K="
-                    f"{int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
+                    f"epoch {epoch}: non-finite loss or gradient (loss {float(result.loss)!r}, "
+                    f"K={int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
                     "learning rate or more CG iterations")
-            losses.append(float(loss))
-            primal += int(iterations)
+            layers, opt_state = result.layers, result.opt_state
+            losses.append(float(result.loss))
+            steps += 1
+        network = network._replace(layers=layers)
         if epoch == 1:  # compile outside the timed region
             jax.block_until_ready(update_control(control, validate(network, problem,
                                                                    validation_set)[0]))
@@ -345,11 +557,26 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
         previous = control
         control = jax.block_until_ready(update_control(control, misfit))
         run_time += time.perf_counter() - start
-        records.append(EpochRecord(epoch, int(previous.iterations),
-                                   int(previous.adjoint_iterations), float(previous.rtol),
-                                   primal, run_time, float(np.mean(losses)), float(misfit),
-                                   float(error)))
+        if _uses_stored_value(opt_state) and _solver_changed(previous, control):
+            # the stored value/gradient belong to the old solver: recompute them next step
+            # (same dtype and weak type as stored, or the jitted step would recompile, timed)
+            stored = optax.tree_utils.tree_get(opt_state, "value")
+            opt_state = optax.tree_utils.tree_set(opt_state,
+                                                  value=jax.lax.full_like(stored, jnp.inf))
+        record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
+                             float(previous.rtol), counter.primal, run_time,
+                             float(np.mean(losses)), float(misfit), float(error),
+                             counter.adjoint, steps)
+        records.append(record)
+        if callback is not None:
+            callback(record)
     return Training(network, control, records)
+
+
+def _solver_changed(previous: RefinementState, control: RefinementState) -> bool:
+    return (int(previous.iterations), int(previous.adjoint_iterations),
+            float(previous.rtol)) != (int(control.iterations), int(control.adjoint_iterations),
+                                      float(control.rtol))
 
 
 def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
@@ -367,5 +594,9 @@ def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
         return {"epoch": None, "time_saving": None, "iteration_saving": None,
                 "target": target}
     return {"epoch": hit.epoch, "time_saving": 1 - hit.time / base.time,
-            "iteration_saving": 1 - hit.primal_iterations / base.primal_iterations,
+            "iteration_saving": 1 - _total_iterations(hit) / _total_iterations(base),
             "target": target}
+
+
+def _total_iterations(record: EpochRecord) -> int:
+    return record.primal_iterations + record.adjoint_iterations_total

@@ -50,8 +50,8 @@ def _loglog_axes(xlabel: str, ylabel: str, title: str | None = None):
 
 
 def _curves(histories: dict[str, History], x: str, metric: str, xlabel: str, title: str,
-            path: Path) -> Path:
-    fig, ax = _loglog_axes(xlabel, _METRIC_LABEL.get(metric, metric), title)
+            path: Path, ylabel: str | None = None) -> Path:
+    fig, ax = _loglog_axes(xlabel, ylabel or _METRIC_LABEL.get(metric, metric), title)
     for name, history in histories.items():
         ax.plot(_positive(history.column(x)), _positive(history.column(metric)),
                 marker=".", markersize=3, label=name)
@@ -59,7 +59,8 @@ def _curves(histories: dict[str, History], x: str, metric: str, xlabel: str, tit
     return _save(fig, path)
 
 
-def _iterations_over_steps(histories: dict[str, History], path: Path) -> Path:
+def _iterations_over_steps(histories: dict[str, History], path: Path,
+                           step_label: str = "optimiser step") -> Path:
     fig = Figure(figsize=(6.4, 4.0))
     ax = fig.subplots()
     for name, history in histories.items():
@@ -71,7 +72,7 @@ def _iterations_over_steps(histories: dict[str, History], path: Path) -> Path:
         if not np.array_equal(adjoint, history.column("iterations")):
             ax.step(history.column("step"), adjoint, where="post", linestyle="--",
                     label=f"{name} (K_adj)")
-    ax.set_xlabel("optimiser step")
+    ax.set_xlabel(step_label)
     ax.set_ylabel("CG iterations per solve")
     ax.set_yscale("log")
     ax.grid(True, alpha=0.3)
@@ -139,20 +140,24 @@ def fields_figure(vtu_files: dict[str, Path], path: Path) -> Path | None:
 
 
 def inverse_figures(name: str, histories: dict[str, History], metric: str, out: Path,
-                    field_files: dict[str, Path]) -> list[Path]:
-    """The inverse-study figures under ``out/figures``; ``field_files``: run -> VTU file."""
+                    field_files: dict[str, Path], *, metric_label: str | None = None,
+                    step_label: str = "optimiser step") -> list[Path]:
+    """The inverse-study figures under ``out/figures``; ``field_files``: run -> VTU file.
+
+    Learned studies reuse them (one record per epoch): ``metric_label`` and ``step_label``
+    name their axes."""
     histories = {n: h for n, h in histories.items() if len(h)}
     if not histories:
         return []
     figures = out / "figures"
-    title = f"{name}: {metric.replace('_', ' ')}"
+    title = f"{name}: {metric_label or metric.replace('_', ' ')}"
     made = [
         _curves(histories, "time", metric, "wall time without compilation [s]", title,
-                figures / "error_vs_time.png"),
+                figures / "error_vs_time.png", metric_label),
         _curves(histories, "total_iterations", metric,
                 "cumulative CG iterations (primal + adjoint)", title,
-                figures / "error_vs_iterations.png"),
-        _iterations_over_steps(histories, figures / "iterations_over_steps.png"),
+                figures / "error_vs_iterations.png", metric_label),
+        _iterations_over_steps(histories, figures / "iterations_over_steps.png", step_label),
     ]
     field = fields_figure({n: field_files[n] for n in histories if n in field_files},
                           figures / "fields.png")

@@ -18,10 +18,17 @@ takes the default written in the dataclass below):
                   ``learning_rate``, ``memory_size``; Newton: ``max_cg``, ``forcing``, ``c1``,
                   ``max_backtracking``, ``gradient_rtol`` (see :mod:`.newton`); hig
                   (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``
-``[study]``       ``kind`` (inverse | forward | h), ``[[study.runs]]`` (``name`` plus tables
+``[learned]``     a learned inverse (:mod:`.learned`): ``samples``, ``validation_samples``,
+                  ``noise`` (relative to each sample's RMS), ``width`` (of the random source
+                  bumps), ``hidden`` (layer sizes), ``epochs``, ``batch_size``, ``seed``,
+                  ``supervised``; its observations come from ``[inverse]`` (``unknown =
+                  "source"``; ``truth``/``data`` are not needed: the sources are random)
+``[study]``       ``kind`` (inverse | forward | h | learned; a ``[learned]`` table makes
+                  ``learned`` the default), ``[[study.runs]]`` (``name`` plus tables
                   that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
-                  ``solver``, ``optimizer`` merge key by key), ``reference``, ``target_error``,
-                  ``band``, ``levels``, ``elements``
+                  ``solver``, ``optimizer``, ``learned`` merge key by key), ``reference``,
+                  ``target_error``, ``band``, ``reached`` (band | at_or_below: when a run
+                  counts as at the target), ``levels``, ``elements``
 
 Unknown keys and bad values raise :class:`SceneError` naming the file, the key and what is
 allowed. Where the value belongs to a kind the Python API has a typed error for, the error is
@@ -60,6 +67,7 @@ from .expressions import compile_field
 __all__ = [
     "BUILTIN_SCENES",
     "InverseSpec",
+    "LearnedSpec",
     "MeshSpec",
     "OptimizerSpec",
     "PdeSpec",
@@ -305,6 +313,29 @@ class OptimizerSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class LearnedSpec:
+    """A learned inverse (:mod:`prdp_fem.learned`): a network maps observations to sources.
+
+    ``samples`` training and ``validation_samples`` held-out random sources (three Gaussian
+    bumps of width ``width`` times the mesh diameter, seeded by ``seed``), observed through
+    ``[inverse]``'s observation operator with ``noise`` times each sample's RMS; an MLP
+    ``[n_obs, *hidden, n_dofs]`` trained for ``epochs`` epochs of mini-batches of
+    ``batch_size`` (default ``samples``: the full batch, which L-BFGS requires);
+    ``supervised``: the weight of the supervised source term.
+    """
+
+    samples: int = 64
+    validation_samples: int = 16
+    noise: float = 0.01
+    width: float = 0.2
+    hidden: tuple[int, ...] = (32,)
+    epochs: int = 30
+    batch_size: int = 64      # default: samples (full batch)
+    seed: int = 0
+    supervised: float = 1e-2
+
+
+@dataclasses.dataclass(frozen=True)
 class StudySpec:
     """What ``prdp-fem study`` sweeps. ``runs``: ``(name, overrides as canonical JSON)``."""
 
@@ -315,6 +346,7 @@ class StudySpec:
     band: float = 0.01
     levels: tuple[int, ...] = (4, 8, 16, 32)
     elements: tuple[str, ...] = ("P1", "P2")
+    reached: str = "band"     # band: |e - t| <= band t; at_or_below: e <= (1 + band) t
 
 
 @dataclasses.dataclass(frozen=True)
@@ -331,6 +363,7 @@ class Scene:
     optimizer: OptimizerSpec
     study: StudySpec
     raw: str                  # canonical JSON of the table it came from (for variants)
+    learned: LearnedSpec | None = None
 
     @property
     def fingerprint(self) -> str:
@@ -416,7 +449,7 @@ def _sensors(t: _Table):
     return value if _is_int(value) else tuple(tuple(float(c) for c in p) for p in value)
 
 
-def _inverse(t: _Table) -> InverseSpec:
+def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
     unknown = t.choice("unknown", "source", ("source", "log_kappa"))
     truth, data = t.field("truth", None), t.field("data", None)
     observations = t.choice("observations", "full_field", ("full_field", "sensors", "boundary"))
@@ -437,6 +470,11 @@ def _inverse(t: _Table) -> InverseSpec:
                        None if bounds is None else (float(bounds[0]), float(bounds[1])),
                        t.field("init", None))
     t.finish()
+    if learned:
+        if unknown != "source":
+            raise t.fail("unknown", "'source' for a learned inverse (the network predicts the "
+                         "source)")
+        return spec
     if data is None and truth is None:
         raise SceneError(f"{t.source}: [inverse] needs 'truth' (synthetic data) or 'data'")
     if data is not None and observations != "full_field":
@@ -563,11 +601,38 @@ def _runs(t: _Table) -> tuple[tuple[str, str], ...]:
     return tuple(parsed)
 
 
-_RUN_SECTIONS = ("mesh", "pde", "solver", "refinement", "optimizer")
+_RUN_SECTIONS = ("mesh", "pde", "solver", "refinement", "optimizer", "learned")
 
 
-def _study(t: _Table, has_inverse: bool) -> StudySpec:
-    kind = t.choice("kind", "inverse" if has_inverse else "forward", ("inverse", "forward", "h"))
+def _learned(t: _Table) -> LearnedSpec:
+    samples = t.integer("samples", LearnedSpec.samples, 1)
+    spec = LearnedSpec(
+        samples, t.integer("validation_samples", LearnedSpec.validation_samples, 1),
+        t.number("noise", LearnedSpec.noise, low=0.0, error=SceneDataError),
+        t.number("width", LearnedSpec.width, low=0.0, open_low=True),
+        tuple(t.get("hidden", list(LearnedSpec.hidden), lambda v: isinstance(v, list) and all(
+            _is_int(n) and n >= 1 for n in v), "a list of hidden layer sizes (integers >= 1)")),
+        t.integer("epochs", LearnedSpec.epochs, 1),
+        t.get("batch_size", samples,
+              lambda v: _is_int(v) and 1 <= v <= samples,
+              f"an integer from 1 to learned.samples = {samples}"),
+        t.integer("seed", LearnedSpec.seed, 0),
+        t.number("supervised", LearnedSpec.supervised, low=0.0))
+    t.finish()
+    return spec
+
+
+def _study_kind(table: dict, has_inverse: bool) -> str:
+    """The study kind a table asks for (read before the sections that depend on it)."""
+    study = table.get("study")
+    kind = study.get("kind") if isinstance(study, dict) else None
+    if isinstance(kind, str):
+        return kind
+    return "learned" if "learned" in table else "inverse" if has_inverse else "forward"
+
+
+def _study(t: _Table, has_inverse: bool, default_kind: str) -> StudySpec:
+    kind = t.choice("kind", default_kind, ("inverse", "forward", "h", "learned"))
     spec = StudySpec(
         kind, _runs(t), t.get("reference", "converged", lambda v: isinstance(v, str),
                               "the name of a run"),
@@ -578,14 +643,17 @@ def _study(t: _Table, has_inverse: bool) -> StudySpec:
                     "an increasing list of at least two mesh levels (n, or refinements "
                     "of a mesh file)")),
         tuple(t.get("elements", ["P1", "P2"], lambda v: isinstance(v, list) and v and all(
-            e in ("P1", "P2", "Q1", "Q2") for e in v), "a list of P1, P2, Q1, Q2")))
+            e in ("P1", "P2", "Q1", "Q2") for e in v), "a list of P1, P2, Q1, Q2")),
+        t.choice("reached", "band", ("band", "at_or_below")))
     t.finish()
-    if kind == "inverse" and not has_inverse:
-        raise SceneError(f"{t.source}: study.kind = 'inverse' needs an [inverse] section")
+    if kind in ("inverse", "learned") and not has_inverse:
+        raise SceneError(f"{t.source}: study.kind = {kind!r} needs an [inverse] section"
+                         + (" (its observations)" if kind == "learned" else ""))
     return spec
 
 
-_SECTIONS = ("mesh", "pde", "inverse", "solver", "refinement", "optimizer", "study")
+_SECTIONS = ("mesh", "pde", "inverse", "solver", "refinement", "optimizer", "learned",
+             "study")
 
 
 def parse_scene(table: dict, *, source: str = "<table>", directory: str | None = None,
@@ -601,19 +669,27 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
     has_inverse = "inverse" in table
     if "study" in table and not _with_runs:
         raise SceneError(f"{source}: a study run cannot contain a [study] section")
+    kind = _study_kind(table, has_inverse)
+    learned = kind == "learned"
+    if "learned" in table and not learned:
+        raise SceneError(f"{source}: a [learned] section with study.kind = {kind!r}; expected "
+                         "study.kind = 'learned' (or no [learned] section)")
     scene = Scene(
         name=name, description=description, source=source, directory=directory,
         mesh=_mesh(_Table(sections["mesh"], "mesh", source)),
         pde=_pde(_Table(sections["pde"], "pde", source)),
-        inverse=_inverse(_Table(sections["inverse"], "inverse", source)) if has_inverse
-        else None,
+        inverse=_inverse(_Table(sections["inverse"], "inverse", source), learned)
+        if has_inverse else None,
         solver=_solver(_Table(sections["solver"], "solver", source, SceneSolverConfigError)),
         refinement=_refinement(_Table(sections["refinement"], "refinement", source,
                                       SceneSolverConfigError)),
         optimizer=_optimizer(_Table(sections["optimizer"], "optimizer", source,
                                     SceneSolverConfigError)),
-        study=_study(_Table(sections["study"], "study", source), has_inverse),
-        raw=json.dumps(table, sort_keys=True))
+        study=_study(_Table(sections["study"], "study", source), has_inverse, kind),
+        raw=json.dumps(table, sort_keys=True),
+        learned=_learned(_Table(sections["learned"], "learned", source)) if learned else None)
+    if learned:
+        _check_learned_optimizer(scene)
     if _with_runs:
         scene.runs()  # validate every configuration now, not halfway through a study
         names = [n for n, _ in scene.study.runs]
@@ -623,9 +699,20 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
     return scene
 
 
+def _check_learned_optimizer(scene: Scene) -> None:
+    spec = scene.learned
+    if scene.optimizer.name == "lbfgs" and spec.batch_size < spec.samples:
+        raise SceneSolverConfigError(
+            f"{scene.source}: optimizer.name = 'lbfgs' with learned.batch_size = "
+            f"{spec.batch_size} < learned.samples = {spec.samples}: expected a full batch "
+            "(batch_size = samples) for L-BFGS, whose curvature pairs need one objective")
+
+
 def _variant(scene: Scene, overrides: dict, name: str) -> Scene:
     table = json.loads(scene.raw)
     table.pop("study", None)
+    if scene.study.kind == "learned":
+        table.setdefault("learned", {})  # the variant stays a learned inverse
     for section, values in overrides.items():
         if section == "refinement":
             table["refinement"] = copy.deepcopy(values)

@@ -14,8 +14,11 @@ record and reruns the others as a new *attempt* (the records of an unfinished at
 the file and are ignored). A torn last line (a kill mid-write) is skipped.
 
 Study kinds: ``"inverse"`` (inversions with error, time and CG iterations per step),
-``"forward"`` (truncated-PCG error against K and time) and ``"h"`` (discretisation error
-against h and run time for each element, with pyamg timed beside).
+``"forward"`` (truncated-PCG error against K and time), ``"h"`` (discretisation error
+against h and run time for each element, with pyamg timed beside) and ``"learned"`` (a
+network trained through the solver, :mod:`prdp_fem.learned`: one ``"epoch"`` record per
+epoch with the validation misfit, the held-out source error, cumulative run time without
+compilation, cumulative primal and adjoint CG iterations, optimiser steps and ``K``).
 """
 
 from __future__ import annotations
@@ -39,10 +42,12 @@ from .atomic import atomic_path, write_text_atomic
 from .build import (
     build_discretization,
     build_inverse,
+    build_learned,
     build_mesh,
     coefficient,
     field_function,
     invert_options,
+    train_options,
 )
 from .cg import ConvergedCG, solve
 from .comparison import settled
@@ -51,6 +56,7 @@ from .forward import Scene as ForwardScene
 from .forward import forward_convergence
 from .history import History, StepRecord
 from .inverse import invert
+from .learned import train
 from .operator import SparseMatrix
 from .reference import amg_solve, l2_error
 from .scene import Scene
@@ -214,7 +220,9 @@ class _Setups:
         self._cache: dict = {}
 
     def __call__(self, variant: Scene):
-        key = (variant.mesh, variant.pde, variant.inverse, variant.directory)
+        # hig needs the residual factors: a problem built without them is not shared with it
+        key = (variant.mesh, variant.pde, variant.inverse, variant.directory,
+               variant.optimizer.name == "hig")
         if key not in self._cache:
             self._cache[key] = build_inverse(variant)
         return self._cache[key]
@@ -235,6 +243,34 @@ def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups
         fields["truth"] = (space, setup.truth)
         fields["error"] = (space, np.asarray(result.field) - setup.truth)
     write_vtu(setup.disc.mesh, _field_file(out, name), fields)
+
+
+class _LearnedSetups:
+    """Datasets and networks shared by configurations that differ only in training settings."""
+
+    def __init__(self):
+        self._cache: dict = {}
+
+    def __call__(self, variant: Scene):
+        spec = variant.learned
+        key = (variant.mesh, variant.pde, variant.inverse, variant.directory, spec.samples,
+               spec.validation_samples, spec.noise, spec.width, spec.hidden, spec.seed,
+               spec.supervised)
+        if key not in self._cache:
+            self._cache[key] = build_learned(variant)
+        return self._cache[key]
+
+
+def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
+    setup = setups(variant)
+    progress.run_started(name, variant.learned.epochs)
+
+    def record_epoch(record) -> None:
+        log.append({"type": "epoch", "run": name, "attempt": attempt, **record._asdict()})
+        progress.step()
+
+    train(setup.problem, setup.network, setup.train_set, setup.validation_set,
+          callback=record_epoch, **train_options(variant))
 
 
 def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setups) -> None:
@@ -313,9 +349,9 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
     log = _open(scene, out, resume)
     records = log.records()
     done = completed(records)
-    runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level}[
-        scene.study.kind]
-    context = scene if scene.study.kind == "h" else _Setups()
+    runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level,
+              "learned": _run_learned}[scene.study.kind]
+    context = {"h": scene, "learned": _LearnedSetups()}.get(scene.study.kind, _Setups())
     ran = []
     for name, config in configurations(scene):
         if name in done:
@@ -341,6 +377,43 @@ def _finished_records(scene: Scene, records: list[dict]) -> dict[str, list[dict]
     return by_run
 
 
+LEARNED_METRIC = "mean relative L2 error of held-out sources"
+
+
+def learned_history(rows: list[dict]) -> History:
+    """A learned study's epoch records as a :class:`~prdp_fem.history.History` (``step`` is
+    the epoch, ``parameter_error`` the held-out source error, ``misfit`` the validation misfit,
+    ``loss`` the training loss, ``evaluations`` the optimiser steps so far), so that the
+    inverse study's summary and figures apply."""
+    records, refinements, previous = [], 0, None
+    for r in rows:
+        K = (r["iterations"], r["adjoint_iterations"], r["rtol"])
+        refinements += previous is not None and K != previous
+        previous = K
+        records.append(StepRecord(
+            step=r["epoch"], iterations=r["iterations"],
+            adjoint_iterations=r["adjoint_iterations"], rtol=r["rtol"],
+            refinements=refinements, primal_iterations=r["primal_iterations"],
+            adjoint_iterations_total=r["adjoint_iterations_total"], validation_iterations=0,
+            evaluations=r["steps"], time=r["time"], compile_time=math.nan,
+            loss=_finite(r["train_loss"]), misfit=_finite(r["validation_misfit"]),
+            parameter_error=_finite(r["validation_error"]), state_error=math.nan))
+    return History(records)
+
+
+def _learned_row(row: dict, history: History) -> dict:
+    """An inverse summary row in a learned study's words: epochs, optimiser steps, and the
+    final validation misfit beside the held-out source error."""
+    renamed = {("epochs" if k == "steps" else k): v for k, v in row.items()
+               if k not in ("compile_s", "evaluations")}
+    return {**renamed, "metric": "validation_error", "validation_misfit": history[-1].misfit,
+            "optimizer_steps": history[-1].evaluations}
+
+
+def _finite(value) -> float:
+    return math.nan if value is None else float(value)
+
+
 def _history(rows: list[dict]) -> History:
     fields = StepRecord._fields
     return History(StepRecord(**{k: (math.nan if r[k] is None else r[k]) for k in fields})
@@ -358,6 +431,12 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
         rows = _inverse_summary(scene, histories, metric)
         figures = plots.inverse_figures(scene.name, histories, metric, out,
                                         {n: _field_file(out, n) for n in histories})
+    elif kind == "learned":
+        histories = {n: learned_history(r) for n, r in by_run.items()}
+        rows = [_learned_row(row, histories[row["run"]])
+                for row in _inverse_summary(scene, histories, "parameter_error")]
+        figures = plots.inverse_figures(scene.name, histories, "parameter_error", out, {},
+                                        metric_label=LEARNED_METRIC, step_label="epoch")
     elif kind == "forward":
         rows = [{"run": name, **{k: v for k, v in r.items() if k not in ("type", "run")}}
                 for name, records in by_run.items() for r in records]
@@ -396,7 +475,8 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
         if not len(history):
             continue
         last = history[-1]
-        hit = _settled(history, target, scene.study.band, metric)
+        hit = _settled(history, target, scene.study.band, metric,
+                       scene.study.reached == "at_or_below")
         iterations = last.primal_iterations + last.adjoint_iterations_total
         hit_iterations = hit.primal_iterations + hit.adjoint_iterations_total if hit \
             else math.nan
@@ -418,10 +498,11 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
     return rows
 
 
-def _settled(history: History, target: float, band: float, metric: str):
+def _settled(history: History, target: float, band: float, metric: str,
+             at_or_below: bool = False):
     if metric != "parameter_error":  # settled() reads parameter_error: give it the metric
         history = History(r._replace(parameter_error=getattr(r, metric)) for r in history)
-    return settled(history, target, band)
+    return settled(history, target, band, at_or_below=at_or_below)
 
 
 def _h_summary(by_run: dict[str, list[dict]]) -> list[dict]:

@@ -73,3 +73,16 @@ def test_ctrl_c_inside_a_jax_host_callback_counts_as_an_interrupt():
     assert _is_interrupt(KeyboardInterrupt()) and _is_interrupt(wrapped)
     assert not _is_interrupt(jax.errors.JaxRuntimeError("INTERNAL: out of memory"))
     assert not _is_interrupt(RuntimeError("KeyboardInterrupt"))
+
+
+def test_bad_learned_table_is_one_line_and_exit_2(tmp_path, capsys):
+    path = tmp_path / "learned.toml"
+    path.write_text("[inverse]\nunknown = 'source'\n[learned]\nsamples = 8\nlayers = [4]\n")
+    assert main(["study", str(path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("prdp-fem: error: ")
+    assert str(path) in err and "unknown key 'learned.layers'" in err and "hidden" in err
+    assert main(["study", str(path).replace("learned", "x"), "--steps", "0"]) == 2
+    path.write_text("[inverse]\nunknown = 'source'\n[learned]\nsamples = 8\n")
+    assert main(["study", str(path), "--steps", "0"]) == 2
+    assert "a learned study's epochs; expected an integer >= 1" in capsys.readouterr().err

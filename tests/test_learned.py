@@ -1,6 +1,8 @@
 """Learned inverse: data against reference solves, batched losses against a loop, Taylor tests
 of the training gradient, and training that lowers the validation misfit."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -149,3 +151,165 @@ def test_bad_options_are_refused_with_their_names(small):
                                 supervised=-1.0)
     with pytest.raises(pf.ShapeError, match="sources"):
         learned.source_samples(problem, np.zeros((2, 3)))
+
+
+# --------------------------------------------------------------------------------------
+# every optimiser: HIG, Gauss-Newton, Newton-CG, L-BFGS on the network's weights
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """6 x 6 mesh, 12 training and 6 validation samples, an MLP [49, 6, 49] (649 weights)."""
+    disc = pf.discretize(pf.unit_square(6), element="P1", kappa_space="P0", dirichlet=0.0)
+    problem = learned.learned_inverse(disc, pf.full_field(disc, data=np.zeros(disc.n_dofs)),
+                                      supervised=1e-2).with_residual()
+    sources = learned.random_sources(disc, 18, seed=0, width=0.2)
+    samples = learned.source_samples(problem, sources, noise=0.01, seed=1)
+    network = learned.mlp_init(
+        jax.random.PRNGKey(0), [disc.n_dofs, 6, disc.n_dofs],
+        input_scale=float(np.std(np.asarray(samples.observations))),
+        output_scale=float(np.std(sources)))
+    return problem, samples.take(np.arange(12)), samples.take(np.arange(12, 18)), network
+
+
+def _step(tree_after, tree_before) -> np.ndarray:
+    return np.concatenate([np.ravel(a - b) for a, b in zip(
+        jax.tree_util.tree_leaves(tree_after), jax.tree_util.tree_leaves(tree_before),
+        strict=True)])
+
+
+def test_hig_network_step_equals_the_svd_of_the_explicitly_stacked_jacobian(tiny):
+    problem, samples, validation_set, network = tiny
+    train_set = samples.take(np.arange(4))
+    eta, exponent = 0.3, -0.5
+    training = learned.train(problem, network, train_set, validation_set,
+                             optimizer=pf.hig(eta, exponent), refinement=fixed(8),
+                             epochs=1, batch_size=4)
+    step = _step(training.network.layers, network.layers)
+    # by hand: the residual stacked over the batch, its Jacobian by reverse mode through the
+    # whole stack (no per-sample structure), a numpy SVD, -eta V S^-1/2 U^T r
+    objective = learned.BatchObjective(problem, network, train_set,
+                                       pf.TruncatedCG(8, gradient="implicit"))
+    r = np.asarray(objective.residual(network.layers))
+    jacobian = jax.jacrev(objective.residual)(network.layers)
+    matrix = np.concatenate([np.reshape(leaf, (r.size, -1))
+                             for leaf in jax.tree_util.tree_leaves(jacobian)], axis=1)
+    u, s, vt = np.linalg.svd(matrix, full_matrices=False)
+    keep = s >= 1e-6 * s[0]
+    expected = -eta * vt[keep].T @ (s[keep] ** exponent * (u[:, keep].T @ r))
+    np.testing.assert_allclose(step, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
+    # hig_update on the same stacked Jacobian agrees, and 1/2 |r|^2 is the batch loss
+    update, info = pf.hig_update(jacobian, r, learning_rate=eta, exponent=exponent)
+    np.testing.assert_allclose(_step(update, jax.tree_util.tree_map(jnp.zeros_like, update)),
+                               expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
+    assert int(info.rank) == int(keep.sum())
+    assert 0.5 * float(r @ r) == pytest.approx(float(objective(network.layers)), rel=1e-12)
+    # the per-sample Jacobian (what hig uses) is the stacked one
+    r_mine, J_mine = objective.residual_jacobian(network.layers, "reverse")
+    np.testing.assert_allclose(np.asarray(r_mine), r, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(J_mine), matrix, rtol=1e-9,
+                               atol=1e-12 * np.abs(matrix).max())
+
+
+@pytest.mark.slow  # 9 s: two Jacobians through 60-iteration solves, each compiled
+def test_forward_and_reverse_jacobians_agree_with_converged_solves(tiny):
+    """Truncated, a tangent solve (CG on J's column) and an adjoint solve (CG on a row) are
+    different polynomials in A; converged (K = 60 > 25 free dofs) they are both A^-1."""
+    problem, train_set, _, network = tiny
+    objective = learned.BatchObjective(problem, network, train_set.take(np.arange(2)),
+                                       pf.TruncatedCG(60, gradient="implicit"))
+    _, forward = objective.residual_jacobian(network.layers, "forward")
+    _, reverse = objective.residual_jacobian(network.layers, "reverse")
+    scale = float(np.abs(reverse).max())
+    assert scale > 0
+    np.testing.assert_allclose(np.asarray(forward), np.asarray(reverse), rtol=1e-8,
+                               atol=1e-10 * scale)
+
+
+def test_gauss_newton_operator_is_the_stacked_jacobian_squared(tiny):
+    problem, train_set, _, network = tiny
+    objective = learned.BatchObjective(problem, network, train_set.take(np.arange(3)),
+                                       pf.TruncatedCG(60, gradient="implicit"))
+    _, J = objective.residual_jacobian(network.layers)
+    v = jax.tree_util.tree_map(lambda x: jnp.cos(jnp.arange(x.size).reshape(x.shape)),
+                               network.layers)
+    flat_v = _step(v, jax.tree_util.tree_map(jnp.zeros_like, v))
+    product = _step(objective.gauss_newton_operator(network.layers)(v),
+                    jax.tree_util.tree_map(jnp.zeros_like, v))
+    J = np.asarray(J)
+    np.testing.assert_allclose(product, J.T @ (J @ flat_v), rtol=1e-9,
+                               atol=1e-12 * np.abs(product).max())
+
+
+FULL_BATCH_OPTIMIZERS = {
+    "gauss_newton": lambda: pf.newton_cg(hessian="gauss_newton", max_cg=20),
+    "newton_cg": lambda: pf.newton_cg(hessian="exact", max_cg=20),
+    "lbfgs": lambda: optax.lbfgs(),
+    "hig": lambda: pf.hig(0.5, relative=True),
+}
+
+
+@pytest.mark.parametrize("name", [
+    "gauss_newton", pytest.param("newton_cg", marks=pytest.mark.slow),
+    pytest.param("lbfgs", marks=pytest.mark.slow), "hig"])
+def test_full_batch_optimisers_lower_the_validation_misfit(tiny, name):
+    problem, train_set, validation_set, network = tiny
+    K = 8
+    start = float(jax.jit(learned.validation)(network, problem, validation_set)[0])
+    training = learned.train(problem, network, train_set, validation_set,
+                             optimizer=FULL_BATCH_OPTIMIZERS[name](), refinement=fixed(K),
+                             epochs=5, batch_size=12)
+    last = training.records[-1]
+    assert last.validation_misfit < 0.5 * start, (start, last.validation_misfit)
+    # the scales never train; every primal solve runs K iterations on 12 samples, and the
+    # line searches' trials are in the tally (more primal solves than one per step)
+    assert float(training.network.input_scale) == float(network.input_scale)
+    assert float(training.network.output_scale) == float(network.output_scale)
+    assert last.steps == 5 and last.primal_iterations % (K * 12) == 0
+    assert last.primal_iterations > 5 * K * 12
+    assert last.adjoint_iterations_total > 0
+
+
+def test_line_search_trials_are_counted_exactly(tiny):
+    """Gauss-Newton: the tally of one step is the gradient's and the linearisation's solves
+    plus one primal solve per Armijo trial, as the optimiser's state reports them."""
+    problem, train_set, _, network = tiny
+    K, B = 8, 12
+    counter = pf.IterationCounter()
+    objective = learned.BatchObjective(problem, network, train_set,
+                                       pf.TruncatedCG(K, gradient="implicit"), counter)
+    optimizer = pf.newton_cg(hessian="gauss_newton", max_cg=5)
+    state = optimizer.init(network.layers)
+
+    @jax.jit
+    def step(layers, state):
+        value, grad = jax.value_and_grad(objective)(layers)
+        return optimizer.update(grad, state, layers, value=value, grad=grad,
+                                value_fn=objective)
+
+    _, state = jax.block_until_ready(step(network.layers, state))
+    trials = int(state.line_search_evaluations)
+    assert trials >= 1
+    # value_and_grad: B solves; the Gauss-Newton linearisation: B; each trial: B
+    assert counter.primal == K * B * (2 + trials)
+    # adjoint: the gradient's B, then a tangent and an adjoint solve per sample and product
+    products = int(state.cg_iterations)
+    assert products >= 1
+    assert counter.adjoint == K * B * (1 + 2 * products)
+
+
+def test_bad_optimiser_combinations_are_refused(tiny):
+    problem, train_set, validation_set, network = tiny
+    with pytest.raises(SolverConfigError, match="full batch"):
+        learned.train(problem, network, train_set, validation_set, optimizer=optax.lbfgs(),
+                      batch_size=4)
+    with pytest.raises(SolverConfigError, match="GradientTransformation"):
+        learned.train(problem, network, train_set, validation_set, optimizer="adam",
+                      batch_size=12)
+    objective = learned.BatchObjective(problem, network, train_set, pf.TruncatedCG(4))
+    with pytest.raises(SolverConfigError, match="jacobian='sideways'"):
+        objective.residual_jacobian(network.layers, "sideways")
+    with pytest.raises(SolverConfigError, match="with_residual"):
+        learned.BatchObjective(dataclasses.replace(problem, factors=None), network, train_set,
+                               pf.TruncatedCG(4)).residual(network.layers)

@@ -116,6 +116,22 @@ def test_fingerprint_follows_settings_not_names():
     ("[[study.runs]]\nname = 'a'\ncolour = 1", "unknown key 'study.runs[0].colour'"),
     ("[study]\nreference = 'nope'\n[[study.runs]]\nname = 'a'", "expected one of the run names"),
     ("mesh = 3", "mesh = 3: expected a [mesh] table"),
+    ("[inverse]\nunknown = 'source'\n[learned]\ncolour = 1", "unknown key 'learned.colour'"),
+    ("[inverse]\nunknown = 'source'\n[learned]\nsamples = 4\nbatch_size = 8",
+     "learned.batch_size = 8: expected an integer from 1 to learned.samples = 4"),
+    ("[inverse]\nunknown = 'source'\n[learned]\nhidden = [0]",
+     "learned.hidden = [0]: expected a list of hidden layer sizes"),
+    ("[inverse]\nunknown = 'source'\n[learned]\nnoise = -0.1",
+     "learned.noise = -0.1: expected a finite number >= 0"),
+    ("[inverse]\nunknown = 'log_kappa'\n[learned]\n", "inverse.unknown = 'log_kappa': "
+     "expected 'source' for a learned inverse"),
+    ("[inverse]\nunknown = 'source'\n[learned]\nsamples = 8\nbatch_size = 4\n"
+     "[optimizer]\nname = 'lbfgs'", "expected a full batch"),
+    ("[learned]\nsamples = 4", "study.kind = 'learned' needs an [inverse] section"),
+    ("[inverse]\ntruth = 'x'\n[learned]\n[study]\nkind = 'inverse'",
+     "a [learned] section with study.kind = 'inverse'"),
+    ("[inverse]\nunknown = 'source'\n[learned]\n[[study.runs]]\nname = 'a'\n"
+     "learned = {epochs = 0}", "learned.epochs = 0: expected an integer >= 1"),
 ])
 def test_bad_scene_names_file_key_and_expectation(tmp_path, text, message):
     path = write(tmp_path, text)
@@ -232,3 +248,13 @@ def test_observing_only_dirichlet_dofs_is_refused():
         "truth": "x", "observations": "boundary", "boundaries": ["left"]}})
     setup = build.build_inverse(natural)
     assert setup.problem.observation.operator.shape[0] == 5  # the 5 nodes of the left side
+
+
+def test_learned_scene_reads_its_table_and_runs_merge_it():
+    scene = load_scene(ROOT / "examples" / "scenes" / "learned.toml")
+    assert scene.study.kind == "learned" and scene.learned.hidden == (8,)
+    runs = dict(scene.runs())
+    assert runs["converged"].refinement.kind == "converged"
+    assert runs["prdp"].learned.batch_size == 8 < runs["lbfgs prdp"].learned.batch_size == 32
+    assert runs["lbfgs prdp"].learned.samples == 32 and runs["lbfgs prdp"].learned.epochs == 30
+    assert runs["hig prdp"].optimizer.name == "hig" and runs["hig prdp"].study.kind == "learned"
