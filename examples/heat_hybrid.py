@@ -47,18 +47,6 @@ def build(n: int, *, dt: float = 0.02, steps: int = 10, n_train: int = 32,
             trajectories.take(np.arange(split[1], total)))
 
 
-def network(problem, train_set, setup: str, hidden: int, seed: int = 0):
-    """An untrained MLP whose output scale is the spread of its (RMS-normalised) targets."""
-    pairs = heat.windows(train_set, 1)
-    u, target = pairs[:, 0], pairs[:, 1]
-    if setup == "correction":  # the converged coarse step's error, relative to its size
-        u = jax.vmap(lambda x: heat.heat_step(problem, x, pf.ConvergedCG(rtol=1e-12))[0])(u)
-    rho = np.sqrt(np.mean(np.asarray(u) ** 2, axis=1, keepdims=True))
-    scale = float(np.std(np.asarray(target - u) / rho))
-    return learned.mlp_init(jax.random.PRNGKey(seed), [problem.n_free, hidden, problem.n_free],
-                            output_scale=scale)
-
-
 def refinement():
     """PRDP in tolerance mode: the inner solves stop at ||r|| <= rtol ||b||, rtol starting at
     1e-2 and divided by 10 at each refinement, down to the converged run's 1e-10. (Counting
@@ -91,7 +79,8 @@ def run(n: int = 10, epochs: int = 150, *, hidden: int = 128, unroll: int = 3,
         optimizer = optax.adam(optax.cosine_decay_schedule(
             3e-3, epochs * (n_windows // batch_size)))
         start = time.perf_counter()
-        training = heat.train(problem, network(problem, train_set, setup, hidden), train_set,
+        training = heat.train(problem, heat.initial_network(problem, train_set, setup,
+                                                             (hidden,)), train_set,
                               validation_set, setup=setup, mode=mode, unroll=unroll,
                               optimizer=optimizer,
                               refinement=converged(1e-10) if control == "converged"

@@ -8,8 +8,12 @@
   one direct solve of the truth).
 * :func:`build_learned`: a learned inverse (:mod:`~prdp_fem.learned`): the problem, seeded
   training and validation sets, and an untrained network.
-* :func:`controller`, :func:`optimizer`, :func:`invert_options`: the refinement controller, the
-  optax optimiser and the keyword arguments of :func:`~prdp_fem.inverse.invert`.
+* :func:`build_heat`: a learned heat stepper (:mod:`~prdp_fem.heat`): the implicit-Euler
+  problem, seeded reference trajectories (train / validation / test) and an untrained network.
+* :func:`controller`, :func:`optimizer`, :func:`invert_options`, :func:`train_options`,
+  :func:`heat_train_options`: the refinement controller, the optax optimiser and the keyword
+  arguments of :func:`~prdp_fem.inverse.invert`, :func:`~prdp_fem.learned.train` and
+  :func:`~prdp_fem.heat.train`.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import numpy as np
 import optax
 import skfem
 
-from . import generators
+from . import generators, heat
 from .cg import ConvergedCG, Solution, TruncatedCG, solve
 from .discretization import Discretization, discretize
 from .errors import DiscretizationError, SceneError, SensorError, ShapeError
@@ -56,12 +60,14 @@ from .scene import (
 __all__ = [
     "ForwardResult",
     "build_discretization",
+    "build_heat",
     "build_inverse",
     "build_learned",
     "build_mesh",
     "controller",
     "field_function",
     "forward_solve",
+    "heat_train_options",
     "invert_options",
     "optimizer",
     "train_options",
@@ -259,7 +265,9 @@ def build_learned(scene: Scene) -> LearnedSetup:
 
 def train_options(scene: Scene) -> dict[str, Any]:
     """Keyword arguments of :func:`~prdp_fem.learned.train` for this scene."""
-    return dict(optimizer=optimizer(scene), refinement=controller(scene),
+    spec = scene.learned
+    updates = spec.epochs * (spec.samples // spec.batch_size)
+    return dict(optimizer=optimizer(scene, updates), refinement=controller(scene),
                 epochs=scene.learned.epochs, batch_size=scene.learned.batch_size,
                 gradient=scene.solver.gradient, preconditioner=scene.solver.preconditioner,
                 seed=scene.learned.seed, validation_rtol=scene.refinement.validation_rtol)
@@ -279,6 +287,50 @@ def initial_field(scene: Scene, disc: Discretization) -> np.ndarray | None:
     return field
 
 
+class HeatSetup(NamedTuple):
+    disc: Discretization
+    problem: heat.HeatProblem
+    train_set: heat.Trajectories
+    validation_set: heat.Trajectories
+    test_set: heat.Trajectories
+    network: Network          # untrained (seeded), its output scale from the training data
+
+
+def build_heat(scene: Scene) -> HeatSetup:
+    """The heat stepper of the scene: implicit Euler of ``heat.dt`` with ``[pde]``'s
+    ``kappa``, ``source`` and Dirichlet data; reference trajectories from seeded initial fields
+    (train, validation and test, in that order, from one draw); an untrained network
+    (:func:`~prdp_fem.heat.initial_network`)."""
+    spec = scene.heat
+    if spec is None:
+        raise SceneError(f"{scene.source}: expected study.kind = 'heat' with a [heat] section")
+    disc = build_discretization(scene)
+    kappa = coefficient(scene, disc)
+    source = disc.interpolate(field_function(scene, "pde.source", scene.pde.source,
+                                             disc.mesh.dim()))
+    problem = heat.heat_problem(disc, spec.dt, kappa=kappa, source=source)
+    counts = (spec.trajectories, spec.validation_trajectories, spec.test_trajectories)
+    initial = heat.random_initial_states(disc, sum(counts), seed=spec.seed, width=spec.width)
+    data = heat.reference_trajectories(disc, initial, dt=spec.dt, steps=spec.steps,
+                                       substeps=spec.substeps, kappa=kappa, source=source)
+    first, second = np.cumsum(counts[:2])
+    train_set = data.take(np.arange(first))
+    network = heat.initial_network(problem, train_set, spec.setup, spec.hidden, spec.seed)
+    return HeatSetup(disc, problem, train_set, data.take(np.arange(first, second)),
+                     data.take(np.arange(second, sum(counts))), network)
+
+
+def heat_train_options(scene: Scene) -> dict[str, Any]:
+    """Keyword arguments of :func:`~prdp_fem.heat.train` for this scene."""
+    spec = scene.heat
+    updates = spec.epochs * (spec.windows // spec.batch_size)
+    return dict(setup=spec.setup, mode=spec.mode, unroll=spec.unroll,
+                optimizer=optimizer(scene, updates), refinement=controller(scene),
+                epochs=spec.epochs, batch_size=spec.batch_size, gradient=scene.solver.gradient,
+                preconditioner=scene.solver.preconditioner, seed=spec.seed,
+                validation_rtol=scene.refinement.validation_rtol)
+
+
 def controller(scene: Scene) -> Refinement:
     spec = scene.refinement
     if spec.kind == "fixed":
@@ -289,10 +341,13 @@ def controller(scene: Scene) -> Refinement:
         spec.adjoint_K0, spec.adjoint_dK, spec.adjoint_K_max, spec.adjoint_factor)
     return prdp(spec.K0, spec.dK, spec.K_max, factor=spec.factor, adjoint=adjoint,
                 tau_step=spec.tau_step, tau_stop=spec.tau_stop, ema_window=spec.ema_window,
-                delta=spec.delta, latch=spec.latch, restart=spec.restart, rtol=spec.rtol)
+                delta=spec.delta, latch=spec.latch, restart=spec.restart, rtol=spec.rtol,
+                rtol_factor=spec.rtol_factor, rtol_min=spec.rtol_min)
 
 
-def optimizer(scene: Scene) -> optax.GradientTransformation:
+def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransformation:
+    """The scene's optax optimiser; ``updates``: how many updates the run makes (what a
+    ``decay = "cosine"`` learning rate decays over; default ``optimizer.steps``)."""
     spec = scene.optimizer
     if spec.name == "lbfgs":
         return optax.lbfgs(memory_size=spec.memory_size)
@@ -303,7 +358,11 @@ def optimizer(scene: Scene) -> optax.GradientTransformation:
     if spec.name == "hig":
         return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank,
                    relative=spec.relative)
-    return getattr(optax, spec.name)(spec.learning_rate)
+    learning_rate = spec.learning_rate
+    if spec.decay == "cosine":
+        updates = spec.steps if updates is None else updates
+        learning_rate = optax.cosine_decay_schedule(spec.learning_rate, max(updates, 1))
+    return getattr(optax, spec.name)(learning_rate)
 
 
 def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:

@@ -82,7 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("--resume", action="store_true",
                        help="continue the study in --out, skipping finished configurations")
     study.add_argument("--steps", type=int,
-                       help="optimiser steps, or epochs of a learned study (overrides the scene)")
+                       help="optimiser steps, or epochs of a learned or heat study (overrides "
+                       "the scene)")
 
     invert = _command(sub, "invert", "one inversion with the scene's settings")
     invert.add_argument("scene", help="a scene .toml file or a built-in scene name")
@@ -250,11 +251,12 @@ def _scene(name_or_path: str, steps: int | None):
     if steps is not None:
         if steps < 0:
             raise SolverConfigError(f"--steps {steps}: expected an integer >= 0")
-        if scene.study.kind == "learned":  # a learned study counts epochs
+        kind = scene.study.kind
+        if kind in ("learned", "heat"):  # learned and heat studies count epochs
             if steps < 1:
-                raise SolverConfigError(f"--steps {steps}: a learned study's epochs; "
+                raise SolverConfigError(f"--steps {steps}: a {kind} study's epochs; "
                                         "expected an integer >= 1")
-            scene = with_overrides(scene, {"learned": {"epochs": steps}})
+            scene = with_overrides(scene, {kind: {"epochs": steps}})
         else:
             scene = with_overrides(scene, {"optimizer": {"steps": steps}})
     return scene
@@ -291,6 +293,8 @@ SUMMARY_COLUMNS = {
     "learned": ["run", "final_error", "validation_misfit", "final_K", "time_s", "cg_iterations",
                 "optimizer_steps", "reached_step", "time_to_target_s", "time_saving",
                 "iteration_saving"],
+    "heat": ["run", "test_error", "validation_error", "final_K", "time_s", "cg_iterations",
+             "reached_epoch", "time_saving", "iteration_saving"],
 }
 
 

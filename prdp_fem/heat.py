@@ -72,11 +72,11 @@ import optax
 import scipy.sparse.linalg as spla
 
 from . import cg
-from .cg import ConvergedCG
+from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .inverse import _solver
-from .learned import Network, Training, mlp_apply
+from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec
 from .prdp import Refinement, prdp
 from .validation import finite_vector
@@ -91,6 +91,7 @@ __all__ = [
     "correction",
     "heat_problem",
     "heat_step",
+    "initial_network",
     "random_initial_states",
     "reference_trajectories",
     "rollout",
@@ -162,11 +163,12 @@ def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
                        jnp.asarray(dt * disc.rhs(kappa, source)), jnp.asarray(dt))
 
 
-def heat_step(problem: HeatProblem, u: jax.Array, solver) -> tuple[jax.Array, jax.Array]:
+def heat_step(problem: HeatProblem, u: jax.Array, solver, *,
+              counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
     """One implicit-Euler step from ``u`` (free dofs) by ``solver`` (a
     :class:`~prdp_fem.cg.TruncatedCG` or :class:`~prdp_fem.cg.ConvergedCG`), warm-started from
-    ``u``: ``(u_next, iterations)``."""
-    sol = cg.solve(problem.matrix, problem.rhs(u), solver, x0=u)
+    ``u``: ``(u_next, iterations)``. ``counter`` also tallies the step's adjoint solves."""
+    sol = cg.solve(problem.matrix, problem.rhs(u), solver, x0=u, counter=counter)
     return sol.x, sol.iterations
 
 
@@ -357,6 +359,27 @@ class HeatRecord(NamedTuple):
     time: float               # cumulative run time, compile excluded, validation included
     train_loss: float         # mean over the epoch's batches
     validation_error: float   # rollout error of the validation trajectories (converged)
+    adjoint_iterations_total: int = 0  # cumulative adjoint CG iterations (WIG; else 0)
+    test_error: float = math.nan       # held-out rollout error (``test_set``), untimed
+
+
+def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
+                    hidden: tuple[int, ...] = (128,), seed: int = 0) -> Network:
+    """An untrained MLP ``[n_free, *hidden, n_free]`` whose output scale is the spread of its
+    targets relative to its (RMS-normalised) inputs over ``train_set``'s one-step pairs: the
+    converged coarse step's error (correction) or the step itself (prediction)."""
+    _check_choice(setup, "setup", SETUPS)
+    pairs = windows(train_set, 1)
+    u, target = pairs[:, 0], pairs[:, 1]
+    if setup == "correction":
+        exact = ConvergedCG(rtol=1e-12)
+        u = jax.vmap(lambda x: heat_step(problem, x, exact)[0])(u)
+    u, target = np.asarray(u), np.asarray(target)
+    rho = np.sqrt(np.mean(u**2, axis=1, keepdims=True))
+    rho = np.where(rho > 0, rho, 1.0)
+    scale = float(np.std((target - u) / rho))
+    return mlp_init(jax.random.PRNGKey(seed), [problem.n_free, *hidden, problem.n_free],
+                    output_scale=scale if scale > 0 else 1.0)
 
 
 def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn):
@@ -384,12 +407,19 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
           unroll: int = 3, optimizer: optax.GradientTransformation | None = None,
           refinement: Refinement | None = None, epochs: int = 30, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
-          validation_rtol: float = 1e-10, step: Step = heat_step) -> Training:
+          validation_rtol: float = 1e-10, step: Step = heat_step,
+          test_set: Trajectories | None = None,
+          callback: Callable[[HeatRecord], None] | None = None) -> Training:
     """Train ``network`` as the ``setup`` stepper with ``mode`` over windows of ``unroll``
     steps: ``epochs`` epochs of shuffled mini-batches of windows (``seed``), ``K`` picked
     once per epoch by ``refinement`` (default :func:`~prdp_fem.prdp.prdp` with ``K0=1, dK=1``,
     the reference's heat schedule) from the validation rollout error. ``step`` replaces
     :func:`heat_step` (a stand-in solver). The prediction setup runs no solver (``K`` = 0).
+
+    WIG's adjoint solves are tallied on the host (:class:`~prdp_fem.cg.IterationCounter`;
+    ONE and NOG run none). ``test_set``: held-out trajectories whose rollout error (converged
+    solves, outside the timed region) each record carries as ``test_error``.
+    ``callback(record)`` runs after every epoch, also outside the timed region.
 
     Returns a :class:`~prdp_fem.learned.Training` of :class:`HeatRecord` s. Raises
     :class:`~prdp_fem.errors.SolverConfigError` / :class:`~prdp_fem.errors.ShapeError` for
@@ -419,8 +449,12 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
     solves = setup == "correction"
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
+    counter = IterationCounter()
+    # only WIG differentiates the solver; count its adjoint solves when the step is ours
+    training_step = partial(heat_step, counter=counter) \
+        if step is heat_step and solves and mode == "wig" else step
     step_fn = jax.jit(_make_step(optimizer, setup, mode, gradient, refinement.tolerance_mode,
-                                 preconditioner, step),
+                                 preconditioner, training_step),
                       static_argnums=(4,) if gradient == "unrolled" else ())
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
@@ -430,7 +464,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     compiled: set = set()
     opt_state, control = optimizer.init(network), refinement.init()
     rng = np.random.default_rng(seed)
-    records, run_time, primal = [], 0.0, 0
+    records, run_time, primal, adjoint = [], 0.0, 0, 0
     for epoch in range(1, epochs + 1):
         if solves:
             K = int(control.iterations) if gradient == "unrolled" else control.iterations
@@ -447,10 +481,12 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
                 warm = step_fn(network, opt_state, problem, batch, K, K_adj, rtol)
                 jax.block_until_ready(step_fn(*warm[:2], problem, batch, K, K_adj, rtol))
                 compiled.add(key)
+            adjoint_before = counter.adjoint  # the warm-up's solves are not counted
             start = time.perf_counter()
             network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
                 step_fn(network, opt_state, problem, batch, K, K_adj, rtol))
             run_time += time.perf_counter() - start
+            adjoint += counter.adjoint - adjoint_before
             if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
                 raise InversionError(
                     f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
@@ -467,9 +503,14 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
         if solves:
             control = jax.block_until_ready(update_control(control, error))
         run_time += time.perf_counter() - start
-        records.append(HeatRecord(
+        test_error = math.nan if test_set is None else float(
+            validate(network, problem, test_set))
+        record = HeatRecord(
             epoch, int(previous.iterations) if solves else 0,
             int(previous.adjoint_iterations) if solves else 0,
             float(previous.rtol) if solves else 0.0, primal, run_time,
-            float(np.mean(losses)), float(error)))
+            float(np.mean(losses)), float(error), adjoint, test_error)
+        records.append(record)
+        if callback is not None:
+            callback(record)
     return Training(network, control, records)

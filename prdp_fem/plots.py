@@ -64,8 +64,8 @@ def _iterations_over_steps(histories: dict[str, History], path: Path,
     fig = Figure(figsize=(6.4, 4.0))
     ax = fig.subplots()
     for name, history in histories.items():
-        if history[-1].rtol > 0:  # a tolerance-mode run has no K to show
-            continue
+        if history[-1].rtol > 0 or not np.any(history.column("iterations")):
+            continue  # a tolerance-mode run has no K to show, a solver-free one none at all
         ax.step(history.column("step"), history.column("iterations"), where="post",
                 label=f"{name} (K)")
         adjoint = history.column("adjoint_iterations")
@@ -76,7 +76,8 @@ def _iterations_over_steps(histories: dict[str, History], path: Path,
     ax.set_ylabel("CG iterations per solve")
     ax.set_yscale("log")
     ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
+    if ax.get_legend_handles_labels()[0]:  # tolerance-mode runs draw nothing here
+        ax.legend(fontsize=8)
     return _save(fig, path)
 
 

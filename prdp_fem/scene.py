@@ -17,16 +17,24 @@ takes the default written in the dataclass below):
 ``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton | hig), ``steps``,
                   ``learning_rate``, ``memory_size``; Newton: ``max_cg``, ``forcing``, ``c1``,
                   ``max_backtracking``, ``gradient_rtol`` (see :mod:`.newton`); hig
-                  (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``
+                  (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``;
+                  adam, sgd: ``decay`` (constant | cosine: to zero over the run)
 ``[learned]``     a learned inverse (:mod:`.learned`): ``samples``, ``validation_samples``,
                   ``noise`` (relative to each sample's RMS), ``width`` (of the random source
                   bumps), ``hidden`` (layer sizes), ``epochs``, ``batch_size``, ``seed``,
                   ``supervised``; its observations come from ``[inverse]`` (``unknown =
                   "source"``; ``truth``/``data`` are not needed: the sources are random)
-``[study]``       ``kind`` (inverse | forward | h | learned; a ``[learned]`` table makes
-                  ``learned`` the default), ``[[study.runs]]`` (``name`` plus tables
-                  that override the scene's: ``refinement`` replaces it, ``mesh``, ``pde``,
-                  ``solver``, ``optimizer``, ``learned`` merge key by key), ``reference``,
+``[heat]``        a learned heat stepper (:mod:`.heat`, :class:`HeatSpec`): ``dt``,
+                  ``steps``, ``substeps``, ``trajectories``, ``validation_trajectories``,
+                  ``test_trajectories``, ``width``, ``hidden``, ``setup`` (correction |
+                  prediction), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
+                  ``batch_size``, ``seed``; ``[pde]`` gives ``kappa``, ``source`` and the
+                  Dirichlet data, ``[optimizer]`` is adam (default) or sgd
+``[study]``       ``kind`` (inverse | forward | h | learned | heat; a ``[learned]`` or
+                  ``[heat]`` table makes its kind the default), ``[[study.runs]]`` (``name``
+                  plus tables that override the scene's: ``refinement`` replaces it, ``mesh``,
+                  ``pde``, ``solver``, ``optimizer``, ``learned``, ``heat`` merge key by
+                  key), ``reference``,
                   ``target_error``, ``band``, ``reached`` (band | at_or_below: when a run
                   counts as at the target), ``levels``, ``elements``
 
@@ -66,6 +74,7 @@ from .expressions import compile_field
 
 __all__ = [
     "BUILTIN_SCENES",
+    "HeatSpec",
     "InverseSpec",
     "LearnedSpec",
     "MeshSpec",
@@ -286,6 +295,8 @@ class RefinementSpec:
     latch: bool = False
     restart: bool = True
     rtol: float | None = None
+    rtol_factor: float = 0.1      # tolerance mode: rtol *= rtol_factor at a refinement ...
+    rtol_min: float = 1e-12       # ... down to rtol_min
     K: int = 20
     K_adj: int | None = None
     monitor: str = "loss"
@@ -310,6 +321,7 @@ class OptimizerSpec:
     tau: float = 1e-6             # hig: singular values below tau * s_max are dropped
     rank: int | None = None       # hig: None explicit Jacobian, k matrix-free rank-k SVD
     relative: bool = False        # hig: learning_rate relative to s_max^-(1+exponent)
+    decay: str = "constant"       # adam, sgd: "cosine" decays learning_rate to 0 over the run
 
 
 @dataclasses.dataclass(frozen=True)
@@ -333,6 +345,41 @@ class LearnedSpec:
     batch_size: int = 64      # default: samples (full batch)
     seed: int = 0
     supervised: float = 1e-2
+
+
+@dataclasses.dataclass(frozen=True)
+class HeatSpec:
+    """A learned heat stepper (:mod:`prdp_fem.heat`): implicit Euler of step ``dt`` on the
+    scene's mesh and ``[pde]`` (``kappa``, ``source``, Dirichlet data held in time).
+
+    ``trajectories`` training, ``validation_trajectories`` (the PRDP signal) and
+    ``test_trajectories`` (held out, reported) reference trajectories of ``steps`` steps, each
+    made of ``substeps`` direct solves of ``dt / substeps``, from seeded initial fields (three
+    positive Gaussian bumps of width ``width`` times the mesh diameter). An MLP
+    ``[n_free, *hidden, n_free]`` trained as the ``setup`` stepper (``correction`` or
+    ``prediction``) with ``mode`` (``one``, ``nog``, ``wig``) over windows of ``unroll`` steps,
+    ``epochs`` epochs of mini-batches of ``batch_size`` windows.
+    """
+
+    dt: float = 0.02
+    steps: int = 10
+    substeps: int = 4
+    trajectories: int = 32
+    validation_trajectories: int = 8
+    test_trajectories: int = 8
+    width: float = 0.2
+    hidden: tuple[int, ...] = (128,)
+    setup: str = "correction"
+    mode: str = "nog"
+    unroll: int = 3
+    epochs: int = 150
+    batch_size: int = 16
+    seed: int = 0
+
+    @property
+    def windows(self) -> int:
+        """Training windows of ``unroll + 1`` states."""
+        return self.trajectories * (self.steps - self.unroll + 1)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -364,6 +411,7 @@ class Scene:
     study: StudySpec
     raw: str                  # canonical JSON of the table it came from (for variants)
     learned: LearnedSpec | None = None
+    heat: HeatSpec | None = None
 
     @property
     def fingerprint(self) -> str:
@@ -389,11 +437,14 @@ class Scene:
     def runs(self) -> list[tuple[str, Scene]]:
         """The study's configurations as scenes.
 
-        With no ``[[study.runs]]``: an inverse study runs the scene's own configuration and a
-        ``"converged"`` baseline (``rtol = 1e-10``); other studies run the scene as it is.
+        With no ``[[study.runs]]``: an inverse study (and a heat study of the correction setup)
+        runs the scene's own configuration and a ``"converged"`` baseline (``rtol = 1e-10``);
+        other studies run the scene as it is.
         """
         if not self.study.runs:
-            if self.study.kind != "inverse" or self.refinement.kind == "converged":
+            baseline_kind = self.study.kind == "inverse" or (
+                self.study.kind == "heat" and self.heat.setup == "correction")
+            if not baseline_kind or self.refinement.kind == "converged":
                 return [(self.name, self)]
             baseline = _variant(self, {"refinement": {"kind": "converged"}}, "converged")
             return [("converged", baseline), (self.name, self)]
@@ -500,7 +551,7 @@ def _solver(t: _Table) -> SolverSpec:
 _REFINEMENT_KEYS = {
     "prdp": ("K0", "dK", "K_max", "factor", "adjoint_K0", "adjoint_dK", "adjoint_K_max",
              "adjoint_factor", "tau_step", "tau_stop", "ema_window", "delta", "latch",
-             "restart", "rtol"),
+             "restart", "rtol", "rtol_factor", "rtol_min"),
     "fixed": ("K", "K_adj"),
     "converged": ("rtol",),
 }
@@ -527,6 +578,10 @@ def _refinement(t: _Table) -> RefinementSpec:
         "restart": lambda k: t.boolean(k, defaults.restart),
         "rtol": lambda k: t.number(k, 1e-10 if kind == "converged" else None, low=0.0,
                                    high=0.5, open_low=True),
+        "rtol_factor": lambda k: t.number(k, defaults.rtol_factor, low=0.0, high=1.0,
+                                          open_low=True),
+        "rtol_min": lambda k: t.number(k, defaults.rtol_min, low=0.0, high=0.5,
+                                       open_low=True),
         "K": lambda k: t.integer(k, defaults.K, 0),
         "K_adj": lambda k: t.integer(k, None, 0),
     }
@@ -544,13 +599,19 @@ def _refinement(t: _Table) -> RefinementSpec:
     return spec
 
 
-def _optimizer(t: _Table) -> OptimizerSpec:
-    spec = OptimizerSpec(t.choice("name", "lbfgs", ("lbfgs", "adam", "sgd", *_NEWTON, "hig")),
+def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
+    spec = OptimizerSpec(t.choice("name", default_name,
+                                  ("lbfgs", "adam", "sgd", *_NEWTON, "hig")),
                          t.integer("steps", 100, 0),
                          t.number("learning_rate", 1e-2, low=0.0, open_low=True),
                          t.integer("memory_size", 10, 1), **_newton_options(t),
-                         **_hig_options(t))
+                         **_hig_options(t), decay=t.choice("decay", "constant",
+                                                           ("constant", "cosine")))
     t.finish()
+    if spec.decay != "constant" and spec.name not in ("adam", "sgd"):
+        raise SceneSolverConfigError(f"{t.source}: optimizer.decay = {spec.decay!r} with "
+                                     f"optimizer.name = {spec.name!r}: expected a decay only "
+                                     "for 'adam' or 'sgd'")
     return spec
 
 
@@ -601,7 +662,7 @@ def _runs(t: _Table) -> tuple[tuple[str, str], ...]:
     return tuple(parsed)
 
 
-_RUN_SECTIONS = ("mesh", "pde", "solver", "refinement", "optimizer", "learned")
+_RUN_SECTIONS = ("mesh", "pde", "solver", "refinement", "optimizer", "learned", "heat")
 
 
 def _learned(t: _Table) -> LearnedSpec:
@@ -622,17 +683,45 @@ def _learned(t: _Table) -> LearnedSpec:
     return spec
 
 
+def _heat(t: _Table) -> HeatSpec:
+    d = HeatSpec()
+    steps = t.integer("steps", d.steps, 1)
+    spec = HeatSpec(
+        t.number("dt", d.dt, low=0.0, open_low=True), steps,
+        t.integer("substeps", d.substeps, 1), t.integer("trajectories", d.trajectories, 1),
+        t.integer("validation_trajectories", d.validation_trajectories, 1),
+        t.integer("test_trajectories", d.test_trajectories, 1),
+        t.number("width", d.width, low=0.0, open_low=True),
+        tuple(t.get("hidden", list(d.hidden), lambda v: isinstance(v, list) and all(
+            _is_int(n) and n >= 1 for n in v), "a list of hidden layer sizes (integers >= 1)")),
+        t.choice("setup", d.setup, ("correction", "prediction")),
+        t.choice("mode", d.mode, ("one", "nog", "wig")),
+        t.get("unroll", d.unroll, lambda v: _is_int(v) and 1 <= v <= steps,
+              f"an integer from 1 to heat.steps = {steps}"),
+        t.integer("epochs", d.epochs, 1), t.integer("batch_size", d.batch_size, 1),
+        t.integer("seed", d.seed, 0))
+    if spec.batch_size > spec.windows:
+        raise t.fail("batch_size", f"at most the {spec.windows} training windows (heat."
+                     f"trajectories = {spec.trajectories} x {spec.steps - spec.unroll + 1} "
+                     "starts of heat.unroll + 1 states)")
+    t.finish()
+    return spec
+
+
 def _study_kind(table: dict, has_inverse: bool) -> str:
     """The study kind a table asks for (read before the sections that depend on it)."""
     study = table.get("study")
     kind = study.get("kind") if isinstance(study, dict) else None
     if isinstance(kind, str):
         return kind
-    return "learned" if "learned" in table else "inverse" if has_inverse else "forward"
+    for section in ("learned", "heat"):
+        if section in table:
+            return section
+    return "inverse" if has_inverse else "forward"
 
 
 def _study(t: _Table, has_inverse: bool, default_kind: str) -> StudySpec:
-    kind = t.choice("kind", default_kind, ("inverse", "forward", "h", "learned"))
+    kind = t.choice("kind", default_kind, ("inverse", "forward", "h", "learned", "heat"))
     spec = StudySpec(
         kind, _runs(t), t.get("reference", "converged", lambda v: isinstance(v, str),
                               "the name of a run"),
@@ -653,7 +742,7 @@ def _study(t: _Table, has_inverse: bool, default_kind: str) -> StudySpec:
 
 
 _SECTIONS = ("mesh", "pde", "inverse", "solver", "refinement", "optimizer", "learned",
-             "study")
+             "heat", "study")
 
 
 def parse_scene(table: dict, *, source: str = "<table>", directory: str | None = None,
@@ -670,10 +759,14 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
     if "study" in table and not _with_runs:
         raise SceneError(f"{source}: a study run cannot contain a [study] section")
     kind = _study_kind(table, has_inverse)
-    learned = kind == "learned"
-    if "learned" in table and not learned:
-        raise SceneError(f"{source}: a [learned] section with study.kind = {kind!r}; expected "
-                         "study.kind = 'learned' (or no [learned] section)")
+    learned, heat = kind == "learned", kind == "heat"
+    for section in ("learned", "heat"):
+        if section in table and kind != section:
+            raise SceneError(f"{source}: a [{section}] section with study.kind = {kind!r}; "
+                             f"expected study.kind = '{section}' (or no [{section}] section)")
+    if heat and has_inverse:
+        raise SceneError(f"{source}: an [inverse] section with study.kind = 'heat'; expected "
+                         "none (a heat study learns a time stepper, it observes nothing)")
     scene = Scene(
         name=name, description=description, source=source, directory=directory,
         mesh=_mesh(_Table(sections["mesh"], "mesh", source)),
@@ -684,12 +777,17 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         refinement=_refinement(_Table(sections["refinement"], "refinement", source,
                                       SceneSolverConfigError)),
         optimizer=_optimizer(_Table(sections["optimizer"], "optimizer", source,
-                                    SceneSolverConfigError)),
+                                    SceneSolverConfigError), "adam" if heat else "lbfgs"),
         study=_study(_Table(sections["study"], "study", source), has_inverse, kind),
         raw=json.dumps(table, sort_keys=True),
-        learned=_learned(_Table(sections["learned"], "learned", source)) if learned else None)
+        learned=_learned(_Table(sections["learned"], "learned", source)) if learned else None,
+        heat=_heat(_Table(sections["heat"], "heat", source)) if heat else None)
     if learned:
         _check_learned_optimizer(scene)
+    if heat and scene.optimizer.name not in ("adam", "sgd"):
+        raise SceneSolverConfigError(
+            f"{source}: optimizer.name = {scene.optimizer.name!r} with study.kind = 'heat': "
+            "expected 'adam' or 'sgd' (heat training runs mini-batches of windows)")
     if _with_runs:
         scene.runs()  # validate every configuration now, not halfway through a study
         names = [n for n, _ in scene.study.runs]
@@ -711,8 +809,8 @@ def _check_learned_optimizer(scene: Scene) -> None:
 def _variant(scene: Scene, overrides: dict, name: str) -> Scene:
     table = json.loads(scene.raw)
     table.pop("study", None)
-    if scene.study.kind == "learned":
-        table.setdefault("learned", {})  # the variant stays a learned inverse
+    if scene.study.kind in ("learned", "heat"):
+        table.setdefault(scene.study.kind, {})  # the variant stays of the study's kind
     for section, values in overrides.items():
         if section == "refinement":
             table["refinement"] = copy.deepcopy(values)

@@ -18,7 +18,11 @@ Study kinds: ``"inverse"`` (inversions with error, time and CG iterations per st
 against h and run time for each element, with pyamg timed beside) and ``"learned"`` (a
 network trained through the solver, :mod:`prdp_fem.learned`: one ``"epoch"`` record per
 epoch with the validation misfit, the held-out source error, cumulative run time without
-compilation, cumulative primal and adjoint CG iterations, optimiser steps and ``K``).
+compilation, cumulative primal and adjoint CG iterations, optimiser steps and ``K``) and
+``"heat"`` (a learned heat stepper, :mod:`prdp_fem.heat`: one ``"epoch"`` record per epoch with
+the held-out rollout error, the validation rollout error, run time, CG iterations and ``K``;
+the summary pairs each run with the converged run of the same setup and mode for PRDP's
+saving).
 """
 
 from __future__ import annotations
@@ -37,15 +41,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import plots
+from . import heat, plots
 from .atomic import atomic_path, write_text_atomic
 from .build import (
     build_discretization,
+    build_heat,
     build_inverse,
     build_learned,
     build_mesh,
     coefficient,
     field_function,
+    heat_train_options,
     invert_options,
     train_options,
 )
@@ -273,6 +279,35 @@ def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups
           callback=record_epoch, **train_options(variant))
 
 
+class _HeatSetups:
+    """Problems, trajectories and networks shared by configurations that differ only in
+    training settings (mode, refinement, optimiser, epochs)."""
+
+    def __init__(self):
+        self._cache: dict = {}
+
+    def __call__(self, variant: Scene):
+        spec = variant.heat
+        key = (variant.mesh, variant.pde, variant.directory, spec.dt, spec.steps,
+               spec.substeps, spec.trajectories, spec.validation_trajectories,
+               spec.test_trajectories, spec.width, spec.hidden, spec.setup, spec.seed)
+        if key not in self._cache:
+            self._cache[key] = build_heat(variant)
+        return self._cache[key]
+
+
+def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
+    setup = setups(variant)
+    progress.run_started(name, variant.heat.epochs)
+
+    def record_epoch(record) -> None:
+        log.append({"type": "epoch", "run": name, "attempt": attempt, **record._asdict()})
+        progress.step()
+
+    heat.train(setup.problem, setup.network, setup.train_set, setup.validation_set,
+               test_set=setup.test_set, callback=record_epoch, **heat_train_options(variant))
+
+
 def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setups) -> None:
     disc = build_discretization(variant)
     dim = disc.mesh.dim()
@@ -350,8 +385,9 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
     records = log.records()
     done = completed(records)
     runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level,
-              "learned": _run_learned}[scene.study.kind]
-    context = {"h": scene, "learned": _LearnedSetups()}.get(scene.study.kind, _Setups())
+              "learned": _run_learned, "heat": _run_heat}[scene.study.kind]
+    context = {"h": scene, "learned": _LearnedSetups(), "heat": _HeatSetups()}.get(
+        scene.study.kind, _Setups())
     ran = []
     for name, config in configurations(scene):
         if name in done:
@@ -401,6 +437,75 @@ def learned_history(rows: list[dict]) -> History:
     return History(records)
 
 
+HEAT_METRIC = "held-out rollout error"
+
+
+def heat_history(rows: list[dict]) -> History:
+    """A heat study's epoch records as a :class:`~prdp_fem.history.History`: ``step`` is the
+    epoch, ``parameter_error`` the held-out rollout error, ``misfit`` the validation rollout
+    error (the PRDP signal), ``loss`` the training loss, ``evaluations`` the epoch."""
+    records, refinements, previous = [], 0, None
+    for r in rows:
+        K = (r["iterations"], r["adjoint_iterations"], r["rtol"])
+        refinements += previous is not None and K != previous
+        previous = K
+        records.append(StepRecord(
+            step=r["epoch"], iterations=r["iterations"],
+            adjoint_iterations=r["adjoint_iterations"], rtol=r["rtol"],
+            refinements=refinements, primal_iterations=r["primal_iterations"],
+            adjoint_iterations_total=r["adjoint_iterations_total"], validation_iterations=0,
+            evaluations=r["epoch"], time=r["time"], compile_time=math.nan,
+            loss=_finite(r["train_loss"]), misfit=_finite(r["validation_error"]),
+            parameter_error=_finite(r["test_error"]), state_error=math.nan))
+    return History(records)
+
+
+def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
+    """One row per run: setup, mode, training (its refinement kind, ``none`` without a
+    solver), the final held-out and validation rollout errors, cost, and -- for a run with a
+    converged partner of the same setup and mode -- PRDP's saving: the time and CG iterations
+    at which the held-out error settles at the partner's final one (``study.band``,
+    ``study.reached``) over the partner's totals, and the equal-epochs ratios."""
+    variants = dict(scene.runs())
+    rows = []
+    for name, history in histories.items():
+        if not len(history):
+            continue
+        spec, kind = variants[name].heat, variants[name].refinement.kind
+        solves = spec.setup == "correction"
+        partner = next((other for other, v in variants.items()
+                        if other != name and other in histories and len(histories[other])
+                        and v.refinement.kind == "converged" and v.heat.setup == spec.setup
+                        and v.heat.mode == spec.mode), None) if solves else None
+        last = history[-1]
+        row = {"run": name, "setup": spec.setup, "mode": spec.mode,
+               "training": kind if solves else "none", "epochs": last.step,
+               "test_error": last.parameter_error, "validation_error": last.misfit,
+               "final_K": ("tol" if last.rtol > 0 else last.iterations) if solves else "",
+               "final_rtol": last.rtol if solves and last.rtol > 0 else math.nan,
+               "cg_iterations": _iterations(last), "time_s": last.time, "converged_run": "",
+               "reached_epoch": "", "time_saving": math.nan, "iteration_saving": math.nan,
+               "equal_epochs_time_ratio": math.nan,
+               "equal_epochs_iteration_ratio": math.nan}
+        if partner is not None:
+            base = histories[partner][-1]
+            hit = _settled(history, base.parameter_error, scene.study.band, "parameter_error",
+                           scene.study.reached == "at_or_below")
+            row.update(
+                converged_run=partner, reached_epoch=hit.step if hit else "",
+                time_saving=1 - hit.time / base.time if hit else math.nan,
+                iteration_saving=1 - _iterations(hit) / _iterations(base) if hit
+                else math.nan,
+                equal_epochs_time_ratio=last.time / base.time,
+                equal_epochs_iteration_ratio=_iterations(last) / _iterations(base))
+        rows.append(row)
+    return rows
+
+
+def _iterations(record: StepRecord) -> int:
+    return record.primal_iterations + record.adjoint_iterations_total
+
+
 def _learned_row(row: dict, history: History) -> dict:
     """An inverse summary row in a learned study's words: epochs, optimiser steps, and the
     final validation misfit beside the held-out source error."""
@@ -437,6 +542,11 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
                 for row in _inverse_summary(scene, histories, "parameter_error")]
         figures = plots.inverse_figures(scene.name, histories, "parameter_error", out, {},
                                         metric_label=LEARNED_METRIC, step_label="epoch")
+    elif kind == "heat":
+        histories = {n: heat_history(r) for n, r in by_run.items()}
+        rows = _heat_summary(scene, histories)
+        figures = plots.inverse_figures(scene.name, histories, "parameter_error", out, {},
+                                        metric_label=HEAT_METRIC, step_label="epoch")
     elif kind == "forward":
         rows = [{"run": name, **{k: v for k, v in r.items() if k not in ("type", "run")}}
                 for name, records in by_run.items() for r in records]

@@ -12,6 +12,8 @@ from prdp_fem.cg import ConvergedCG, Status, TruncatedCG, solve
 from prdp_fem.conditioning import condition_estimate
 
 MODES = ("unrolled", "implicit")
+# the unrolled twin of a slow case runs with -m slow; the implicit one in the default suite
+SLOW_UNROLLED = (pytest.param("unrolled", marks=pytest.mark.slow), "implicit")
 
 
 def square(n=8, **options):
@@ -185,7 +187,7 @@ def test_full_tensor_converges_at_rate_two():
     assert errors[-1] < 2e-3
 
 
-@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("mode", SLOW_UNROLLED)
 def test_gradient_with_respect_to_tensor_components_passes_taylor_test(mode):
     disc = square(6, kappa_kind="tensor")
     kappa = jnp.asarray(disc.interpolate_kappa(lambda x: np.array([[1.0, 0.3], [0.3, 0.5]])))
@@ -285,7 +287,8 @@ def test_scaled_domains_keep_the_solution_scaling_as_length_squared(length):
         np.testing.assert_allclose(np.asarray(u) / length ** 2, u_unit, rtol=1e-10)
 
 
-@pytest.mark.parametrize("preconditioner", ["identity", "jacobi"])
+@pytest.mark.parametrize("preconditioner", [pytest.param("identity", marks=pytest.mark.slow),
+                                            "jacobi"])
 def test_unrolled_gradient_far_past_convergence_is_the_exact_one(preconditioner):
     """Frozen at round-off, the K-iteration map is the solution map: its gradient (and JVP)
     must be the exact one, not the lagging derivative of the last Krylov iterate (~1e-2 off)."""
@@ -306,7 +309,7 @@ def test_unrolled_gradient_far_past_convergence_is_the_exact_one(preconditioner)
     assert float(tangent) == pytest.approx(float(jnp.vdot(exact, direction)), rel=1e-8)
 
 
-@pytest.mark.parametrize("mode", MODES)
+@pytest.mark.parametrize("mode", SLOW_UNROLLED)
 def test_float32_solves_run_in_float32_to_its_stated_accuracy(mode):
     disc = square(12)
     kappa, f = jnp.ones(disc.n_kappa), jnp.ones(disc.n_dofs)

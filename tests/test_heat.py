@@ -238,6 +238,44 @@ def test_training_lowers_the_validation_rollout_error(small, setup, mode, fracti
         assert last.primal_iterations == sum(r.iterations * 2 * 60 for r in training.records)
 
 
+@pytest.mark.parametrize("mode", ["nog", "wig"])  # ONE stops the solver's gradient as NOG
+def test_the_adjoint_tally_counts_wig_solves_only_and_records_carry_the_test_error(small, mode):
+    """Fixed K = 3, K_adj = 5, unroll 2, 12 trajectories x 5 windows per epoch. Primal: K per
+    solve, 2 solves per window. Adjoint: WIG alone differentiates the solver, and only its
+    *second* solve depends on the parameters (the first starts from ground truth), so
+    K_adj x 1 x 60 per epoch; ONE and NOG run none. Every record reaches ``callback`` with the
+    held-out rollout error of the network at that epoch (converged solves)."""
+    from prdp_fem.prdp import fixed
+
+    _, problem, trajectories, validation = small
+    seen = []
+    training = heat.train(problem, network_for(problem), trajectories, validation, mode=mode,
+                          unroll=2, refinement=fixed(3, 5), epochs=2, batch_size=12,
+                          test_set=validation.take(np.arange(2)), callback=seen.append)
+    assert seen == training.records
+    assert [r.primal_iterations for r in seen] == [3 * 2 * 60, 2 * 3 * 2 * 60]
+    per_epoch = 5 * 60 if mode == "wig" else 0
+    assert [r.adjoint_iterations_total for r in seen] == [per_epoch, 2 * per_epoch]
+    final = heat.rollout_error(training.network, problem, validation.take(np.arange(2)),
+                               pf.ConvergedCG(rtol=1e-10, max_iterations=100_000))[0]
+    assert seen[-1].test_error == pytest.approx(float(final), rel=1e-10)
+    assert seen[0].test_error != seen[-1].test_error
+
+
+def test_the_initial_network_is_scaled_to_its_targets(small):
+    """The output layer's scale is the spread of the relative one-step targets: the
+    converged coarse step's error (correction, small) or the step itself (prediction)."""
+    _, problem, trajectories, _ = small
+    pairs = heat.windows(trajectories, 1)
+    u, target = np.asarray(pairs[:, 0]), np.asarray(pairs[:, 1])
+    rho = np.sqrt(np.mean(u**2, axis=1, keepdims=True))
+    network = heat.initial_network(problem, trajectories, "prediction", (8,), seed=3)
+    assert network.output_scale == pytest.approx(np.std((target - u) / rho), rel=1e-12)
+    coarse = heat.initial_network(problem, trajectories, "correction", (8,), seed=3)
+    assert 0 < coarse.output_scale < 0.5 * network.output_scale
+    assert [w.shape for w, _ in network.layers] == [(problem.n_free, 8), (8, problem.n_free)]
+
+
 def test_the_rollout_iteration_tally_is_exact(small):
     """K per step, every step of every trajectory (the training tally is checked above)."""
     _, problem, _, validation = small

@@ -179,6 +179,7 @@ def _step(tree_after, tree_before) -> np.ndarray:
         strict=True)])
 
 
+@pytest.mark.slow  # about 25 s: explicit Jacobians of every sample (test_hig pins HIG)
 def test_hig_network_step_equals_the_svd_of_the_explicitly_stacked_jacobian(tiny):
     problem, samples, validation_set, network = tiny
     train_set = samples.take(np.arange(4))
@@ -227,6 +228,7 @@ def test_forward_and_reverse_jacobians_agree_with_converged_solves(tiny):
                                atol=1e-10 * scale)
 
 
+@pytest.mark.slow  # about 15 s: explicit Jacobians (test_newton pins the GN operator)
 def test_gauss_newton_operator_is_the_stacked_jacobian_squared(tiny):
     problem, train_set, _, network = tiny
     objective = learned.BatchObjective(problem, network, train_set.take(np.arange(3)),

@@ -201,7 +201,8 @@ def test_kernel_choice_by_backend_and_by_name(random_spd):
     assert A.with_kernel("csr").with_values(A.values * 2).kernel == "csr"  # kept
 
 
-@pytest.mark.parametrize("gradient", ["implicit", "unrolled"])
+@pytest.mark.parametrize("gradient", ["implicit",
+                                      pytest.param("unrolled", marks=pytest.mark.slow)])
 def test_a_named_kernel_runs_forward_and_backward_and_changes_no_number(random_spd, gradient):
     """The kernel rides through solve's custom derivative rules (a static field): the CSR
     product appears in the forward and the backward sweep, and value and gradient equal the

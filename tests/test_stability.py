@@ -13,6 +13,8 @@ from prdp_fem.stability import CaseResult, format_markdown, run_case, suite_pass
 from prdp_fem.stability_cases import CASES, case_named
 
 FAST = [case for case in CASES if case.fast]
+# one worker runs this module under pytest-xdist: its fast cases are computed once, shared
+pytestmark = pytest.mark.xdist_group(name="stability")
 
 
 def test_catalogue_covers_every_group_and_builds_lazily():
