@@ -18,13 +18,6 @@ if "PRDP_FEM_COMPILATION_CACHE" not in os.environ:
     os.environ["PRDP_FEM_COMPILATION_CACHE"] = _CACHE
     atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 
-# pytest-xdist: the workers share the machine's cores; one XLA thread each keeps them from
-# oversubscribing it (the systems here are small: their kernels gain nothing from threads)
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
-                                        "--xla_cpu_multi_thread_eigen=false",
-                                        "intra_op_parallelism_threads=1"]).strip()
-
 import prdp_fem as pf
 
 MESH_DIR = Path(__file__).resolve().parent.parent / "meshes"

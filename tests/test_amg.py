@@ -301,7 +301,8 @@ def _loss(problem, mode):
 
 
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
-@pytest.mark.parametrize("mode", list(SOLVERS))
+@pytest.mark.parametrize("mode", [pytest.param(m, marks=pytest.mark.slow) if m == "unrolled"
+                                  else m for m in SOLVERS])  # unrolled: the slow twin
 def test_vjp_passes_the_taylor_test(small, mode, implementation):
     _, M = small.built(implementation)
     fn = loss(small, mode)

@@ -332,7 +332,7 @@ def test_unrolled_with_traced_k_is_a_clear_error(small_problem):
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+@pytest.mark.parametrize("mode", [pytest.param("unrolled", marks=pytest.mark.slow), "implicit"])
 def test_vmap_over_sources_matches_loop(small_problem, mode):
     disc, kappa, f = small_problem
     system = disc.system

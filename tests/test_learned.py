@@ -253,7 +253,8 @@ FULL_BATCH_OPTIMIZERS = {
 
 
 @pytest.mark.parametrize("name", [
-    "gauss_newton", pytest.param("newton_cg", marks=pytest.mark.slow),
+    pytest.param("gauss_newton", marks=pytest.mark.slow),  # the learned study trains with it
+    pytest.param("newton_cg", marks=pytest.mark.slow),
     pytest.param("lbfgs", marks=pytest.mark.slow), "hig"])
 def test_full_batch_optimisers_lower_the_validation_misfit(tiny, name):
     problem, train_set, validation_set, network = tiny

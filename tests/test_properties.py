@@ -60,6 +60,9 @@ FD_RTOL = 1e-5
 NOISE_STEPS = (1e-13, -1e-13, 3e-13, -3e-13)
 NOISE_FACTOR = 30.0
 UNRESOLVED = 1e-3  # finite differences whose noise + truncation exceed this are skipped
+# below tiny / eps a float64 result has lost relative precision to gradual underflow (its
+# intermediates go subnormal): losses that small are noise at that absolute level
+UNDERFLOW = np.finfo(float).tiny / EPS
 ADJOINT_RTOL = 1e-9
 UNSTABLE = 1e-6  # relative spread of a K-step adjoint under 1e-13 perturbations
 ENERGY_RTOL = 1e-8  # e_{K+1} <= e_K (1 + ENERGY_RTOL) + ENERGY_FLOOR ||x*||_A
@@ -306,7 +309,7 @@ def check_finite_truncated(case, amplitude, sigma, seed, source, boundary) -> di
         assert np.isfinite(grad).all(), f"unrolled K={k}: gradient not finite"
         fd, truncation = central_difference(*(loss_at[t][j] for t in steps))
         noise = NOISE_FACTOR * max(max(abs(loss_at[t][j] - float(loss)) for t in NOISE_STEPS),
-                                   EPS * abs(float(loss))) / FD_STEP
+                                   EPS * abs(float(loss)), UNDERFLOW) / FD_STEP
         derivative = float(np.asarray(grad) @ v)
         if k == 0:  # x = x0 = 0 whatever kappa
             assert not np.any(np.asarray(x)) and not np.any(np.asarray(grad)), "K=0: x, grad != 0"

@@ -2,6 +2,7 @@
 logic and the `prdp-fem stability` command (tables, exit codes)."""
 
 import csv
+import functools
 import math
 
 import numpy as np
@@ -13,8 +14,6 @@ from prdp_fem.stability import CaseResult, format_markdown, run_case, suite_pass
 from prdp_fem.stability_cases import CASES, case_named
 
 FAST = [case for case in CASES if case.fast]
-# one worker runs this module under pytest-xdist: its fast cases are computed once, shared
-pytestmark = pytest.mark.xdist_group(name="stability")
 
 
 def test_catalogue_covers_every_group_and_builds_lazily():
@@ -30,30 +29,30 @@ def test_catalogue_covers_every_group_and_builds_lazily():
         case_named("nope")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def fast_results():
-    return {case.name: run_case(case) for case in FAST}
+    """``fast_results(name)``: the case's result, run once per process on first use (under
+    pytest-xdist each worker runs only the cases its tests ask for)."""
+    return functools.cache(lambda name: run_case(case_named(name)))
 
 
 @pytest.mark.parametrize("name", [case.name for case in FAST])
 def test_fast_case_is_finite_and_not_failed(fast_results, name):
-    result = fast_results[name]
+    """Every fast case: finite, monotone, not failed; a float64 case with a direct-solve
+    reference agrees with it within its condition-scaled tolerance."""
+    result = fast_results(name)
     assert result.nonfinite == 0
     assert result.gradients_finite and result.monotone
     assert result.verdict in ("ok", "flagged"), result.note
-
-
-def test_float64_cases_agree_with_the_direct_solve_within_the_condition_tolerance(fast_results):
-    for result in fast_results.values():
-        if result.dtype == "float64" and not math.isnan(result.error):
-            assert result.error <= result.tolerance, result
-            assert result.verdict == "ok", result.note
-            assert result.its_jacobi > 0
+    if result.dtype == "float64" and not math.isnan(result.error):
+        assert result.error <= result.tolerance, result
+        assert result.verdict == "ok", result.note
+        assert result.its_jacobi > 0
 
 
 def test_high_contrast_is_conditioned_as_expected(fast_results):
     """Contrast 1e10 raises cond(A) by ~1e10 over kappa = 1; Jacobi takes back a factor ~2."""
-    base, stiff = fast_results["contrast_1"], fast_results["inclusion_1e10"]
+    base, stiff = fast_results("contrast_1"), fast_results("inclusion_1e10")
     assert 1e9 < stiff.cond_A / base.cond_A < 1e11
     assert stiff.cond_jacobi < stiff.cond_A
     assert stiff.its_jacobi < stiff.its_identity
@@ -61,7 +60,7 @@ def test_high_contrast_is_conditioned_as_expected(fast_results):
 
 
 def test_float32_states_its_limits(fast_results):
-    single, double = fast_results["float32_contrast_1"], fast_results["contrast_1"]
+    single, double = fast_results("float32_contrast_1"), fast_results("contrast_1")
     assert single.verdict == "flagged" and "below float32 round-off" in single.note
     assert single.its_jacobi == -1  # rtol 1e-8 cannot be reached in float32
     assert 1e-8 < single.error < single.tolerance  # ~cond * eps32, not float64 accuracy
@@ -69,7 +68,7 @@ def test_float32_states_its_limits(fast_results):
 
 
 def test_unbalanced_neumann_is_refused(fast_results):
-    result = fast_results["neumann_unbalanced"]
+    result = fast_results("neumann_unbalanced")
     assert result.verdict == "ok" and "IncompatibleDataError" in result.note
 
 
