@@ -416,11 +416,11 @@ def _finished_records(scene: Scene, records: list[dict]) -> dict[str, list[dict]
 LEARNED_METRIC = "mean relative L2 error of held-out sources"
 
 
-def learned_history(rows: list[dict]) -> History:
-    """A learned study's epoch records as a :class:`~prdp_fem.history.History` (``step`` is
-    the epoch, ``parameter_error`` the held-out source error, ``misfit`` the validation misfit,
-    ``loss`` the training loss, ``evaluations`` the optimiser steps so far), so that the
-    inverse study's summary and figures apply."""
+def _epoch_history(rows: list[dict], *, evaluations: str, misfit: str,
+                   error: str) -> History:
+    """Epoch records as a :class:`~prdp_fem.history.History` (``step`` is the epoch; the
+    named columns become ``evaluations``, ``misfit`` and ``parameter_error``), so that the
+    inverse study's summary and figures apply. A refinement is a change of ``K``."""
     records, refinements, previous = [], 0, None
     for r in rows:
         K = (r["iterations"], r["adjoint_iterations"], r["rtol"])
@@ -431,33 +431,28 @@ def learned_history(rows: list[dict]) -> History:
             adjoint_iterations=r["adjoint_iterations"], rtol=r["rtol"],
             refinements=refinements, primal_iterations=r["primal_iterations"],
             adjoint_iterations_total=r["adjoint_iterations_total"], validation_iterations=0,
-            evaluations=r["steps"], time=r["time"], compile_time=math.nan,
-            loss=_finite(r["train_loss"]), misfit=_finite(r["validation_misfit"]),
-            parameter_error=_finite(r["validation_error"]), state_error=math.nan))
+            evaluations=r[evaluations], time=r["time"], compile_time=math.nan,
+            loss=_finite(r["train_loss"]), misfit=_finite(r[misfit]),
+            parameter_error=_finite(r[error]), state_error=math.nan))
     return History(records)
+
+
+def learned_history(rows: list[dict]) -> History:
+    """A learned study's epoch records as a History: ``parameter_error`` is the held-out
+    source error, ``misfit`` the validation misfit, ``evaluations`` the optimiser steps."""
+    return _epoch_history(rows, evaluations="steps", misfit="validation_misfit",
+                          error="validation_error")
 
 
 HEAT_METRIC = "held-out rollout error"
 
 
 def heat_history(rows: list[dict]) -> History:
-    """A heat study's epoch records as a :class:`~prdp_fem.history.History`: ``step`` is the
-    epoch, ``parameter_error`` the held-out rollout error, ``misfit`` the validation rollout
-    error (the PRDP signal), ``loss`` the training loss, ``evaluations`` the epoch."""
-    records, refinements, previous = [], 0, None
-    for r in rows:
-        K = (r["iterations"], r["adjoint_iterations"], r["rtol"])
-        refinements += previous is not None and K != previous
-        previous = K
-        records.append(StepRecord(
-            step=r["epoch"], iterations=r["iterations"],
-            adjoint_iterations=r["adjoint_iterations"], rtol=r["rtol"],
-            refinements=refinements, primal_iterations=r["primal_iterations"],
-            adjoint_iterations_total=r["adjoint_iterations_total"], validation_iterations=0,
-            evaluations=r["epoch"], time=r["time"], compile_time=math.nan,
-            loss=_finite(r["train_loss"]), misfit=_finite(r["validation_error"]),
-            parameter_error=_finite(r["test_error"]), state_error=math.nan))
-    return History(records)
+    """A heat study's epoch records as a History: ``parameter_error`` is the held-out rollout
+    error, ``misfit`` the validation rollout error (the PRDP signal), ``evaluations`` the
+    epoch."""
+    return _epoch_history(rows, evaluations="epoch", misfit="validation_error",
+                          error="test_error")
 
 
 def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:

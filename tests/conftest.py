@@ -107,3 +107,21 @@ def load_example():
         return module
 
     return load
+
+
+def resume_after_losing_done(scene, out: Path, run: str, runner: str, monkeypatch):
+    """Drop ``run``'s ``done`` record from the study in ``out``, resume it, and check that
+    only ``run`` ran again (through ``prdp_fem.study.<runner>``); the resumed StudyOutput."""
+    import json
+
+    from prdp_fem import study
+
+    records = study.ResultsLog(out / study.RESULTS).records()
+    kept = [r for r in records if not (r["type"] == "done" and r["run"] == run)]
+    (out / study.RESULTS).write_text("".join(json.dumps(r) + "\n" for r in kept))
+    calls = []
+    original = getattr(study, runner)
+    monkeypatch.setattr(study, runner, lambda name, *a: (calls.append(name), original(name, *a)))
+    resumed = study.run_study(scene, out, resume=True)
+    assert calls == [run] and resumed.ran == [run]
+    return resumed

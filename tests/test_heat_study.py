@@ -1,16 +1,15 @@
 """Heat studies (issue 6): the [heat] scene table, its build, the study's records and summary
 against the scripting API, resume, the CLI, and the scene shipped in examples/scenes."""
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 import optax
 import pytest
+from conftest import resume_after_losing_done
 
 from prdp_fem import heat
-from prdp_fem import study as study_module
 from prdp_fem.build import build_heat, heat_train_options, optimizer
 from prdp_fem.cli import main
 from prdp_fem.comparison import settled
@@ -206,14 +205,7 @@ def test_heat_study_records_every_epoch_matches_train_and_resumes(tiny, tmp_path
     assert sorted(p.name for p in result.figures) == [
         "error_vs_iterations.png", "error_vs_time.png", "iterations_over_steps.png"]
     # resume: a run whose 'done' record is lost runs again, alone, to the same numbers
-    kept = [r for r in records if not (r["type"] == "done" and r["run"] == "prediction")]
-    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in kept))
-    calls = []
-    original = study_module._run_heat
-    monkeypatch.setattr(study_module, "_run_heat",
-                        lambda name, *a: (calls.append(name), original(name, *a)))
-    resumed = run_study(tiny, out, resume=True)
-    assert calls == ["prediction"] and resumed.ran == ["prediction"]
+    resumed = resume_after_losing_done(tiny, out, "prediction", "_run_heat", monkeypatch)
     again = {row["run"]: row for row in resumed.summary}
     assert again["prediction"]["test_error"] == pytest.approx(
         rows["prediction"]["test_error"], rel=1e-9)

@@ -8,7 +8,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 import pytest
-from conftest import SMALL_STUDY
+from conftest import SMALL_STUDY, resume_after_losing_done
 
 import prdp_fem as pf
 from prdp_fem import study as study_module
@@ -212,14 +212,7 @@ def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, m
         "error_vs_iterations.png", "error_vs_time.png", "iterations_over_steps.png"]
     # resume: nothing left to run; a run whose 'done' record is lost runs again, alone
     assert run_study(scene, out, resume=True).ran == []
-    kept = [r for r in records if not (r["type"] == "done" and r["run"] == "gauss_newton")]
-    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in kept))
-    calls = []
-    original = study_module._run_learned
-    monkeypatch.setattr(study_module, "_run_learned",
-                        lambda name, *a: (calls.append(name), original(name, *a)))
-    resumed = run_study(scene, out, resume=True)
-    assert calls == ["gauss_newton"] and resumed.ran == ["gauss_newton"]
+    resumed = resume_after_losing_done(scene, out, "gauss_newton", "_run_learned", monkeypatch)
     again = {row["run"]: row for row in resumed.summary}
     assert again["gauss_newton"]["final_error"] == pytest.approx(
         rows["gauss_newton"]["final_error"], rel=1e-9)
