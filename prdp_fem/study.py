@@ -220,18 +220,46 @@ def _open(scene: Scene, out: Path, resume: bool) -> ResultsLog:
 
 
 class _Setups:
-    """Inverse problems shared by configurations that differ only in solver settings."""
+    """``build(variant)`` shared by the configurations whose ``key(variant)`` is equal (they
+    differ only in solver or training settings): one study builds each problem once."""
 
-    def __init__(self):
-        self._cache: dict = {}
+    def __init__(self, build: Callable[[Scene], Any], key: Callable[[Scene], tuple]):
+        self._build, self._key, self._cache = build, key, {}
 
     def __call__(self, variant: Scene):
-        # hig needs the residual factors: a problem built without them is not shared with it
-        key = (variant.mesh, variant.pde, variant.inverse, variant.directory,
-               variant.optimizer.name == "hig")
+        key = self._key(variant)
         if key not in self._cache:
-            self._cache[key] = build_inverse(variant)
+            self._cache[key] = self._build(variant)
         return self._cache[key]
+
+
+def _inverse_key(variant: Scene) -> tuple:
+    # hig needs the residual factors: a problem built without them is not shared with it
+    return (variant.mesh, variant.pde, variant.inverse, variant.directory,
+            variant.optimizer.name == "hig")
+
+
+def _learned_key(variant: Scene) -> tuple:  # what the datasets and the network depend on
+    spec = variant.learned
+    return (variant.mesh, variant.pde, variant.inverse, variant.directory, spec.samples,
+            spec.validation_samples, spec.noise, spec.width, spec.hidden, spec.seed,
+            spec.supervised)
+
+
+def _heat_key(variant: Scene) -> tuple:  # what the trajectories and the network depend on
+    spec = variant.heat
+    return (variant.mesh, variant.pde, variant.directory, spec.dt, spec.steps, spec.substeps,
+            spec.trajectories, spec.validation_trajectories, spec.test_trajectories,
+            spec.width, spec.hidden, spec.setup, spec.seed)
+
+
+def _epoch_logger(name: str, attempt: int, log: ResultsLog, progress: Progress):
+    """A training callback appending each epoch record as it lands."""
+    def record_epoch(record) -> None:
+        log.append({"type": "epoch", "run": name, "attempt": attempt, **record._asdict()})
+        progress.step()
+
+    return record_epoch
 
 
 def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
@@ -251,61 +279,19 @@ def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups
     write_vtu(setup.disc.mesh, _field_file(out, name), fields)
 
 
-class _LearnedSetups:
-    """Datasets and networks shared by configurations that differ only in training settings."""
-
-    def __init__(self):
-        self._cache: dict = {}
-
-    def __call__(self, variant: Scene):
-        spec = variant.learned
-        key = (variant.mesh, variant.pde, variant.inverse, variant.directory, spec.samples,
-               spec.validation_samples, spec.noise, spec.width, spec.hidden, spec.seed,
-               spec.supervised)
-        if key not in self._cache:
-            self._cache[key] = build_learned(variant)
-        return self._cache[key]
-
-
 def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
     setup = setups(variant)
     progress.run_started(name, variant.learned.epochs)
-
-    def record_epoch(record) -> None:
-        log.append({"type": "epoch", "run": name, "attempt": attempt, **record._asdict()})
-        progress.step()
-
     train(setup.problem, setup.network, setup.train_set, setup.validation_set,
-          callback=record_epoch, **train_options(variant))
-
-
-class _HeatSetups:
-    """Problems, trajectories and networks shared by configurations that differ only in
-    training settings (mode, refinement, optimiser, epochs)."""
-
-    def __init__(self):
-        self._cache: dict = {}
-
-    def __call__(self, variant: Scene):
-        spec = variant.heat
-        key = (variant.mesh, variant.pde, variant.directory, spec.dt, spec.steps,
-               spec.substeps, spec.trajectories, spec.validation_trajectories,
-               spec.test_trajectories, spec.width, spec.hidden, spec.setup, spec.seed)
-        if key not in self._cache:
-            self._cache[key] = build_heat(variant)
-        return self._cache[key]
+          callback=_epoch_logger(name, attempt, log, progress), **train_options(variant))
 
 
 def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
     setup = setups(variant)
     progress.run_started(name, variant.heat.epochs)
-
-    def record_epoch(record) -> None:
-        log.append({"type": "epoch", "run": name, "attempt": attempt, **record._asdict()})
-        progress.step()
-
     heat.train(setup.problem, setup.network, setup.train_set, setup.validation_set,
-               test_set=setup.test_set, callback=record_epoch, **heat_train_options(variant))
+               test_set=setup.test_set, callback=_epoch_logger(name, attempt, log, progress),
+               **heat_train_options(variant))
 
 
 def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setups) -> None:
@@ -386,8 +372,9 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
     done = completed(records)
     runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level,
               "learned": _run_learned, "heat": _run_heat}[scene.study.kind]
-    context = {"h": scene, "learned": _LearnedSetups(), "heat": _HeatSetups()}.get(
-        scene.study.kind, _Setups())
+    context = {"h": lambda: scene, "learned": lambda: _Setups(build_learned, _learned_key),
+               "heat": lambda: _Setups(build_heat, _heat_key)}.get(
+        scene.study.kind, lambda: _Setups(build_inverse, _inverse_key))()
     ran = []
     for name, config in configurations(scene):
         if name in done:
