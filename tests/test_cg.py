@@ -59,6 +59,32 @@ def test_forward_iterates_agree_between_modes(small_problem, k):
     np.testing.assert_allclose(unrolled, implicit, rtol=1e-13, atol=1e-15)
 
 
+@pytest.mark.parametrize("jacobi", [True, False])
+@pytest.mark.parametrize("n_side", [64, 130])  # 3969 and 16641 unknowns: both r.r reductions
+def test_stacked_and_paired_states_take_the_same_iterations(n_side, jacobi):
+    # the while loops keep [d, r] stacked in one array, the scan keeps a pair: one iteration
+    from prdp_fem.bench import poisson_operator
+    from prdp_fem.cg import _ROW_REDUCTION_FROM, _init, _krylov, _step
+
+    op, b = poisson_operator(n_side)
+    b = jnp.asarray(b)
+    inverse_diagonal = pf.jacobi(op).inverse_diagonal
+    precond = pf.JacobiPreconditioner(inverse_diagonal) if jacobi \
+        else _DiagonalAsGeneral(inverse_diagonal)
+    krylov = _krylov(op, precond)
+    stacked, paired = (_init(krylov, b, jnp.zeros_like(b), stacked=flag).state
+                       for flag in (True, False))
+    assert stacked.dr.shape == (2, b.size) and isinstance(paired.dr, tuple)
+    assert (b.size > _ROW_REDUCTION_FROM) == (n_side == 130)
+    step = jax.jit(_step)
+    for _ in range(6):
+        stacked, paired = step(krylov, stacked)[0], step(krylov, paired)[0]
+    for field in ("d", "r", "p", "rz"):
+        np.testing.assert_allclose(getattr(stacked, field), getattr(paired, field),
+                                   rtol=1e-13, atol=1e-15 * float(jnp.abs(paired.p).max()))
+    assert float(jnp.abs(stacked.d).max()) > 0  # it moved
+
+
 @pytest.mark.parametrize("mode", ["unrolled", "implicit"])
 def test_k_far_past_convergence_is_finite_and_exact(small_problem, mode):
     disc, kappa, f = small_problem
