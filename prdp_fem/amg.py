@@ -353,6 +353,11 @@ class AMGCycle:
         :func:`amg_hierarchy` sets them with ``smoother="jacobi"``); same map as
         ``ml.aspreconditioner(cycle='V')``."""
         _check_cycle(ml, "hierarchy")
+        return cls._from_checked(ml)
+
+    @classmethod
+    def _from_checked(cls, ml: pyamg.MultilevelSolver) -> AMGCycle:
+        """:meth:`from_pyamg` of a hierarchy whose cycle :func:`amg_hierarchy` checked."""
         levels, sweeps = [], 1
         for depth, level in enumerate(ml.levels[:-1]):
             omega, sweeps = _jacobi_parameters(level, depth)
@@ -374,10 +379,14 @@ class AMGCycle:
 
 
 def _sparse(matrix):
-    """The product kernel of a host matrix (explicit zeros dropped)."""
+    """The product kernel of a host matrix (explicit zeros dropped), ELL: applied every cycle.
+
+    ``from_scipy`` lays out square matrices; a transfer operator asks for it.
+    """
     csr = sp.csr_matrix(matrix, dtype=float)
     csr.eliminate_zeros()
-    return prepare(SparseMatrix.from_scipy(csr).with_layout())  # P and R too: applied often
+    sparse = SparseMatrix.from_scipy(csr)
+    return prepare(sparse if sparse.layout is not None else sparse.with_layout())
 
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:
@@ -467,6 +476,11 @@ class PyamgCycle:
     @classmethod
     def from_pyamg(cls, ml: pyamg.MultilevelSolver) -> PyamgCycle:
         _check_cycle(ml, "hierarchy")
+        return cls._from_checked(ml)
+
+    @classmethod
+    def _from_checked(cls, ml: pyamg.MultilevelSolver) -> PyamgCycle:
+        """:meth:`from_pyamg` of a hierarchy whose cycle :func:`amg_hierarchy` checked."""
         if not ml.symmetric_smoothing:
             raise SolverConfigError("hierarchy: its pre- and post-smoothers are not adjoint; "
                                     "expected a symmetric cycle (CG needs an SPD "
@@ -524,7 +538,8 @@ def amg_preconditioner(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind:
                                 "'jacobi' only (a parallel smoother)")
     ml = amg_hierarchy(matrix, kind=kind, smoother=smoother, omega=omega, sweeps=sweeps,
                        max_coarse=max_coarse, strength=strength)
-    return AMGCycle.from_pyamg(ml) if implementation == "jax" else PyamgCycle.from_pyamg(ml)
+    cycle = AMGCycle if implementation == "jax" else PyamgCycle
+    return cycle._from_checked(ml)  # amg_hierarchy ran the check cycle
 
 
 # --------------------------------------------------------------------------------------
