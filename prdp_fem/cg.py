@@ -539,9 +539,10 @@ class _CGState(NamedTuple):
     array. Stacked, both updates are one fused pass (``[d, r] += alpha [p, -q]``), ``r.r`` is a
     row reduction of it, and ``p``'s last reader is its own update, so XLA updates ``p`` in
     place: kept apart, the CPU backend ran the updates as two passes and copied ``p`` every
-    iteration. The while loops run stacked (an iteration 0.8-0.9x the time, at 65k-261k
-    dofs); the scan of unrolled mode keeps the pair, whose reverse sweep is cheaper than the
-    transposes of the stacking (stacked, a K = 100 gradient took 1.1x the time).
+    iteration. The while loops run stacked above ``_STACKED_FROM`` unknowns (an iteration
+    0.83-0.9x the time at 65k-1M dofs); the scan of unrolled mode keeps the pair, whose
+    reverse sweep is cheaper than the transposes of the stacking (stacked, a K = 100
+    gradient took 1.1x the time).
     """
 
     dr: jax.Array | tuple[jax.Array, jax.Array]  # [d, r]
@@ -609,6 +610,12 @@ def _norm(v: jax.Array) -> jax.Array:
 def _active(state: _CGState) -> jax.Array:
     return state.rz > state.freeze_level
 
+
+# The while loops stack [d, r] above this many unknowns. Below it XLA's CPU backend wrote each
+# ELL slot's gather out and fused their sum into both consumers of q (p.q and the stacked
+# update): 1.1x the paired loop's time for P2 at 3969 unknowns. From 4225 on it keeps the
+# product in one fusion, and the stacked loop is the faster (P2 at 9k-32k: 0.93-0.99x).
+_STACKED_FROM = 1 << 12
 
 # From this many unknowns on, the unpreconditioned ``r.r`` of a stacked state is a reduction over
 # both rows of ``[d, r]`` (it reads ``d`` for nothing, but copies no slice of ``r``): measured on
@@ -775,7 +782,7 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
     without it (zero tolerances, a truncated solve) the loop stops on ``r.z`` alone and the
     norm is taken once at the end -- a reduction pass less per iteration.
     """
-    start = _init(krylov, b, x0, stacked=True)
+    start = _init(krylov, b, x0, stacked=b.shape[-1] > _STACKED_FROM)
     target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1]) / start.r0_scale
     positions = jnp.arange(history_size + 1)
 
