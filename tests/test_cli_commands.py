@@ -44,6 +44,16 @@ def scene(tmp_path):
     return path
 
 
+@pytest.fixture(scope="module")
+def finished_study(tmp_path_factory):
+    """``(scene, out, process)``: the small study run to the end once, by the command (its
+    outputs are read, never written, by the tests that share it)."""
+    root = tmp_path_factory.mktemp("finished")
+    path = root / "small.toml"
+    path.write_text(SMALL.replace("STEPS", "12"))
+    return path, root / "out", cli("study", path, "--out", root / "out")
+
+
 def summary(directory: Path) -> list[dict]:
     with open(directory / "summary.csv") as stream:
         return [{k: row[k] for k in DETERMINISTIC} for row in csv.DictReader(stream)]
@@ -54,10 +64,9 @@ def assert_png(path: Path):
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, path
 
 
-def test_study_writes_every_output_and_they_parse(scene, tmp_path):
-    done = cli("study", scene, "--out", tmp_path / "out")
+def test_study_writes_every_output_and_they_parse(finished_study):
+    scene, out, done = finished_study
     assert done.returncode == 0, done.stderr
-    out = tmp_path / "out"
     manifest = json.loads((out / "study.json").read_text())
     assert manifest["configurations"] == ["converged", "fixed K=3", "prdp"]
     records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
@@ -76,10 +85,11 @@ def test_study_writes_every_output_and_they_parse(scene, tmp_path):
     again = cli("study", scene, "--out", out)
     assert again.returncode == 2 and "pass --resume" in again.stderr
     assert again.stderr.count("\n") == 1 and "Traceback" not in again.stderr
+    assert summary(out) == rows
 
 
-def test_killed_study_resumes_to_the_same_summary(scene, tmp_path):
-    reference = cli("study", scene, "--out", tmp_path / "ref")
+def test_killed_study_resumes_to_the_same_summary(finished_study, tmp_path):
+    scene, reference_out, reference = finished_study  # the same scene run uninterrupted
     assert reference.returncode == 0, reference.stderr
     out = tmp_path / "killed"
     process = start("study", scene, "--out", out)
@@ -96,7 +106,7 @@ def test_killed_study_resumes_to_the_same_summary(scene, tmp_path):
     assert 1 <= len(finished) < 3, "the kill should land mid-study"
     resumed = cli("study", scene, "--out", out, "--resume")
     assert resumed.returncode == 0, resumed.stderr
-    assert summary(out) == summary(tmp_path / "ref")
+    assert summary(out) == summary(reference_out)
     records = [json.loads(x) for x in results.read_text().splitlines() if x.startswith("{")]
     assert sum(r["type"] == "done" for r in records) == 3
     assert [r["run"] for r in records if r["type"] == "done"][:len(finished)] == finished
