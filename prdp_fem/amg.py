@@ -538,8 +538,14 @@ def amg_preconditioner(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind:
                                 "'jacobi' only (a parallel smoother)")
     ml = amg_hierarchy(matrix, kind=kind, smoother=smoother, omega=omega, sweeps=sweeps,
                        max_coarse=max_coarse, strength=strength)
+    return _cycle_of_checked(ml, implementation)
+
+
+def _cycle_of_checked(ml: pyamg.MultilevelSolver, implementation: str) -> AMGCycle | PyamgCycle:
+    """The ``implementation`` cycle of a hierarchy from :func:`amg_hierarchy`, which has run
+    the check cycle already (``from_pyamg`` runs it again)."""
     cycle = AMGCycle if implementation == "jax" else PyamgCycle
-    return cycle._from_checked(ml)  # amg_hierarchy ran the check cycle
+    return cycle._from_checked(ml)
 
 
 # --------------------------------------------------------------------------------------

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 import pyamg
 
-from .amg import IMPLEMENTATIONS, AMGCycle, PyamgCycle, amg_hierarchy
+from .amg import IMPLEMENTATIONS, _cycle_of_checked, amg_hierarchy
 from .bench import poisson_operator
 from .cg import ConvergedCG, solve
 from .errors import SolverConfigError
@@ -74,8 +74,7 @@ def _pyamg_setup(csr, smoother: str):
 def _our_setup(matrix: SparseMatrix, implementation: str):
     """What ``amg_preconditioner`` does, keeping the hierarchy for pyamg's solve."""
     ml = amg_hierarchy(matrix, smoother=SMOOTHER[implementation])
-    cycle = AMGCycle if implementation == "jax" else PyamgCycle
-    return ml, jax.block_until_ready(cycle._from_checked(ml))
+    return ml, jax.block_until_ready(_cycle_of_checked(ml, implementation))
 
 
 def _timed(fn, *args):
