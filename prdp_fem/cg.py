@@ -104,6 +104,7 @@ from .errors import (
 )
 from .operator import SparseMatrix, prepare
 from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
+from .symmetric import symmetric_product
 from .validation import is_traced
 
 __all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve"]
@@ -507,6 +508,11 @@ class _Krylov:
     precond: Any  # None: identity
     scale: jax.Array | None
 
+    def product(self, vector: jax.Array) -> jax.Array:
+        """``(S A S) v``; reverse mode transposes it as itself (CG's ``A`` is symmetric), with
+        no scatter per ELL slot (:mod:`prdp_fem.symmetric`)."""
+        return symmetric_product(self.operator, vector)
+
     def scaled(self, vector: jax.Array) -> jax.Array:
         """``S v``: a right-hand side or residual into the scaled system, an iterate out of it."""
         return vector if self.scale is None else self.scale * vector
@@ -580,7 +586,7 @@ def _init(krylov: _Krylov, b, x0, *, stacked: bool) -> _Start:
     (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides.
     """
     y0 = x0 if krylov.scale is None else x0 / krylov.scale
-    r0 = krylov.scaled(b) - krylov.operator(y0)
+    r0 = krylov.scaled(b) - krylov.product(y0)
     if isinstance(krylov.precond, _Projected):  # round-off or a cotangent may leave a v part
         r0 = krylov.precond.project(r0)
     r0_scale = _norm(r0)
@@ -626,7 +632,7 @@ _ROW_REDUCTION_FROM = 1 << 14
 
 def _step(krylov: _Krylov, state: _CGState) -> tuple[_CGState, jax.Array]:
     """One PCG iteration; returns the new state and whether it moved ``x``."""
-    q = krylov.operator(state.p)
+    q = krylov.product(state.p)
     pq = jnp.vdot(state.p, q)
     active = _active(state)
     moving = active & (pq > 0)

@@ -1,0 +1,164 @@
+"""symmetric_product against the kernel differentiated by JAX, grouped by transformation.
+
+The reference is the same kernel applied directly: its derivatives are JAX's own (a scatter
+per gather in reverse mode). The primitive must agree with them to round-off everywhere: value,
+jvp, vjp in the values and in x, vmap (x batched, values batched, nested), jit, second order.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from prdp_fem.operator import SparseMatrix, prepare
+from prdp_fem.symmetric import symmetric_product
+
+N = 30
+
+
+def _arrowhead() -> sp.csr_matrix:
+    """SPD, with one full row and column: the ELL layout spills it into its overflow tail."""
+    rng = np.random.default_rng(4)
+    a = sp.random(N, N, density=0.08, random_state=rng)
+    a = a + a.T + sp.diags(np.full(N, 2.0 * N))
+    a = sp.lil_matrix(a)
+    a[0, 1:] = a[1:, 0] = rng.uniform(0.1, 0.5, N - 1)[:, None]
+    return sp.csr_matrix(a)
+
+
+@pytest.fixture(params=["ell", "coo"])
+def matrix(request) -> SparseMatrix:
+    A = SparseMatrix.from_scipy(_arrowhead())
+    if request.param == "ell":
+        assert A.layout is not None and A.layout.overflow_rows.shape[0] > 0
+        return A
+    return A.with_kernel("coo")
+
+
+def _symmetric(A: SparseMatrix):
+    return lambda values, x: symmetric_product(prepare(A.with_values(values)), x)
+
+
+def _plain(A: SparseMatrix):
+    return lambda values, x: prepare(A.with_values(values))(x)
+
+
+def _jit(fn, *args):
+    """``fn(*args)`` compiled: one compile per check, not one per eager op."""
+    return jax.jit(fn)(*args)
+
+
+def _close(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+
+
+def _point(A: SparseMatrix, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(A.values), jnp.asarray(rng.standard_normal(N))
+
+
+def test_value_is_the_scipy_product(matrix):
+    values, x = _point(matrix)
+    np.testing.assert_allclose(_symmetric(matrix)(values, x), _arrowhead() @ np.asarray(x),
+                               rtol=1e-13)
+
+
+# ---- jvp -------------------------------------------------------------------------------
+
+def test_jvp_in_values_and_x(matrix):
+    values, x = _point(matrix)
+    rng = np.random.default_rng(1)
+    tangents = (jnp.asarray(rng.standard_normal(values.shape)), jnp.asarray(rng.standard_normal(N)))
+    _close(_jit(lambda *p: jax.jvp(_symmetric(matrix), p, tangents), values, x),
+           _jit(lambda *p: jax.jvp(_plain(matrix), p, tangents), values, x))
+
+
+# ---- vjp -------------------------------------------------------------------------------
+
+def test_vjp_in_values_and_x(matrix):
+    values, x = _point(matrix)
+    cotangent = jnp.asarray(np.random.default_rng(2).standard_normal(N))
+    ours = _jit(lambda *p: jax.vjp(_symmetric(matrix), *p)[1](cotangent), values, x)
+    _close(ours, _jit(lambda *p: jax.vjp(_plain(matrix), *p)[1](cotangent), values, x))
+    # the x part is the product itself: A^T ct = A ct
+    np.testing.assert_allclose(ours[1], _arrowhead() @ np.asarray(cotangent), rtol=1e-13)
+
+
+def test_reverse_mode_in_x_compiles_without_scatters():
+    """The point of the primitive: the ELL gradient in x is a second product (with the one
+    scatter of its overflow tail), not a scatter per slot's gather."""
+    matrix = SparseMatrix.from_scipy(_arrowhead())
+    values, x = _point(matrix)
+
+    def scatters(fn):
+        return jax.jit(fn).lower(x).compile().as_text().count(" scatter(")
+
+    def gradient(product):
+        return jax.grad(lambda x: jnp.sum(jnp.sin(product(values, x))))
+
+    in_one_product = scatters(lambda x: _plain(matrix)(values, x))
+    assert scatters(gradient(_plain(matrix))) > 2 * in_one_product
+    assert scatters(gradient(_symmetric(matrix))) == 2 * in_one_product
+
+
+# ---- vmap ------------------------------------------------------------------------------
+
+def test_vmap_over_x_over_values_and_nested(matrix):
+    values, _ = _point(matrix)
+    rng = np.random.default_rng(3)
+    xs = jnp.asarray(rng.standard_normal((2, 3, N)))
+    scales = jnp.asarray(rng.uniform(0.5, 2.0, (2, 1)))
+    batched_values = scales * values
+    for in_axes, args in (((None, 0), (values, xs[0])), ((0, 0), (batched_values, xs[:, 0]))):
+        ours = _jit(jax.vmap(_symmetric(matrix), in_axes), *args)
+        assert ours.shape == (3 if in_axes[0] is None else 2, N)
+        _close(ours, _jit(jax.vmap(_plain(matrix), in_axes), *args))
+    nested = jax.vmap(jax.vmap(_symmetric(matrix), in_axes=(None, 0)), in_axes=(0, 0))
+    reference = jax.vmap(jax.vmap(_plain(matrix), in_axes=(None, 0)), in_axes=(0, 0))
+    _close(_jit(nested, batched_values, xs), _jit(reference, batched_values, xs))
+
+
+def test_vmap_of_grad_and_grad_of_vmap(matrix):
+    values, _ = _point(matrix)
+    rng = np.random.default_rng(5)
+    xs = jnp.asarray(rng.standard_normal((3, N)))
+    scales = jnp.asarray(rng.uniform(0.5, 2.0, (3, 1)))
+
+    def loss(product):
+        return lambda v, x: jnp.sum(jnp.cos(product(v, x)))
+
+    for in_axes in ((None, 0), (0, 0)):
+        v = values if in_axes[0] is None else scales * values
+        per_member = jax.vmap(jax.grad(loss(_symmetric(matrix)), argnums=(0, 1)), in_axes)
+        reference = jax.vmap(jax.grad(loss(_plain(matrix)), argnums=(0, 1)), in_axes)
+        _close(_jit(per_member, v, xs), _jit(reference, v, xs))
+
+        def summed(product, in_axes=in_axes):
+            return lambda vs, x: jnp.sum(jax.vmap(loss(product), in_axes)(vs, x))
+
+        _close(_jit(jax.grad(summed(_symmetric(matrix)), argnums=(0, 1)), v, xs),
+               _jit(jax.grad(summed(_plain(matrix)), argnums=(0, 1)), v, xs))
+
+
+# ---- jit and second order --------------------------------------------------------------
+
+def test_jitted_hessian_vector_product(matrix):
+    """Forward over reverse: the transposes are differentiated again (values and x mixed).
+
+    The direction in the values is symmetric, as every change of an assembled stiffness
+    matrix is: the transpose in x assumes ``A^T = A`` along it.
+    """
+    values, x = _point(matrix)
+    rng = np.random.default_rng(6)
+    r, s = rng.standard_normal((2, N))
+    symmetric_change = r[matrix.rows] * r[matrix.cols] + s[matrix.rows] + s[matrix.cols]
+    direction = (jnp.asarray(symmetric_change), jnp.asarray(rng.standard_normal(N)))
+
+    def hvp(product):
+        loss = lambda v, x: jnp.sum(jnp.sin(product(v, x)) * x)  # noqa: E731
+        grad = jax.grad(loss, argnums=(0, 1))
+        return jax.jit(lambda v, x: jax.jvp(grad, (v, x), direction)[1])
+
+    _close(hvp(_symmetric(matrix))(values, x), hvp(_plain(matrix))(values, x))
