@@ -129,17 +129,19 @@ def test_vmap_of_grad_and_grad_of_vmap(matrix):
     def loss(product):
         return lambda v, x: jnp.sum(jnp.cos(product(v, x)))
 
-    for in_axes in ((None, 0), (0, 0)):
+    # (0, None): reverse mode through a batch of matrices at one x sums x's cotangent
+    for in_axes in ((None, 0), (0, 0), (0, None)):
         v = values if in_axes[0] is None else scales * values
+        x = xs if in_axes[1] == 0 else xs[0]
         per_member = jax.vmap(jax.grad(loss(_symmetric(matrix)), argnums=(0, 1)), in_axes)
         reference = jax.vmap(jax.grad(loss(_plain(matrix)), argnums=(0, 1)), in_axes)
-        _close(_jit(per_member, v, xs), _jit(reference, v, xs))
+        _close(_jit(per_member, v, x), _jit(reference, v, x))
 
         def summed(product, in_axes=in_axes):
-            return lambda vs, x: jnp.sum(jax.vmap(loss(product), in_axes)(vs, x))
+            return lambda vs, us: jnp.sum(jax.vmap(loss(product), in_axes)(vs, us))
 
-        _close(_jit(jax.grad(summed(_symmetric(matrix)), argnums=(0, 1)), v, xs),
-               _jit(jax.grad(summed(_plain(matrix)), argnums=(0, 1)), v, xs))
+        _close(_jit(jax.grad(summed(_symmetric(matrix)), argnums=(0, 1)), v, x),
+               _jit(jax.grad(summed(_plain(matrix)), argnums=(0, 1)), v, x))
 
 
 # ---- jit and second order --------------------------------------------------------------
