@@ -23,10 +23,13 @@ with status 2, no traceback; Ctrl-C keeps every finished record and exits with 1
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -208,7 +211,11 @@ def _is_interrupt(error: BaseException) -> bool:
 
 
 class _Bars:
-    """tqdm bars over configurations and optimiser steps (:class:`prdp_fem.study.Progress`)."""
+    """tqdm bars over configurations and optimiser steps (:class:`prdp_fem.study.Progress`).
+
+    Also where a requested stop (:func:`_stop_between_steps`) takes effect: after a step's
+    record is written, in the main thread, outside any JAX computation.
+    """
 
     def __init__(self, total: int):
         from tqdm import tqdm
@@ -218,6 +225,7 @@ class _Bars:
         self._outer = tqdm(total=total, desc="configurations", position=0,
                            disable=self._quiet, leave=True)
         self._inner = None
+        self.stop_requested = False
 
     def run_started(self, name: str, steps: int) -> None:
         self._inner = self._tqdm(total=steps, desc=name[:28], position=1, leave=False,
@@ -226,6 +234,7 @@ class _Bars:
     def step(self) -> None:
         if self._inner is not None:
             self._inner.update()
+        self._stop_if_requested()
 
     def run_finished(self, name: str, skipped: bool) -> None:
         if self._inner is not None:
@@ -234,6 +243,11 @@ class _Bars:
         self._outer.update()
         if skipped:
             self._outer.write(f"{name}: done already, skipped")
+        self._stop_if_requested()
+
+    def _stop_if_requested(self) -> None:
+        if self.stop_requested:
+            raise KeyboardInterrupt
 
     def close(self) -> None:
         self._outer.close()
@@ -298,6 +312,30 @@ SUMMARY_COLUMNS = {
 }
 
 
+@contextlib.contextmanager
+def _stop_between_steps(bars: _Bars):
+    """The first Ctrl-C stops the study after the step it is in; a second one at once.
+
+    Python raises ``KeyboardInterrupt`` wherever the main thread is, and during a jitted step
+    that can be inside a host callback (the iteration counter's taps). A loaded test run once
+    hung there for minutes instead of exiting. A flag read between steps keeps the
+    exception out of JAX; the step in flight finishes and its record is kept.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signal handlers can only be set from the main thread
+        return
+
+    def request_stop(signum, frame):
+        bars.stop_requested = True
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # the next one interrupts
+
+    previous = signal.signal(signal.SIGINT, request_stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
     from .study import RESULTS, SUMMARY, configurations, run_study
 
@@ -308,7 +346,8 @@ def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
           f"{len(configurations(scene))} configuration(s) into {out}/", flush=True)
     bars = _Bars(len(configurations(scene)))
     try:
-        result = run_study(scene, out, resume=resume, progress=bars)
+        with _stop_between_steps(bars):
+            result = run_study(scene, out, resume=resume, progress=bars)
     except (KeyboardInterrupt, RuntimeError) as error:  # JaxRuntimeError is a RuntimeError
         if not _is_interrupt(error):
             raise

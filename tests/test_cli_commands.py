@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import SMALL_STUDY as SMALL
 
-from prdp_fem.cli import main
+from prdp_fem.cli import _Bars, _stop_between_steps, main
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = sorted((ROOT / "meshes").glob("*.msh"))
@@ -128,6 +128,30 @@ def test_ctrl_c_keeps_records_and_exits_130(tmp_path):
     assert "Traceback" not in err
     records = [json.loads(x) for x in results.read_text().splitlines()]
     assert len(records) >= 5 and all(r["type"] == "step" for r in records)
+
+
+def _interrupts(action) -> bool:
+    """Whether ``action`` (then a short wait for the signal's delivery) raises Ctrl-C."""
+    try:
+        action()
+        time.sleep(0.05)
+    except KeyboardInterrupt:
+        return True
+    return False
+
+
+def test_first_ctrl_c_stops_between_steps_and_a_second_at_once():
+    """No KeyboardInterrupt inside a running step (it could land in a JAX host callback)."""
+    bars = _Bars(total=1)
+    ctrl_c = lambda: os.kill(os.getpid(), signal.SIGINT)  # noqa: E731
+    before = signal.getsignal(signal.SIGINT)
+    with _stop_between_steps(bars):
+        bars.run_started("run", steps=3)
+        assert not _interrupts(ctrl_c) and bars.stop_requested  # deferred to the step's end
+        assert _interrupts(bars.step)  # the step's record is written: the stop is here
+        assert _interrupts(ctrl_c)  # a second Ctrl-C is not deferred
+    assert signal.getsignal(signal.SIGINT) is before
+    bars.close()
 
 
 @pytest.mark.parametrize(("args", "message"), [
