@@ -64,8 +64,6 @@ def assert_png(path: Path):
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5000, path
 
 
-# the tests sharing finished_study run on one worker, so the study runs once
-@pytest.mark.xdist_group("finished_study")
 def test_study_writes_every_output_and_they_parse(finished_study):
     scene, out, done = finished_study
     assert done.returncode == 0, done.stderr
@@ -90,7 +88,6 @@ def test_study_writes_every_output_and_they_parse(finished_study):
     assert summary(out) == rows
 
 
-@pytest.mark.xdist_group("finished_study")
 def test_killed_study_resumes_to_the_same_summary(finished_study, tmp_path):
     scene, reference_out, reference = finished_study  # the same scene run uninterrupted
     assert reference.returncode == 0, reference.stderr

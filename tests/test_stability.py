@@ -15,10 +15,6 @@ from prdp_fem.stability_cases import CASES, case_named
 
 FAST = [case for case in CASES if case.fast]
 
-# one worker runs this module: fast_results caches per process, so spread over workers the
-# cases (about 7 s each) would run once in every worker
-pytestmark = pytest.mark.xdist_group("stability")
-
 
 def test_catalogue_covers_every_group_and_builds_lazily():
     groups = {case.group for case in CASES}
