@@ -17,7 +17,8 @@ Subcommands
 ``bench prdp``    the PRDP saving against the converged run on the built-in inverse scenes
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
-with status 2, no traceback; Ctrl-C keeps every finished record and exits with 130.
+with status 2, no traceback. Ctrl-C during a study lets the running step finish and write
+its record, then exits with 130, every finished record kept; a second Ctrl-C stops at once.
 """
 
 from __future__ import annotations
