@@ -341,7 +341,8 @@ def controller(scene: Scene) -> Refinement:
         spec.adjoint_K0, spec.adjoint_dK, spec.adjoint_K_max, spec.adjoint_factor)
     return prdp(spec.K0, spec.dK, spec.K_max, factor=spec.factor, adjoint=adjoint,
                 tau_step=spec.tau_step, tau_stop=spec.tau_stop, ema_window=spec.ema_window,
-                delta=spec.delta, latch=spec.latch, restart=spec.restart, rtol=spec.rtol,
+                delta=spec.delta, latch=spec.latch, restart=spec.restart,
+                stall_on_failure=spec.stall_on_failure, rtol=spec.rtol,
                 rtol_factor=spec.rtol_factor, rtol_min=spec.rtol_min)
 
 

@@ -30,7 +30,9 @@ class StepRecord(NamedTuple):
     not asked for) belong to the parameters the step produced. ``time`` is cumulative run time
     without compilation, ``compile_time`` the cumulative compilation time; ``primal_iterations``
     and ``adjoint_iterations`` are cumulative CG iterations that actually ran, line-search trials
-    included; ``validation_iterations`` those of converged validation solves.
+    included; ``validation_iterations`` those of converged validation solves. ``failed_steps``
+    counts the steps so far whose optimiser reported a failure (a line search that ended
+    without meeting its conditions: a sign that the solves are too truncated).
     """
 
     step: int
@@ -48,6 +50,7 @@ class StepRecord(NamedTuple):
     misfit: float
     parameter_error: float
     state_error: float
+    failed_steps: int = 0  # defaulted: records written before it existed still load
 
     @property
     def total_iterations(self) -> int:

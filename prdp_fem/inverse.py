@@ -342,6 +342,23 @@ def _uses_stored_value(opt_state) -> bool:
     return otu.tree_get(opt_state, "value") is not None
 
 
+def _step_failed(opt_state) -> jax.Array:
+    """Whether the optimiser reports its last update as failed.
+
+    optax's line searches keep their errors in the state (a positive sufficient-decrease or,
+    for the zoom search, curvature error: the search ended without meeting its conditions);
+    :func:`prdp_fem.newton.newton_cg` keeps ``line_search_failed``. Other optimisers report
+    nothing: ``False``.
+    """
+    failed = jnp.asarray(False)
+    for name in ("decrease_error", "curvature_error"):
+        error = otu.tree_get(opt_state, name)
+        if error is not None:
+            failed = failed | (error > 0)
+    flag = otu.tree_get(opt_state, "line_search_failed")
+    return failed if flag is None else failed | flag
+
+
 def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
     """One optimiser step, (K, K_adj, rtol) as arguments (K static in unrolled mode)."""
 
@@ -359,7 +376,7 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return (z_next, opt_state, value, misfit, problem.parameter_error(z_next),
-                optax.tree.norm(grad))
+                optax.tree.norm(grad), _step_failed(opt_state))
 
     return step
 
@@ -464,20 +481,24 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         _check_unrolled_start(problem, z)
     validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol, preconditioner,
                                                                validation_counter)
-    history, run_time, evaluations = History(), 0.0, 0
+    history, run_time, evaluations, failed_steps = History(), 0.0, 0, 0
+    failed_since_update = False  # a monitor read every few steps still hears of each failure
     for k in range(1, steps + 1):
         K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
         start = time.perf_counter()
         compile_before = step.seconds
-        z_next, opt_state, value, misfit, error, grad_norm = jax.block_until_ready(
+        z_next, opt_state, value, misfit, error, grad_norm, failed = jax.block_until_ready(
             step(problem, z, opt_state, K, K_adj, rtol))
         monitored = grad_norm if monitor == "gradient" else value
         if validate is not None and k % monitor.every == 0:
             monitored = jax.block_until_ready(validate(problem, z_next))
         previous_K = (int(control.iterations), int(control.adjoint_iterations),
                       float(control.rtol))
+        failed_since_update |= bool(failed)
+        failed_steps += bool(failed)
         if validate is None or k % monitor.every == 0:
-            control = update_control(control, monitored)
+            control = update_control(control, monitored, failed_since_update)
+            failed_since_update = False
         run_time += time.perf_counter() - start - (step.seconds - compile_before)
         if not (np.isfinite(float(value)) and np.isfinite(float(grad_norm))
                 and bool(jnp.all(jnp.isfinite(z_next)))):
@@ -502,7 +523,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
             validation_iterations=validation_counter.primal, evaluations=evaluations,
             time=run_time, compile_time=step.seconds, loss=float(value), misfit=float(misfit),
-            parameter_error=float(error), state_error=state_error)
+            parameter_error=float(error), state_error=state_error, failed_steps=failed_steps)
         history = history.append(record)
         if callback is not None and callback(record, z):
             break

@@ -274,7 +274,8 @@ class RefinementSpec:
     """How the CG iterations are chosen during an inversion (see :mod:`prdp_fem.prdp`).
 
     ``kind = "prdp"`` uses ``K0, dK, K_max, factor, adjoint_K0, adjoint_dK, adjoint_K_max,
-    adjoint_factor, tau_step, tau_stop, ema_window, delta, latch, restart, rtol``;
+    adjoint_factor, tau_step, tau_stop, ema_window, delta, latch, restart, stall_on_failure,
+    rtol``;
     ``"fixed"`` uses ``K, K_adj``; ``"converged"`` uses ``rtol``. ``monitor``: loss |
     gradient | validation (``validation_every``, ``validation_rtol``).
     """
@@ -294,6 +295,7 @@ class RefinementSpec:
     delta: int = 3
     latch: bool = False
     restart: bool = True
+    stall_on_failure: bool = True
     rtol: float | None = None
     rtol_factor: float = 0.1      # tolerance mode: rtol *= rtol_factor at a refinement ...
     rtol_min: float = 1e-12       # ... down to rtol_min
@@ -551,7 +553,7 @@ def _solver(t: _Table) -> SolverSpec:
 _REFINEMENT_KEYS = {
     "prdp": ("K0", "dK", "K_max", "factor", "adjoint_K0", "adjoint_dK", "adjoint_K_max",
              "adjoint_factor", "tau_step", "tau_stop", "ema_window", "delta", "latch",
-             "restart", "rtol", "rtol_factor", "rtol_min"),
+             "restart", "stall_on_failure", "rtol", "rtol_factor", "rtol_min"),
     "fixed": ("K", "K_adj"),
     "converged": ("rtol",),
 }
@@ -576,6 +578,7 @@ def _refinement(t: _Table) -> RefinementSpec:
         "delta": lambda k: t.integer(k, defaults.delta, 2),
         "latch": lambda k: t.boolean(k, defaults.latch),
         "restart": lambda k: t.boolean(k, defaults.restart),
+        "stall_on_failure": lambda k: t.boolean(k, defaults.stall_on_failure),
         "rtol": lambda k: t.number(k, 1e-10 if kind == "converged" else None, low=0.0,
                                    high=0.5, open_low=True),
         "rtol_factor": lambda k: t.number(k, defaults.rtol_factor, low=0.0, high=1.0,

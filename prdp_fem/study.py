@@ -502,9 +502,10 @@ def _finite(value) -> float:
 
 
 def _history(rows: list[dict]) -> History:
-    fields = StepRecord._fields
-    return History(StepRecord(**{k: (math.nan if r[k] is None else r[k]) for k in fields})
-                   for r in rows)
+    def field(row: dict, name: str):
+        value = row.get(name, StepRecord._field_defaults.get(name))  # older rows lack some
+        return math.nan if value is None else value
+    return History(StepRecord(**{k: field(r, k) for k in StepRecord._fields}) for r in rows)
 
 
 def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
@@ -578,7 +579,8 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
             "final_K": "tol" if last.rtol > 0 else last.iterations,
             "refinements": last.refinements, "time_s": last.time,
             "compile_s": last.compile_time, "cg_iterations": iterations,
-            "evaluations": last.evaluations, "target_error": target,
+            "evaluations": last.evaluations, "failed_steps": last.failed_steps,
+            "target_error": target,
             "reached_step": hit.step if hit else "",
             "time_to_target_s": hit.time if hit else math.nan,
             "iterations_to_target": hit_iterations,

@@ -14,7 +14,7 @@ from prdp_fem.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
 from prdp_fem.comparison import settled
 from prdp_fem.errors import PrdpFemError, SolverConfigError
 from prdp_fem.history import History
-from prdp_fem.inverse import InversionError, Validation, inverse_problem, invert
+from prdp_fem.inverse import InversionError, Validation, _step_failed, inverse_problem, invert
 from prdp_fem.observations import boundary_values, full_field, point_sensors, with_noise
 from prdp_fem.parameter_choice import l_curve, morozov
 from prdp_fem.prdp import converged, fixed, prdp
@@ -214,12 +214,32 @@ def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
     ks = result.history.column("iterations")
     assert np.all(np.diff(ks) >= 0) and ks[-1] > ks[0]
     assert result.history[-1].parameter_error < result.history[0].parameter_error
+    # at K = 2 the implicit gradient misleads L-BFGS's line search: its first failure is
+    # a stall, so the next step already runs at a larger K
+    failures = result.history.column("failed_steps")
+    first = int(np.flatnonzero(failures)[0])
+    assert failures[first] == 1 and ks[first] == 2 and ks[first + 1] > 2
     # a fixed K run counts exactly K primal iterations per solve
     run = invert(problem, refinement=fixed(6, 4), steps=5).history[-1]
     assert run.primal_iterations == 6 * run.evaluations
     path = tmp_path / "history.jsonl"
     result.history.to_jsonl(path)
     assert History.from_jsonl(path)[-1] == result.history[-1]
+
+
+def test_a_failed_line_search_is_read_from_the_optimizer_state():
+    def f(x):
+        return jnp.sum(x ** 2)
+    x = jnp.array([1.0, -2.0])
+    g = jax.grad(f)(x)
+    for optimizer in (optax.lbfgs(), optax.chain(optax.sgd(1.0),
+                                                 optax.scale_by_backtracking_linesearch(5))):
+        state = optimizer.init(x)
+        _, good = optimizer.update(g, state, x, value=f(x), grad=g, value_fn=f)
+        _, ascent = optimizer.update(-g, state, x, value=f(x), grad=-g, value_fn=f)
+        assert not bool(_step_failed(good)) and bool(_step_failed(ascent))
+    adam = optax.adam(0.1)
+    assert not bool(_step_failed(adam.update(g, adam.init(x), x)[1]))  # reports nothing
 
 
 def test_unrolled_and_validation_monitor_run_and_agree_with_converged():

@@ -55,8 +55,17 @@ def test_defaults_are_documented_values():
         ("unit_square", 32, "P1", "P0")
     assert (scene.solver.preconditioner, scene.solver.gradient) == ("jacobi", "implicit")
     assert (scene.refinement.kind, scene.refinement.K0, scene.refinement.dK) == ("prdp", 25, 10)
+    assert scene.refinement.stall_on_failure and scene.refinement.restart
     assert (scene.optimizer.name, scene.optimizer.steps) == ("lbfgs", 100)
     assert scene.inverse is None and scene.study.kind == "forward"
+
+
+def test_stall_on_failure_reaches_the_controller():
+    for flag, expected in ((True, 20), (False, 10)):
+        spec = parse_scene({"refinement": {"K0": 10, "stall_on_failure": flag}})
+        controller = build.controller(spec)
+        state = controller.update(controller.init(), 1.0)  # the first step is exempt
+        assert int(controller.update(state, 0.5, failed=True).iterations) == expected
 
 
 def test_runs_merge_sections_and_replace_refinement():
@@ -108,6 +117,7 @@ def test_fingerprint_follows_settings_not_names():
     ("[refinement]\nkind = 'fixed'\nK0 = 3", "unknown key 'refinement.K0'"),
     ("[refinement]\nK0 = 700", "refinement.K0 = 700 exceeds K_max = 600"),
     ("[refinement]\nmonitor = 'misfit'", "refinement.monitor = 'misfit'"),
+    ("[refinement]\nstall_on_failure = 1", "refinement.stall_on_failure = 1"),
     ("[optimizer]\nname = 'newton'", "optimizer.name = 'newton'"),
     ("[study]\nkind = 'inverse'", "needs an [inverse] section"),
     ("[study]\nlevels = [8, 4]", "study.levels = [8, 4]: expected an increasing list"),
