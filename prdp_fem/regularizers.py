@@ -47,11 +47,17 @@ REGULARIZERS = ("l2", "h1", "tv")
 
 
 @partial(jax.tree_util.register_dataclass,
-         data_fields=["matrix", "weights", "reference", "epsilon"],
+         data_fields=["matrix", "weights", "reference", "epsilon", "gram"],
          meta_fields=["kind", "dim"])
 @dataclasses.dataclass(frozen=True)
 class Regularizer:
-    """``kind`` in :data:`REGULARIZERS`; ``matrix`` is the mass matrix (L2) or ``D``."""
+    """``kind`` in :data:`REGULARIZERS`; ``matrix`` is the mass matrix (L2) or ``D``.
+
+    ``gram`` is the quadratic form's matrix of L2 and H1 (the mass matrix, ``D^T diag(w) D``):
+    square, with the ELL layout. The value is ``1/2 m^T gram m`` and its gradient one product
+    with it, instead of the tall ``D`` (whose reverse pass is a scatter): on the inclusion
+    scene's P1 log-kappa, 7k entries instead of 74k.
+    """
 
     kind: str
     matrix: SparseMatrix
@@ -59,16 +65,14 @@ class Regularizer:
     reference: jax.Array
     epsilon: jax.Array
     dim: int
+    gram: SparseMatrix | None = None
 
     def __call__(self, field: jax.Array) -> jax.Array:
-        m = field - self.reference
-        if self.kind == "l2":
-            return 0.5 * jnp.vdot(m, matvec(self.matrix, m))
-        g = matvec(self.matrix, m if self.kind == "h1" else field).reshape(-1, self.dim)
-        squared = jnp.sum(g * g, axis=1)
-        if self.kind == "h1":
-            return 0.5 * jnp.vdot(self.weights, squared)
-        return jnp.vdot(self.weights, jnp.sqrt(squared + self.epsilon ** 2))
+        if self.gram is not None:
+            m = field - self.reference
+            return 0.5 * jnp.vdot(m, matvec(self.gram, m))
+        g = matvec(self.matrix, field).reshape(-1, self.dim)
+        return jnp.vdot(self.weights, jnp.sqrt(jnp.sum(g * g, axis=1) + self.epsilon ** 2))
 
 
 def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
@@ -95,8 +99,14 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
     else:
         matrix, weights = _quadrature_gradients(basis)
         dim = disc.mesh.dim()
+    gram = None
+    if kind == "l2":
+        gram = matrix
+    elif kind == "h1":
+        gram = matrix.T @ sp.diags(np.repeat(weights, dim)) @ matrix
     return Regularizer(kind, SparseMatrix.from_scipy(matrix), jnp.asarray(weights),
-                       jnp.asarray(m0), jnp.asarray(float(epsilon)), dim)
+                       jnp.asarray(m0), jnp.asarray(float(epsilon)), dim,
+                       None if gram is None else SparseMatrix.from_scipy(gram))
 
 
 def _quadrature_gradients(basis) -> tuple[sp.csr_matrix, np.ndarray]:

@@ -1,5 +1,7 @@
 """SparseMatrix: products against SciPy, conversions, and use as a jit argument."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +30,21 @@ def test_matvec_rmatvec_diagonal_match_scipy(random_spd):
     y = np.arange(30.0)
     np.testing.assert_allclose(pf.rmatvec(R, y), rect.T @ y, rtol=1e-13)
     np.testing.assert_allclose(pf.matvec(R, np.ones(20)), rect @ np.ones(20), rtol=1e-13)
+
+
+def test_diagonal_from_the_layout_adds_repeated_entries_and_missing_ones_are_zero():
+    # duplicates on the diagonal (row 0 twice, row 2 three times), row 1 without a diagonal
+    rows, cols = [0, 0, 0, 1, 2, 2, 2, 2], [0, 0, 1, 2, 2, 1, 2, 2]
+    values = np.array([1.0, 2.0, 5.0, 7.0, 3.0, 4.0, 10.0, 20.0])
+    A = pf.SparseMatrix.from_coo(rows, cols, values, (3, 3))
+    assert A.layout is not None and A.layout.repeated_diagonal.shape[0] == 3
+    expected = sp.coo_matrix((values, (rows, cols)), shape=(3, 3)).tocsr().diagonal()
+    np.testing.assert_array_equal(pf.diagonal(A), expected)            # [3, 0, 33]
+    np.testing.assert_array_equal(pf.diagonal(A), pf.diagonal(dataclasses.replace(A, layout=None)))
+    weights = np.arange(1.0, 4.0)
+    grad = jax.grad(lambda v: jnp.sum(pf.diagonal(A.with_values(v)) * weights))(A.values)
+    on_diagonal = np.asarray(A.rows) == np.asarray(A.cols)  # (from_coo sorted the entries)
+    np.testing.assert_array_equal(grad, np.where(on_diagonal, weights[np.asarray(A.rows)], 0))
 
 
 def test_conversions_round_trip(random_spd):
