@@ -25,7 +25,7 @@ the error has stalled *and* the last refinement bought at least ``1 - tau_stop``
 worse); a stall without that gain means "K is enough" (``stopped``). As in the reference code
 the stop is not latched unless ``latch=True``: a later plateau ``>= 10 %`` lower refines again.
 
-One addition to that rule (``stall_on_failure``, on by default): a *failed optimiser step*
+One addition to that rule, opt-in (``stall_on_failure=True``): a *failed optimiser step*
 (``update(state, value, failed=True)``: a line search that ended without meeting its
 conditions) counts as a stall at once, without waiting for the moving average. With a
 truncated solve, the implicit gradient does not match the truncated value; the line search
@@ -148,7 +148,7 @@ def _initial_state(K: int, K_adj: int, rtol: float, delta: int) -> RefinementSta
 def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
          adjoint: Schedule | None = None, tau_step: float = 0.98, tau_stop: float = 0.9,
          ema_window: int = 6, delta: int = 3, latch: bool = False, restart: bool = False,
-         stall_on_failure: bool = True, rtol: float | None = None, rtol_factor: float = 0.1,
+         stall_on_failure: bool = False, rtol: float | None = None, rtol_factor: float = 0.1,
          rtol_min: float = 1e-12) -> Refinement:
     """The PRDP controller (reference defaults; see the module docstring for the rule).
 
@@ -172,8 +172,11 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
         instead was tried and refined too late (the mother scene's saving fell from 98 % to
         87 %, inclusion's implicit run stalled at ``K = 50``).
     stall_on_failure
-        Count a step reported as failed (``update(..., failed=True)``) as a stall at once;
-        ``False`` keeps the reference rule, which only reads the moving average.
+        Count a step reported as failed (``update(..., failed=True)``) as a stall at once.
+        Off by default (the reference rule, which only reads the moving average): it saves
+        much where the line search keeps failing at small K (inclusion scene: 536 -> 211
+        evaluations) but refines on isolated failures too (the source example at n = 32:
+        2.5x the CG iterations for no gain).
     rtol, rtol_factor, rtol_min
         Tolerance mode when ``rtol`` is given: solves run to ``||r|| <= rtol ||b||`` (capped at
         ``K_max`` iterations) and refinement multiplies ``rtol`` by ``rtol_factor`` down to

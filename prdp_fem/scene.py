@@ -295,7 +295,7 @@ class RefinementSpec:
     delta: int = 3
     latch: bool = False
     restart: bool = True
-    stall_on_failure: bool = True
+    stall_on_failure: bool = False
     rtol: float | None = None
     rtol_factor: float = 0.1      # tolerance mode: rtol *= rtol_factor at a refinement ...
     rtol_min: float = 1e-12       # ... down to rtol_min

@@ -210,7 +210,8 @@ def test_invert_reaches_the_discrete_optimum_and_records_costs():
 
 def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
     _disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
-    result = invert(problem, refinement=prdp(K0=2, dK=4, restart=True), steps=40)
+    result = invert(problem, refinement=prdp(K0=2, dK=4, restart=True, stall_on_failure=True),
+                    steps=40)
     ks = result.history.column("iterations")
     assert np.all(np.diff(ks) >= 0) and ks[-1] > ks[0]
     assert result.history[-1].parameter_error < result.history[0].parameter_error

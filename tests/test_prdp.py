@@ -155,8 +155,9 @@ def test_a_failed_step_is_a_stall_at_once():
     # a steady 10 % decrease never stalls the average; a failure reported after the sixth
     # value refines at once (the error fell > 10 % since e_1); the reference rule ignores it
     errors, failed = CURVES["steady"][:12], [t == 5 for t in range(12)]
-    assert _run_with_failures(prdp(K0=10, dK=10), errors, failed)[0] == [10] * 5 + [20] * 7
-    reference = prdp(K0=10, dK=10, stall_on_failure=False)
+    assert _run_with_failures(prdp(K0=10, dK=10, stall_on_failure=True), errors,
+                              failed)[0] == [10] * 5 + [20] * 7
+    reference = prdp(K0=10, dK=10)  # the default: the reference rule
     assert _run_with_failures(reference, errors, failed)[0] == [10] * 12
 
 
@@ -164,21 +165,24 @@ def test_failures_refine_at_the_starting_K_but_do_not_cascade():
     # a flat loss that fails every step: the first step's failure is exempt (its line search
     # starts from an arbitrary step size), the second refines (nothing judged yet at K0);
     # after that the refinement bought nothing, so the gain test says "enough"
-    ks, state = _run_with_failures(prdp(K0=10, dK=10), [1.0] * 10, [True] * 10)
+    ks, state = _run_with_failures(prdp(K0=10, dK=10, stall_on_failure=True), [1.0] * 10,
+                                   [True] * 10)
     assert ks == [10] + [20] * 9 and bool(state.stopped) and int(state.refinements) == 1
     # a loss that keeps dropping > 10 % per refinement while failing refines every step
-    ks, _ = _run_with_failures(prdp(K0=10, dK=10, K_max=50), [0.5 ** t for t in range(6)],
+    ks, _ = _run_with_failures(prdp(K0=10, dK=10, K_max=50, stall_on_failure=True),
+                               [0.5 ** t for t in range(6)],
                                [True] * 6)
     assert ks == [10, 20, 30, 40, 50, 50]
     # a loss that moves up after the refinement (a truncated loss changes level with K) is
     # no divergence for a failure: no second refinement until the moving average stalls
-    ks, state = _run_with_failures(prdp(K0=10, dK=10, restart=True), [1.0, 1.0, 2.0, 2.0, 2.0],
+    ks, state = _run_with_failures(prdp(K0=10, dK=10, restart=True, stall_on_failure=True),
+                                   [1.0, 1.0, 2.0, 2.0, 2.0],
                                    [True] * 5)
     assert ks == [10, 20, 20, 20, 20] and bool(state.stopped)
 
 
 def test_jitted_update_takes_a_traced_failure_flag():
-    controller = prdp(K0=10, dK=10)
+    controller = prdp(K0=10, dK=10, stall_on_failure=True)
     update = jax.jit(controller.update)
     state = update(controller.init(), 1.0, jnp.asarray(True))  # the first step: exempt
     assert int(state.iterations) == 10

@@ -55,7 +55,7 @@ def test_defaults_are_documented_values():
         ("unit_square", 32, "P1", "P0")
     assert (scene.solver.preconditioner, scene.solver.gradient) == ("jacobi", "implicit")
     assert (scene.refinement.kind, scene.refinement.K0, scene.refinement.dK) == ("prdp", 25, 10)
-    assert scene.refinement.stall_on_failure and scene.refinement.restart
+    assert not scene.refinement.stall_on_failure and scene.refinement.restart
     assert (scene.optimizer.name, scene.optimizer.steps) == ("lbfgs", 100)
     assert scene.inverse is None and scene.study.kind == "forward"
 
