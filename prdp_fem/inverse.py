@@ -494,8 +494,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             monitored = jax.block_until_ready(validate(problem, z_next))
         previous_K = (int(control.iterations), int(control.adjoint_iterations),
                       float(control.rtol))
-        failed_since_update |= bool(failed)
-        failed_steps += bool(failed)
+        failed = bool(failed)
+        failed_since_update |= failed
+        failed_steps += failed
         if validate is None or k % monitor.every == 0:
             control = update_control(control, monitored, failed_since_update)
             failed_since_update = False

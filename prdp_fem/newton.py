@@ -80,6 +80,7 @@ import scipy.sparse as sp
 
 from .amg import amg_preconditioner
 from .errors import SolverConfigError
+from .regularizers import gradient_gram
 
 __all__ = ["FORCING_TERMS", "HESSIANS", "NewtonCGState", "gauss_newton", "newton_cg",
            "regularization_preconditioner"]
@@ -465,7 +466,6 @@ def regularization_preconditioner(problem, **amg_options):
     if regularizer.kind == "l2":
         matrix = mass
     else:
-        gradient = regularizer.matrix.to_scipy()
-        weights = np.repeat(np.asarray(regularizer.weights), regularizer.dim)
-        matrix = gradient.T @ sp.diags(weights) @ gradient + mass
+        matrix = gradient_gram(regularizer.matrix.to_scipy(), regularizer.weights,
+                               regularizer.dim) + mass
     return amg_preconditioner(sp.csr_matrix(matrix), **amg_options)

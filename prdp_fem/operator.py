@@ -384,10 +384,15 @@ def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
                                   side="left").astype(matrix.rows.dtype)
         return CsrMatrix(matrix.rows, matrix.cols, indptr, matrix.values, matrix.shape)
     layout = matrix.layout
-    padded = jnp.concatenate([matrix.values, jnp.zeros((1,), matrix.values.dtype)])
+    padded = _padded(matrix.values)
     return EllMatrix(padded[layout.diagonal], padded[layout.slots], layout.columns,
                      padded[layout.overflow_slots], layout.overflow_rows,
                      layout.overflow_columns, matrix.shape[0])
+
+
+def _padded(values: jax.Array) -> jax.Array:
+    """The values with the zero that a layout's missing entries point at (position nnz)."""
+    return jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
 
 
 def matvec(matrix: SparseMatrix, x: jax.Array) -> jax.Array:
@@ -410,8 +415,7 @@ def diagonal(matrix: SparseMatrix) -> jax.Array:
     """
     layout = matrix.layout
     if layout is not None and layout.diagonal.shape[0] == matrix.shape[0]:
-        padded = jnp.concatenate([matrix.values, jnp.zeros((1,), matrix.values.dtype)])
-        d = padded[layout.diagonal]
+        d = _padded(matrix.values)[layout.diagonal]
         if layout.repeated_diagonal.shape[0]:
             d = d.at[layout.repeated_diagonal_rows].add(matrix.values[layout.repeated_diagonal])
         return d

@@ -41,7 +41,7 @@ from .operator import SparseMatrix, matvec
 from .parameters import parameter_basis, parameter_mass
 from .validation import finite_vector
 
-__all__ = ["REGULARIZERS", "Regularizer", "regularizer"]
+__all__ = ["REGULARIZERS", "Regularizer", "gradient_gram", "regularizer"]
 
 REGULARIZERS = ("l2", "h1", "tv")
 
@@ -99,14 +99,18 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
     else:
         matrix, weights = _quadrature_gradients(basis)
         dim = disc.mesh.dim()
-    gram = None
-    if kind == "l2":
-        gram = matrix
-    elif kind == "h1":
-        gram = matrix.T @ sp.diags(np.repeat(weights, dim)) @ matrix
-    return Regularizer(kind, SparseMatrix.from_scipy(matrix), jnp.asarray(weights),
-                       jnp.asarray(m0), jnp.asarray(float(epsilon)), dim,
-                       None if gram is None else SparseMatrix.from_scipy(gram))
+    operator = SparseMatrix.from_scipy(matrix)
+    gram = {"l2": operator, "tv": None}.get(kind)  # L2: the mass matrix is its own Gram form
+    if kind == "h1":
+        gram = SparseMatrix.from_scipy(gradient_gram(matrix, weights, dim))
+    return Regularizer(kind, operator, jnp.asarray(weights), jnp.asarray(m0),
+                       jnp.asarray(float(epsilon)), dim, gram)
+
+
+def gradient_gram(gradient: sp.spmatrix, weights: np.ndarray, dim: int) -> sp.csr_matrix:
+    """``D^T diag(w) D`` (each point's weight on its ``dim`` components): the H1 seminorm's
+    matrix for a gradient operator ``D`` with point weights ``w`` (host, SciPy)."""
+    return sp.csr_matrix(gradient.T @ sp.diags(np.repeat(np.asarray(weights), dim)) @ gradient)
 
 
 def _quadrature_gradients(basis) -> tuple[sp.csr_matrix, np.ndarray]:
