@@ -93,7 +93,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.experimental import io_callback
 
 from .errors import (
     DataError,
@@ -105,6 +104,7 @@ from .errors import (
 from .operator import SparseMatrix, prepare
 from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
 from .symmetric import symmetric_product
+from .tally import IterationCounter, tap
 from .validation import is_traced
 
 __all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve"]
@@ -148,80 +148,6 @@ class Solution(NamedTuple):
     initial_residual_norm: jax.Array
     residual_history: jax.Array
     status: jax.Array
-
-
-class IterationCounter:
-    """Host-side tally of the CG iterations that actually ran, primal and adjoint.
-
-    Pass one to :func:`solve` (``counter=``): every forward solve adds its iterations to
-    ``primal`` and every backward (adjoint) solve -- the truncated adjoint PCG in implicit mode,
-    the reversed scan in unrolled mode -- adds its own to ``adjoint``; so does every
-    forward-mode tangent solve of implicit mode (a Hessian-vector product adds two), through
-    ``jax.experimental.io_callback``, so the tally is exact even inside jitted line searches that
-    evaluate the objective an unknown number of times. One counter belongs to one run (it is
-    hashed by identity and is part of the compiled function); read it after the results are
-    ready (``jax.block_until_ready``). Under ``vmap`` every batch member counts, in one host
-    call per batched solve (see :func:`_tap`). Known gap: an implicit-mode transpose solve under
-    *two* nested ``vmap`` s (e.g. ``vmap`` over samples of a ``jacrev``) counts the inner batch
-    only; map the outer axis with ``lax.map`` (as :class:`prdp_fem.learned.BatchObjective`
-    does) to keep the tally exact.
-    """
-
-    def __init__(self):
-        self.primal = 0
-        self.adjoint = 0
-        self.primal_solves = 0
-        self.adjoint_solves = 0
-
-    def _add_primal(self, iterations, solves=1) -> None:
-        self.primal += int(iterations)
-        self.primal_solves += int(solves)
-
-    def _add_adjoint(self, iterations, solves=1) -> None:
-        self.adjoint += int(iterations)
-        self.adjoint_solves += int(solves)
-
-    def snapshot(self) -> tuple[int, int]:
-        """``(primal, adjoint)`` iterations so far."""
-        return self.primal, self.adjoint
-
-
-def _tap(counter: IterationCounter | None, kind: str, iterations: jax.Array,
-         anchor: jax.Array) -> None:
-    """Add ``iterations`` to ``counter`` on the host.
-
-    ``anchor`` (a vector of the solve, its gradient stopped) carries the batching: under
-    ``vmap`` a batched solve is a batch of solves even when the iteration count is not (a
-    fixed ``K``). The batching rule (:func:`jax.custom_batching.custom_vmap`) adds the sum
-    over the batch in *one* host call, so a batch of ``B`` solves costs one callback, not
-    ``B``.
-    """
-    if counter is not None:
-        anchor = jax.lax.stop_gradient(jnp.sum(jnp.ravel(anchor)[:1]))
-        _batched_tap(counter, kind)(jax.lax.stop_gradient(iterations), jnp.ones((), jnp.int32),
-                                    anchor)
-
-
-def _batched_tap(counter: IterationCounter, kind: str):
-    target = counter._add_primal if kind == "primal" else counter._add_adjoint
-
-    @jax.custom_batching.custom_vmap
-    def tap(iterations, solves, anchor):
-        io_callback(target, None, iterations, solves, ordered=False)
-        return anchor
-
-    @tap.def_vmap
-    def tap_batched(axis_size, in_batched, iterations, solves, anchor):
-        def total(value, batched):
-            return jnp.sum(value) if batched else value * axis_size
-
-        # one unbatched tally: an enclosing vmap level (if any) multiplies again
-        tap(total(iterations, in_batched[0]).astype(iterations.dtype),
-            total(solves, in_batched[1]).astype(jnp.int32),
-            jnp.sum(anchor) if in_batched[2] else anchor)
-        return anchor, in_batched[2]
-
-    return tap
 
 
 def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
@@ -399,7 +325,7 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
         sol = _implicit_solve(matrix, b, x0, max_iterations, max_iterations, precond,
                               solver.rtol, solver.atol, solver.history_size, True, counter)
     sol = sol._replace(status=_final_status(sol, incompatible, _all_finite(matrix.values, b, x0)))
-    _tap(counter, "primal", sol.iterations, sol.x)
+    tap(counter, "primal", sol.iterations, sol.x)
     if eager:
         _raise_on_status(sol)
     return sol
@@ -767,7 +693,7 @@ def _adjoint_tap_jvp(counter, primals, tangents):
     x, iterations = primals
 
     def count_backward(_, cotangent):
-        _tap(counter, "adjoint", iterations, cotangent)
+        tap(counter, "adjoint", iterations, cotangent)
         return cotangent
 
     x_dot = jax.lax.custom_linear_solve(lambda v: v, tangents[0], lambda _, v: v,
@@ -888,7 +814,7 @@ def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, t
     def sweep(_, right):
         sol = _while_solve(krylov, right, jnp.zeros_like(right), iterations, tolerances, 0,
                            track_norm=track_norm)
-        _tap(counter, "adjoint", sol.iterations, sol.x)
+        tap(counter, "adjoint", sol.iterations, sol.x)
         return sol.x
 
     return jax.lax.custom_linear_solve(prepare(matrix), rhs, sweep, symmetric=True)

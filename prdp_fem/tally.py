@@ -1,0 +1,179 @@
+"""Counting the CG iterations that ran, from inside jitted code.
+
+A solve knows how many iterations it ran only as a traced value, and the inverse driver's
+solves run inside optax's line searches, which call the objective an unknown number of times
+and return nothing but its value. So the count leaves through a side door: every solve *taps*
+an :class:`IterationCounter`, a host call that adds the count to plain Python integers.
+
+Why a primitive of its own
+--------------------------
+``jax.experimental.io_callback`` hands its host function ``jax.Array`` s: every call
+device-puts its operands and the host function converts them back. Inside a busy objective
+on a 2-core CPU that cost about 0.3 ms per call, and an implicit-mode evaluation taps twice
+(primal and adjoint): a quarter of a ``K = 10`` evaluation of the ``inclusion`` scene
+(3.05 ms against 2.30 ms without a counter). The ``iteration_tap`` primitive lowers to the
+same XLA host call, but its host function receives the NumPy scalars as they come: about
+0.06 ms per call (2.58 ms per evaluation). It is built from two pieces of JAX that are public
+in practice but not promised: ``jax.interpreters.mlir.emit_python_callback``, and
+``io_callback``'s own effect, which keeps the tap from being pruned and lets it into loops and
+custom derivative rules exactly where ``io_callback`` may go. A probe at first use lowers and
+runs one tap; where either piece is missing or does not work, every tap goes through
+``io_callback`` instead (the same counts, slower).
+
+>>> import jax, jax.numpy as jnp
+>>> counter = IterationCounter()
+>>> @jax.jit
+... def run(k):
+...     tap(counter, "primal", k, jnp.zeros(3))
+...     return k
+>>> _ = jax.block_until_ready(run(jnp.int32(7))); jax.effects_barrier()
+>>> counter.snapshot(), counter.primal_solves
+((7, 0), 1)
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import io_callback
+
+__all__ = ["IterationCounter", "tap"]
+
+
+class IterationCounter:
+    """Host-side tally of the CG iterations that actually ran, primal and adjoint.
+
+    Pass one to :func:`prdp_fem.cg.solve` (``counter=``): every forward solve adds its
+    iterations to ``primal`` and every backward (adjoint) solve -- the truncated adjoint PCG
+    in implicit mode, the reversed scan in unrolled mode -- adds its own to ``adjoint``; so
+    does every forward-mode tangent solve of implicit mode (a Hessian-vector product adds
+    two). The tally is exact even inside jitted line searches that evaluate the objective an
+    unknown number of times. One counter belongs to one run (it is hashed by identity and is
+    part of the compiled function); read it after the results are ready
+    (``jax.block_until_ready``). Under ``vmap`` every batch member counts, in one host call
+    per batched solve (see :func:`tap`). Known gap: an implicit-mode transpose solve under
+    *two* nested ``vmap`` s (e.g. ``vmap`` over samples of a ``jacrev``) counts the inner
+    batch only; map the outer axis with ``lax.map`` (as
+    :class:`prdp_fem.learned.BatchObjective` does) to keep the tally exact.
+    """
+
+    def __init__(self):
+        self.primal = 0
+        self.adjoint = 0
+        self.primal_solves = 0
+        self.adjoint_solves = 0
+
+    def _add_primal(self, iterations, solves=1) -> None:
+        self.primal += int(iterations)
+        self.primal_solves += int(solves)
+
+    def _add_adjoint(self, iterations, solves=1) -> None:
+        self.adjoint += int(iterations)
+        self.adjoint_solves += int(solves)
+
+    def snapshot(self) -> tuple[int, int]:
+        """``(primal, adjoint)`` iterations so far."""
+        return self.primal, self.adjoint
+
+
+def tap(counter: IterationCounter | None, kind: str, iterations: jax.Array,
+        anchor: jax.Array) -> None:
+    """Add ``iterations`` (one solve's) to ``counter``'s ``kind`` (``"primal"`` or
+    ``"adjoint"``) on the host; nothing when ``counter`` is ``None``.
+
+    ``anchor`` (a vector of the solve, its gradient stopped) carries the batching: under
+    ``vmap`` a batched solve is a batch of solves even when the iteration count is not (a
+    fixed ``K``). The batching rule (:func:`jax.custom_batching.custom_vmap`) adds the sum
+    over the batch in *one* host call, so a batch of ``B`` solves costs one call, not ``B``.
+    """
+    if counter is None:
+        return
+    target = counter._add_primal if kind == "primal" else counter._add_adjoint
+    anchor = jax.lax.stop_gradient(jnp.sum(jnp.ravel(anchor)[:1]))
+    _batched(target)(jax.lax.stop_gradient(iterations), jnp.ones((), jnp.int32), anchor)
+
+
+def _batched(target: Callable[..., None]):
+    @jax.custom_batching.custom_vmap
+    def batched_tap(iterations, solves, anchor):
+        _host_call(target, iterations, solves)
+        return anchor
+
+    @batched_tap.def_vmap
+    def batched_tap_rule(axis_size, in_batched, iterations, solves, anchor):
+        def total(value, batched):
+            return jnp.sum(value) if batched else value * axis_size
+
+        # one unbatched tally: an enclosing vmap level (if any) multiplies again
+        batched_tap(total(iterations, in_batched[0]).astype(iterations.dtype),
+                    total(solves, in_batched[1]).astype(jnp.int32),
+                    jnp.sum(anchor) if in_batched[2] else anchor)
+        return anchor, in_batched[2]
+
+    return batched_tap
+
+
+def _host_call(target: Callable[..., None], iterations: jax.Array, solves: jax.Array) -> None:
+    if _primitive_works():
+        _TAP_PRIMITIVE.bind(iterations, solves, target=target)
+    else:
+        _io_callback_tap(target, iterations, solves)
+
+
+def _io_callback_tap(target: Callable[..., None], iterations: jax.Array,
+                     solves: jax.Array) -> None:
+    io_callback(target, None, iterations, solves, ordered=False)
+
+
+# --------------------------------------------------------------------------------------
+# the iteration_tap primitive: io_callback's host call without its device_put
+# --------------------------------------------------------------------------------------
+
+
+def _tap_primitive():
+    """``iteration_tap(iterations, solves; target)``: no outputs, ``target`` called on the
+    host with NumPy scalars; ``None`` where this JAX lacks the pieces."""
+    try:
+        from jax._src.callback import _IOEffect
+        from jax.extend.core import Primitive
+        from jax.interpreters import mlir
+        emit = mlir.emit_python_callback
+    except (ImportError, AttributeError):
+        return None
+    primitive = Primitive("iteration_tap")
+    primitive.multiple_results = True
+    primitive.def_effectful_abstract_eval(lambda *avals, target: ([], {_IOEffect}))
+    primitive.def_impl(lambda iterations, solves, *, target: target(iterations, solves) or [])
+
+    def lowering(ctx, iterations, solves, *, target):
+        def host(iterations, solves):
+            target(iterations, solves)
+            return ()
+        emit(ctx, host, None, [iterations, solves], ctx.avals_in, [], has_side_effect=True)
+        return []
+
+    mlir.register_lowering(primitive, lowering, cacheable=False)
+    return primitive
+
+
+_TAP_PRIMITIVE = _tap_primitive()
+
+
+@functools.cache
+def _primitive_works() -> bool:
+    """Whether one tap through the primitive lowers, runs and arrives (once per process)."""
+    if _TAP_PRIMITIVE is None:
+        return False
+    arrived = []
+    try:
+        with jax.ensure_compile_time_eval():  # a probe that runs, also mid-trace
+            jax.jit(lambda k: _TAP_PRIMITIVE.bind(
+                k, jnp.ones((), jnp.int32), target=lambda *counts: arrived.append(counts))
+            )(jnp.int32(3))
+            jax.effects_barrier()
+    except Exception:  # any failure means: use io_callback
+        return False
+    return [tuple(int(c) for c in counts) for counts in arrived] == [(3, 1)]

@@ -1,0 +1,111 @@
+"""The iteration tally: both host paths count the same, under every transformation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.extend.core import Primitive
+
+import prdp_fem as pf
+from prdp_fem import tally
+from prdp_fem.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
+
+
+@pytest.fixture(scope="module")
+def system():
+    """(A, b, B): a small P1 system and three right-hand sides."""
+    disc = pf.discretize(pf.unit_square(10), element="P1", dirichlet=0.0)
+    kappa = jnp.asarray(disc.interpolate_kappa(lambda x: 1.0 + x[0]))
+    f = jnp.asarray(disc.interpolate(lambda x: np.sin(3 * x[0]) + x[1]))
+    b = disc.system.rhs(kappa, f)
+    B = jnp.stack([b, 2 * b + 0.1, jnp.cos(jnp.arange(b.size, dtype=b.dtype))])
+    return disc.system.operator(kappa), b, B
+
+
+@pytest.fixture(params=["primitive", "io_callback"])
+def host_path(request, monkeypatch):
+    """Run the test through the iteration_tap primitive, then through io_callback."""
+    if request.param == "io_callback":
+        monkeypatch.setattr(tally, "_primitive_works", lambda: False)
+    return request.param
+
+
+def _counted(counter):
+    jax.effects_barrier()
+    return counter.snapshot(), counter.primal_solves, counter.adjoint_solves
+
+
+# --- which path runs -------------------------------------------------------------------
+
+
+def test_the_primitive_lowers_on_this_jax_and_replaces_io_callback(system):
+    A, b, _ = system
+    assert tally._primitive_works()
+    counter = IterationCounter()
+    jaxpr = str(jax.make_jaxpr(lambda b: solve(A, b, TruncatedCG(3), counter=counter).x)(b))
+    assert "iteration_tap" in jaxpr and "callback" not in jaxpr
+
+
+def test_the_probe_falls_back_when_the_primitive_is_missing_or_does_not_lower(monkeypatch):
+    monkeypatch.setattr(tally, "_TAP_PRIMITIVE", None)
+    assert not tally._primitive_works.__wrapped__()
+    unlowerable = Primitive("unlowerable_tap")
+    unlowerable.multiple_results = True
+    unlowerable.def_abstract_eval(lambda *avals, target: [])
+    monkeypatch.setattr(tally, "_TAP_PRIMITIVE", unlowerable)
+    assert not tally._primitive_works.__wrapped__()
+
+
+# --- eager, jit, loops ------------------------------------------------------------------
+
+
+def test_eager_solve_counts_what_ran(system, host_path):
+    A, b, _ = system
+    counter = IterationCounter()
+    sol = solve(A, b, ConvergedCG(rtol=1e-10), counter=counter)
+    assert _counted(counter) == ((int(sol.iterations), 0), 1, 0)
+    assert int(sol.iterations) > 5
+
+
+def test_a_loop_of_unknown_length_counts_every_trip(system, host_path):
+    A, b, _ = system
+    counter = IterationCounter()
+
+    @jax.jit
+    def trips(n):
+        return jax.lax.fori_loop(
+            0, n, lambda i, x: solve(A, b + x[0], TruncatedCG(4), counter=counter).x,
+            jnp.zeros_like(b))
+
+    jax.block_until_ready(trips(jnp.int32(5)))
+    assert _counted(counter) == ((20, 0), 5, 0)
+
+
+# --- grad (implicit and unrolled) -------------------------------------------------------
+
+
+@pytest.mark.parametrize("solver, adjoint", [
+    (TruncatedCG(7, gradient="implicit", adjoint_iterations=3), 3),
+    (TruncatedCG(5, gradient="unrolled"), 5),
+])
+def test_grad_counts_the_primal_and_the_backward_solve(system, host_path, solver, adjoint):
+    A, b, _ = system
+    counter = IterationCounter()
+    loss = jax.jit(jax.grad(lambda b: jnp.sum(solve(A, b, solver, counter=counter).x ** 2)))
+    jax.block_until_ready(loss(b))
+    assert _counted(counter) == ((solver.iterations, adjoint), 1, 1)
+
+
+# --- vmap -------------------------------------------------------------------------------
+
+
+def test_vmap_counts_every_member_in_one_host_call(system, host_path):
+    A, _, B = system
+    counter = IterationCounter()
+    solver = ConvergedCG(rtol=1e-10)
+    sols = jax.jit(jax.vmap(lambda b: solve(A, b, solver, counter=counter)))(B)
+    assert _counted(counter) == ((int(jnp.sum(sols.iterations)), 0), 3, 0)
+    nested = IterationCounter()
+    twice = jax.jit(jax.vmap(jax.vmap(lambda b: solve(A, b, TruncatedCG(2), counter=nested).x)))
+    jax.block_until_ready(twice(jnp.stack([B, B])))
+    assert _counted(nested) == ((12, 0), 6, 0)
