@@ -39,6 +39,7 @@ from .errors import (
     ShapeError,
     SolverConfigError,
 )
+from .executables import SharedCompile
 from .history import History, StepRecord
 from .observations import Observation
 from .operator import SparseMatrix, matvec
@@ -359,10 +360,11 @@ def _step_failed(opt_state) -> jax.Array:
     return failed if flag is None else failed | flag
 
 
-def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
-    """One optimiser step, (K, K_adj, rtol) as arguments (K static in unrolled mode)."""
+def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
+    """One optimiser step; the counter and (K, K_adj, rtol) are arguments (K static in
+    unrolled mode), so that runs differing only in them run one compiled program."""
 
-    def step(problem, z, opt_state, K, K_adj, rtol):
+    def step(problem, counter, z, opt_state, K, K_adj, rtol):
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
 
         value_fn = Objective(problem, solver, counter)
@@ -381,33 +383,11 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner, counter):
     return step
 
 
-def _make_validation(rtol, preconditioner, counter):
-    def misfit(problem, z):
+def _make_validation(rtol, preconditioner):
+    def misfit(problem, counter, z):
         return problem.loss(z, ConvergedCG(rtol=rtol, preconditioner=preconditioner),
                             counter=counter)[1].misfit
-    return jax.jit(misfit)
-
-
-class _Compiled:
-    """Compile once per configuration (per ``K`` when it is static), timing compilation apart."""
-
-    def __init__(self, fn, static_iterations: bool):
-        self._fn, self._static, self._cache, self.seconds = fn, static_iterations, {}, 0.0
-
-    def __call__(self, problem, z, opt_state, K, K_adj, rtol):
-        key = int(K) if self._static else None
-        if key not in self._cache:
-            start = time.perf_counter()
-            if self._static:
-                lowered = jax.jit(self._fn, static_argnums=(3,)).lower(
-                    problem, z, opt_state, key, K_adj, rtol)
-            else:
-                lowered = jax.jit(self._fn).lower(problem, z, opt_state, K, K_adj, rtol)
-            self._cache[key] = lowered.compile()
-            self.seconds += time.perf_counter() - start
-        if self._static:  # the static K is baked into the executable
-            return self._cache[key](problem, z, opt_state, K_adj, rtol)
-        return self._cache[key](problem, z, opt_state, K, K_adj, rtol)
+    return SharedCompile(misfit)
 
 
 def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
@@ -475,23 +455,25 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     control = refinement.init()
     update_control = jax.jit(refinement.update)  # one dispatch per step, not dozens
     counter, validation_counter = IterationCounter(), IterationCounter()
-    step = _Compiled(_make_step(optimizer, gradient, refinement.tolerance_mode, preconditioner,
-                                counter), static_iterations=gradient == "unrolled")
+    step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
+                                    preconditioner),
+                         static_argnum=4 if gradient == "unrolled" else None)
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
-    validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol, preconditioner,
-                                                               validation_counter)
+    validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,
+                                                                      preconditioner)
+    compiled = [step] if validate is None else [step, validate]
     history, run_time, evaluations, failed_steps = History(), 0.0, 0, 0
     failed_since_update = False  # a monitor read every few steps still hears of each failure
     for k in range(1, steps + 1):
         K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
         start = time.perf_counter()
-        compile_before = step.seconds
+        compile_before = sum(c.seconds for c in compiled)
         z_next, opt_state, value, misfit, error, grad_norm, failed = jax.block_until_ready(
-            step(problem, z, opt_state, K, K_adj, rtol))
+            step(problem, counter, z, opt_state, K, K_adj, rtol))
         monitored = grad_norm if monitor == "gradient" else value
         if validate is not None and k % monitor.every == 0:
-            monitored = jax.block_until_ready(validate(problem, z_next))
+            monitored = jax.block_until_ready(validate(problem, validation_counter, z_next))
         previous_K = (int(control.iterations), int(control.adjoint_iterations),
                       float(control.rtol))
         failed = bool(failed)
@@ -500,7 +482,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         if validate is None or k % monitor.every == 0:
             control = update_control(control, monitored, failed_since_update)
             failed_since_update = False
-        run_time += time.perf_counter() - start - (step.seconds - compile_before)
+        compile_time = sum(c.seconds for c in compiled)
+        run_time += time.perf_counter() - start - (compile_time - compile_before)
         if not (np.isfinite(float(value)) and np.isfinite(float(grad_norm))
                 and bool(jnp.all(jnp.isfinite(z_next)))):
             raise InversionError(
@@ -523,7 +506,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             rtol=previous_K[2], refinements=int(control.refinements),
             primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
             validation_iterations=validation_counter.primal, evaluations=evaluations,
-            time=run_time, compile_time=step.seconds, loss=float(value), misfit=float(misfit),
+            time=run_time, compile_time=compile_time, loss=float(value), misfit=float(misfit),
             parameter_error=float(error), state_error=state_error, failed_steps=failed_steps)
         history = history.append(record)
         if callback is not None and callback(record, z):

@@ -34,15 +34,19 @@ runs one tap; where either piece is missing or does not work, every tap goes thr
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
+import itertools
+import weakref
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import io_callback
 
 __all__ = ["IterationCounter", "tap"]
 
 
+@jax.tree_util.register_pytree_node_class
 class IterationCounter:
     """Host-side tally of the CG iterations that actually ran, primal and adjoint.
 
@@ -51,13 +55,18 @@ class IterationCounter:
     in implicit mode, the reversed scan in unrolled mode -- adds its own to ``adjoint``; so
     does every forward-mode tangent solve of implicit mode (a Hessian-vector product adds
     two). The tally is exact even inside jitted line searches that evaluate the objective an
-    unknown number of times. One counter belongs to one run (it is hashed by identity and is
-    part of the compiled function); read it after the results are ready
-    (``jax.block_until_ready``). Under ``vmap`` every batch member counts, in one host call
-    per batched solve (see :func:`tap`). Known gap: an implicit-mode transpose solve under
-    *two* nested ``vmap`` s (e.g. ``vmap`` over samples of a ``jacrev``) counts the inner
-    batch only; map the outer axis with ``lax.map`` (as
-    :class:`prdp_fem.learned.BatchObjective` does) to keep the tally exact.
+    unknown number of times. Read it after the results are ready (``jax.block_until_ready``).
+    Under ``vmap`` every batch member counts, in one host call per batched solve (see
+    :func:`tap`). Known gap: an implicit-mode transpose solve under *two* nested ``vmap`` s
+    (e.g. ``vmap`` over samples of a ``jacrev``) counts the inner batch only; map the outer
+    axis with ``lax.map`` (as :class:`prdp_fem.learned.BatchObjective` does) to keep the
+    tally exact.
+
+    A counter is a pytree whose one leaf is its ``slot``, the key under which the host finds
+    it (a weak table of live counters). Passed to a jitted function as an *argument*, the
+    slot is traced, so the compiled program does not depend on which counter it counts into:
+    runs that differ only in their counters share one executable (see
+    :func:`prdp_fem.inverse.invert`). Closed over, the slot is a constant of the program.
     """
 
     def __init__(self):
@@ -65,21 +74,52 @@ class IterationCounter:
         self.adjoint = 0
         self.primal_solves = 0
         self.adjoint_solves = 0
-
-    def _add_primal(self, iterations, solves=1) -> None:
-        self.primal += int(iterations)
-        self.primal_solves += int(solves)
-
-    def _add_adjoint(self, iterations, solves=1) -> None:
-        self.adjoint += int(iterations)
-        self.adjoint_solves += int(solves)
+        self.slot = np.int32(next(_SLOTS))
+        _LIVE[int(self.slot)] = self
 
     def snapshot(self) -> tuple[int, int]:
         """``(primal, adjoint)`` iterations so far."""
         return self.primal, self.adjoint
 
+    def _add(self, kind: str, iterations, solves) -> None:
+        if kind == "primal":
+            self.primal += int(iterations)
+            self.primal_solves += int(solves)
+        else:
+            self.adjoint += int(iterations)
+            self.adjoint_solves += int(solves)
 
-def tap(counter: IterationCounter | None, kind: str, iterations: jax.Array,
+    def tree_flatten(self):
+        return (self.slot,), None
+
+    @classmethod
+    def tree_unflatten(cls, aux, children) -> _CounterRef:
+        del aux
+        return _CounterRef(children[0])
+
+
+class _CounterRef(NamedTuple):
+    """What a jitted function sees of a counter passed as an argument: its (traced) slot."""
+
+    slot: Any
+
+
+jax.tree_util.register_pytree_node(_CounterRef, lambda ref: ((ref.slot,), None),
+                                   lambda _, children: _CounterRef(children[0]))
+
+#: Live counters by slot: the host calls carry a slot, not the counter (see IterationCounter).
+_LIVE: weakref.WeakValueDictionary[int, IterationCounter] = weakref.WeakValueDictionary()
+_SLOTS = itertools.count()
+
+
+def _tally(kind: str, slot, iterations, solves) -> None:
+    """The host side of a tap: add to the counter in ``slot`` (gone: nothing to add to)."""
+    counter = _LIVE.get(int(slot))
+    if counter is not None:
+        counter._add(kind, iterations, solves)
+
+
+def tap(counter: IterationCounter | _CounterRef | None, kind: str, iterations: jax.Array,
         anchor: jax.Array) -> None:
     """Add ``iterations`` (one solve's) to ``counter``'s ``kind`` (``"primal"`` or
     ``"adjoint"``) on the host; nothing when ``counter`` is ``None``.
@@ -91,41 +131,42 @@ def tap(counter: IterationCounter | None, kind: str, iterations: jax.Array,
     """
     if counter is None:
         return
-    target = counter._add_primal if kind == "primal" else counter._add_adjoint
     anchor = jax.lax.stop_gradient(jnp.sum(jnp.ravel(anchor)[:1]))
-    _batched(target)(jax.lax.stop_gradient(iterations), jnp.ones((), jnp.int32), anchor)
+    _batched(kind)(jnp.asarray(counter.slot, jnp.int32), jax.lax.stop_gradient(iterations),
+                   jnp.ones((), jnp.int32), anchor)
 
 
-def _batched(target: Callable[..., None]):
+def _batched(kind: str):
     @jax.custom_batching.custom_vmap
-    def batched_tap(iterations, solves, anchor):
-        _host_call(target, iterations, solves)
+    def batched_tap(slot, iterations, solves, anchor):
+        _host_call(kind, slot, iterations, solves)
         return anchor
 
     @batched_tap.def_vmap
-    def batched_tap_rule(axis_size, in_batched, iterations, solves, anchor):
+    def batched_tap_rule(axis_size, in_batched, slot, iterations, solves, anchor):
         def total(value, batched):
             return jnp.sum(value) if batched else value * axis_size
 
         # one unbatched tally: an enclosing vmap level (if any) multiplies again
-        batched_tap(total(iterations, in_batched[0]).astype(iterations.dtype),
-                    total(solves, in_batched[1]).astype(jnp.int32),
-                    jnp.sum(anchor) if in_batched[2] else anchor)
-        return anchor, in_batched[2]
+        batched_tap(slot[0] if in_batched[0] else slot,  # a batch of one counter
+                    total(iterations, in_batched[1]).astype(iterations.dtype),
+                    total(solves, in_batched[2]).astype(jnp.int32),
+                    jnp.sum(anchor) if in_batched[3] else anchor)
+        return anchor, in_batched[3]
 
     return batched_tap
 
 
-def _host_call(target: Callable[..., None], iterations: jax.Array, solves: jax.Array) -> None:
+def _host_call(kind: str, slot: jax.Array, iterations: jax.Array, solves: jax.Array) -> None:
     if _primitive_works():
-        _TAP_PRIMITIVE.bind(iterations, solves, target=target)
+        _TAP_PRIMITIVE.bind(slot, iterations, solves, kind=kind)
     else:
-        _io_callback_tap(target, iterations, solves)
+        _io_callback_tap(kind, slot, iterations, solves)
 
 
-def _io_callback_tap(target: Callable[..., None], iterations: jax.Array,
+def _io_callback_tap(kind: str, slot: jax.Array, iterations: jax.Array,
                      solves: jax.Array) -> None:
-    io_callback(target, None, iterations, solves, ordered=False)
+    io_callback(functools.partial(_tally, kind), None, slot, iterations, solves, ordered=False)
 
 
 # --------------------------------------------------------------------------------------
@@ -134,8 +175,8 @@ def _io_callback_tap(target: Callable[..., None], iterations: jax.Array,
 
 
 def _tap_primitive():
-    """``iteration_tap(iterations, solves; target)``: no outputs, ``target`` called on the
-    host with NumPy scalars; ``None`` where this JAX lacks the pieces."""
+    """``iteration_tap(slot, iterations, solves; kind)``: no outputs, :func:`_tally` called
+    on the host with NumPy scalars; ``None`` where this JAX lacks the pieces."""
     try:
         from jax._src.callback import _IOEffect
         from jax.extend.core import Primitive
@@ -145,14 +186,14 @@ def _tap_primitive():
         return None
     primitive = Primitive("iteration_tap")
     primitive.multiple_results = True
-    primitive.def_effectful_abstract_eval(lambda *avals, target: ([], {_IOEffect}))
-    primitive.def_impl(lambda iterations, solves, *, target: target(iterations, solves) or [])
+    primitive.def_effectful_abstract_eval(lambda *avals, kind: ([], {_IOEffect}))
+    primitive.def_impl(lambda *operands, kind: _tally(kind, *operands) or [])
 
-    def lowering(ctx, iterations, solves, *, target):
-        def host(iterations, solves):
-            target(iterations, solves)
+    def lowering(ctx, *operands, kind):
+        def host(*values):
+            _tally(kind, *values)
             return ()
-        emit(ctx, host, None, [iterations, solves], ctx.avals_in, [], has_side_effect=True)
+        emit(ctx, host, None, list(operands), ctx.avals_in, [], has_side_effect=True)
         return []
 
     mlir.register_lowering(primitive, lowering, cacheable=False)
@@ -167,13 +208,12 @@ def _primitive_works() -> bool:
     """Whether one tap through the primitive lowers, runs and arrives (once per process)."""
     if _TAP_PRIMITIVE is None:
         return False
-    arrived = []
+    probe = IterationCounter()
     try:
         with jax.ensure_compile_time_eval():  # a probe that runs, also mid-trace
-            jax.jit(lambda k: _TAP_PRIMITIVE.bind(
-                k, jnp.ones((), jnp.int32), target=lambda *counts: arrived.append(counts))
-            )(jnp.int32(3))
+            jax.jit(lambda slot, k: _TAP_PRIMITIVE.bind(slot, k, jnp.ones((), jnp.int32),
+                                                        kind="adjoint"))(probe.slot, 3)
             jax.effects_barrier()
     except Exception:  # any failure means: use io_callback
         return False
-    return [tuple(int(c) for c in counts) for counts in arrived] == [(3, 1)]
+    return (probe.adjoint, probe.adjoint_solves, probe.primal) == (3, 1, 0)

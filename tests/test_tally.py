@@ -51,7 +51,7 @@ def test_the_probe_falls_back_when_the_primitive_is_missing_or_does_not_lower(mo
     assert not tally._primitive_works.__wrapped__()
     unlowerable = Primitive("unlowerable_tap")
     unlowerable.multiple_results = True
-    unlowerable.def_abstract_eval(lambda *avals, target: [])
+    unlowerable.def_abstract_eval(lambda *avals, kind: [])
     monkeypatch.setattr(tally, "_TAP_PRIMITIVE", unlowerable)
     assert not tally._primitive_works.__wrapped__()
 
@@ -109,3 +109,26 @@ def test_vmap_counts_every_member_in_one_host_call(system, host_path):
     twice = jax.jit(jax.vmap(jax.vmap(lambda b: solve(A, b, TruncatedCG(2), counter=nested).x)))
     jax.block_until_ready(twice(jnp.stack([B, B])))
     assert _counted(nested) == ((12, 0), 6, 0)
+
+
+# --- a counter as an argument -----------------------------------------------------------
+
+
+def test_counters_passed_as_arguments_share_one_program_and_keep_their_tallies(system,
+                                                                               host_path):
+    A, b, _ = system
+    run = jax.jit(lambda counter, b: solve(A, b, TruncatedCG(4), counter=counter).x)
+    one, two = IterationCounter(), IterationCounter()
+    jax.block_until_ready(run(one, b))
+    jax.block_until_ready(run(two, b))
+    jax.block_until_ready(run(two, 2 * b))
+    assert run._cache_size() == 1  # the slot is traced: one program for every counter
+    assert _counted(one) == ((4, 0), 1, 0) and _counted(two) == ((8, 0), 2, 0)
+
+
+def test_a_tap_for_a_counter_that_is_gone_adds_nowhere():
+    counter = IterationCounter()
+    slot = int(counter.slot)
+    del counter
+    tally._tally("primal", slot, 5, 1)  # no error: nothing left to add to
+    assert slot not in tally._LIVE

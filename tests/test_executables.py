@@ -1,0 +1,96 @@
+"""Executables shared within a process: equal programs compile once, and nothing else is
+shared (results, constants and iteration tallies stay each caller's own)."""
+
+from collections import OrderedDict
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import prdp_fem as pf
+from prdp_fem import executables
+from prdp_fem.cg import IterationCounter, TruncatedCG, solve
+from prdp_fem.executables import SharedCompile
+from prdp_fem.inverse import Validation, inverse_problem, invert
+from prdp_fem.observations import full_field
+from prdp_fem.prdp import fixed, prdp
+
+
+@pytest.fixture(scope="module")
+def source_problem():
+    disc = pf.discretize(pf.unit_square(10), element="P1", dirichlet=0.0)
+    data = disc.project(lambda x: np.sin(np.pi * x[0]) * np.sin(np.pi * x[1]) / 20)
+    return inverse_problem(disc, full_field(disc, data=data), unknown="source", alpha=1e-4,
+                           regularization="l2")
+
+
+def test_equal_programs_share_and_different_ones_do_not():
+    scale = SharedCompile(lambda x, n: x * n, static_argnum=1)
+    again = SharedCompile(lambda x, n: x * n, static_argnum=1)
+    shifted = SharedCompile(lambda x, n: x + n, static_argnum=1)
+    x = jnp.arange(3.0)
+    assert np.array_equal(scale(x, 2), [0.0, 2.0, 4.0])
+    assert np.array_equal(again(x + 1, 2), [2.0, 4.0, 6.0]) and again.shared == 1
+    assert np.array_equal(again(x, 3), [0.0, 3.0, 6.0]) and again.shared == 1  # new K: own
+    assert np.array_equal(shifted(x, 2), [2.0, 3.0, 4.0]) and shifted.shared == 0
+    assert np.array_equal(scale(jnp.arange(4.0), 2), [0.0, 2.0, 4.0, 6.0])  # new shape: own
+
+
+def test_constants_are_part_of_the_program():
+    first = SharedCompile(lambda x: x * np.array([1.0, 2.0]))
+    second = SharedCompile(lambda x: x * jnp.array([3.0, 5.0]))
+    assert np.array_equal(first(jnp.ones(2)), [1.0, 2.0])
+    assert np.array_equal(second(jnp.ones(2)), [3.0, 5.0]) and second.shared == 0
+
+
+def test_a_lowering_with_hidden_constants_or_of_an_unknown_shape_is_never_shared():
+    """JAX may pass large constants as arguments apart from the text (its simplified-constants
+    mode): the text no longer says everything, so such a program gets its own executable."""
+    hidden = SimpleNamespace(_lowering=SimpleNamespace(const_args=[np.ones(3)]))
+    assert executables._program_key(hidden, []) is None
+    assert executables._program_key(SimpleNamespace(), []) is None  # a JAX that does not say
+    lowered = jax.jit(lambda x: 2 * x).lower(jnp.ones(2))
+    assert executables._program_key(lowered, [jnp.ones(2)]) is not None
+
+
+def test_a_shared_solve_counts_into_each_callers_counter():
+    disc = pf.discretize(pf.unit_square(6), element="P1", dirichlet=0.0)
+    A, b = disc.system.operator(jnp.ones(disc.n_kappa)), jnp.ones(disc.n_free)
+
+    def make():
+        return SharedCompile(lambda counter, b: solve(A, b, TruncatedCG(3), counter=counter).x)
+
+    first, second = make(), make()
+    one, two = IterationCounter(), IterationCounter()
+    jax.block_until_ready(first(one, b))
+    jax.block_until_ready(second(two, b))
+    jax.block_until_ready(second(two, 2 * b))
+    jax.effects_barrier()
+    assert second.shared == 1
+    assert one.snapshot() == (3, 0) and two.snapshot() == (6, 0)
+
+
+def _tallies(inversion):
+    return [(r.primal_iterations, r.adjoint_iterations_total, r.evaluations,
+             r.validation_iterations) for r in inversion.history]
+
+
+@pytest.mark.parametrize("monitor", ["loss", Validation(every=2, rtol=1e-10)])
+def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
+        source_problem, monitor, monkeypatch):
+    def run(refinement):
+        return invert(source_problem, refinement=refinement, steps=4, monitor=monitor)
+
+    first = run(fixed(4))
+    compiled = len(executables._EXECUTABLES)
+    second, third = run(prdp(K0=4, dK=4)), run(fixed(6))
+    assert len(executables._EXECUTABLES) == compiled  # K is an argument: the same program
+    assert _tallies(first) == _tallies(second)  # prdp does not refine in 4 steps
+    monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
+    alone = run(fixed(6))  # compiled for itself
+    assert _tallies(third) == _tallies(alone)
+    assert _tallies(third)[-1][0] > _tallies(first)[-1][0] > 0
+    if isinstance(monitor, Validation):
+        assert first.history[-1].validation_iterations > 0
