@@ -31,7 +31,6 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
-import numpy as np
 
 __all__ = ["SharedCompile"]
 
@@ -106,10 +105,10 @@ def _program_key(lowered, leaves) -> tuple | None:
     return digest, tuple(map(_argument_type, leaves))
 
 
-def _argument_type(leaf) -> tuple:
-    """Shape and dtype. Not the weak type: it steers tracing, not the compiled program, and
-    an optimiser state comes back from its first update with other weak types than
-    ``init`` gave it (keying on it compiled every run's step twice)."""
-    if isinstance(leaf, bool | int | float | complex):
-        return (), type(leaf).__name__
-    return np.shape(leaf), str(leaf.dtype)
+def _argument_type(leaf):
+    """Shape and dtype (a Python scalar: its type). Not the weak type: it steers tracing,
+    not the compiled program, and an optimiser state comes back from its first update with
+    other weak types than ``init`` gave it (keying on it compiled every run's step twice).
+    Read as attributes: this runs for every leaf of every call."""
+    shape = getattr(leaf, "shape", None)
+    return type(leaf) if shape is None else (shape, leaf.dtype)

@@ -75,6 +75,7 @@ from . import cg
 from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
+from .executables import SharedCompile
 from .inverse import _solver
 from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec
@@ -382,11 +383,17 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
                     output_scale=scale if scale > 0 else 1.0)
 
 
-def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn):
-    def step(network, opt_state, problem, batch, K, K_adj, rtol):
+def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn,
+               counted: bool):
+    """One optimiser step; the counter and (K, K_adj, rtol) are arguments (K static in
+    unrolled mode), so trainings that differ only in them run one compiled program.
+    ``counted``: ``step_fn`` is :func:`heat_step` and takes the counter."""
+
+    def step(network, opt_state, problem, batch, counter, K, K_adj, rtol):
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
+        stepper = partial(step_fn, counter=counter) if counted else step_fn
         (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
-            network, problem, batch, solver, setup=setup, mode=mode, step=step_fn)
+            network, problem, batch, solver, setup=setup, mode=mode, step=stepper)
         grads = grads._replace(input_scale=jnp.zeros(()), output_scale=jnp.zeros(()))
         updates, opt_state = optimizer.update(grads, opt_state, network)
         return optax.apply_updates(network, updates), opt_state, loss, iterations, \
@@ -451,20 +458,18 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     counter = IterationCounter()
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
-    training_step = partial(heat_step, counter=counter) \
-        if step is heat_step and solves and mode == "wig" else step
-    step_fn = jax.jit(_make_step(optimizer, setup, mode, gradient, refinement.tolerance_mode,
-                                 preconditioner, training_step),
-                      static_argnums=(4,) if gradient == "unrolled" else ())
+    counted = step is heat_step and solves and mode == "wig"
+    step_fn = SharedCompile(_make_step(optimizer, setup, mode, gradient,
+                                       refinement.tolerance_mode, preconditioner, step, counted),
+                            static_argnum=5 if gradient == "unrolled" else None)
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
         net, prob, val, validation_solver, setup=setup, step=step)[0])
     update_control = jax.jit(refinement.update)
-    compiled: set = set()
     opt_state, control = optimizer.init(network), refinement.init()
     rng = np.random.default_rng(seed)
-    records, run_time, primal, adjoint = [], 0.0, 0, 0
+    records, run_time, primal = [], 0.0, 0
     for epoch in range(1, epochs + 1):
         if solves:
             K = int(control.iterations) if gradient == "unrolled" else control.iterations
@@ -476,17 +481,11 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
         losses = []
         for i in range(0, n - batch_size + 1, batch_size):
             batch = data[order[i:i + batch_size]]
-            key = K if gradient == "unrolled" else None
-            if key not in compiled:  # compile outside the timed region (twice: weak types)
-                warm = step_fn(network, opt_state, problem, batch, K, K_adj, rtol)
-                jax.block_until_ready(step_fn(*warm[:2], problem, batch, K, K_adj, rtol))
-                compiled.add(key)
-            adjoint_before = counter.adjoint  # the warm-up's solves are not counted
+            compile_before = step_fn.seconds  # compilation is timed apart from the run
             start = time.perf_counter()
             network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                step_fn(network, opt_state, problem, batch, K, K_adj, rtol))
-            run_time += time.perf_counter() - start
-            adjoint += counter.adjoint - adjoint_before
+                step_fn(network, opt_state, problem, batch, counter, K, K_adj, rtol))
+            run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
             if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
                 raise InversionError(
                     f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
@@ -509,7 +508,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
             epoch, int(previous.iterations) if solves else 0,
             int(previous.adjoint_iterations) if solves else 0,
             float(previous.rtol) if solves else 0.0, primal, run_time,
-            float(np.mean(losses)), float(error), adjoint, test_error)
+            float(np.mean(losses)), float(error), counter.adjoint, test_error)
         records.append(record)
         if callback is not None:
             callback(record)

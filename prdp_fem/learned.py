@@ -44,6 +44,7 @@ from jax.flatten_util import ravel_pytree
 from .cg import IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
+from .executables import SharedCompile
 from .hig import JACOBIAN_MODES
 from .inverse import _solver, _uses_stored_value
 from .observations import Observation
@@ -418,13 +419,15 @@ class _StepResult(NamedTuple):
     grad_norm: jax.Array
 
 
-def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner,
-               counter: IterationCounter):
+def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
     """One optimiser step on the weights of ``network`` over ``batch``; the update gets
     ``value``, ``grad`` and ``value_fn`` (a :class:`BatchObjective`) like
-    :func:`prdp_fem.inverse.invert`'s, so L-BFGS, Newton-CG and HIG work as Adam does."""
+    :func:`prdp_fem.inverse.invert`'s, so L-BFGS, Newton-CG and HIG work as Adam does. The
+    counter and (K, K_adj, rtol) are arguments (K static in unrolled mode): trainings that
+    differ only in them run one compiled program."""
 
-    def step(layers, opt_state, network, problem, batch, K, K_adj, rtol) -> _StepResult:
+    def step(layers, opt_state, network, problem, batch, counter, K, K_adj,
+             rtol) -> _StepResult:
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
         if _uses_stored_value(opt_state):
@@ -437,14 +440,6 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner,
                            optax.tree.norm(grad))
 
     return step
-
-
-def _uncounted(counter: IterationCounter, fn, *args):
-    """Run ``fn(*args)`` (a compile warm-up) without leaving its solves in ``counter``."""
-    before = (counter.primal, counter.adjoint, counter.primal_solves, counter.adjoint_solves)
-    result = jax.block_until_ready(fn(*args))
-    counter.primal, counter.adjoint, counter.primal_solves, counter.adjoint_solves = before
-    return result
 
 
 def _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement, layers):
@@ -509,12 +504,12 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     if problem.factors is None:
         problem = problem.with_residual()
     counter = IterationCounter()
-    step = jax.jit(_make_step(optimizer, gradient, refinement.tolerance_mode, preconditioner,
-                              counter), static_argnums=(5,) if gradient == "unrolled" else ())
+    step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
+                                    preconditioner),
+                         static_argnum=6 if gradient == "unrolled" else None)
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
     update_control = jax.jit(refinement.update)  # one dispatch per epoch, not dozens
-    compiled: set = set()
     layers = network.layers
     opt_state, control = optimizer.init(layers), refinement.init()
     rng = np.random.default_rng(seed)
@@ -527,18 +522,11 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
         losses = []
         for index in batches:
             batch = train_set.take(index)
-            key = K if gradient == "unrolled" else None
-            if key not in compiled:  # compile outside the timed region: twice, since the
-                # optimiser state returned by a step may differ in weak types from init's
-                warm = _uncounted(counter, step, layers, opt_state, network, problem, batch,
-                                  K, K_adj, rtol)
-                _uncounted(counter, step, warm.layers, warm.opt_state, network, problem,
-                           batch, K, K_adj, rtol)
-                compiled.add(key)
+            compile_before = step.seconds  # compilation is timed apart from the run
             start = time.perf_counter()
             result = jax.block_until_ready(
-                step(layers, opt_state, network, problem, batch, K, K_adj, rtol))
-            run_time += time.perf_counter() - start
+                step(layers, opt_state, network, problem, batch, counter, K, K_adj, rtol))
+            run_time += time.perf_counter() - start - (step.seconds - compile_before)
             if not (math.isfinite(float(result.loss))
                     and math.isfinite(float(result.grad_norm))):
                 raise InversionError(

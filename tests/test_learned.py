@@ -2,6 +2,7 @@
 of the training gradient, and training that lowers the validation misfit."""
 
 import dataclasses
+from collections import OrderedDict
 
 import jax
 import jax.numpy as jnp
@@ -12,7 +13,7 @@ import scipy.sparse.linalg as spla
 from skfem.models.poisson import laplace
 
 import prdp_fem as pf
-from prdp_fem import learned
+from prdp_fem import executables, learned
 from prdp_fem.errors import SolverConfigError
 from prdp_fem.learned import EpochRecord
 from prdp_fem.prdp import converged, fixed, prdp
@@ -316,3 +317,25 @@ def test_bad_optimiser_combinations_are_refused(tiny):
     with pytest.raises(SolverConfigError, match="with_residual"):
         learned.BatchObjective(dataclasses.replace(problem, factors=None), network, train_set,
                                pf.TruncatedCG(4)).residual(network.layers)
+
+
+def test_trainings_of_one_program_compile_once_and_keep_their_own_tallies(tiny, monkeypatch):
+    """The counter and K are step arguments: a second training with another K and another
+    controller runs the first one's executable, and counts exactly what a training compiled
+    for itself counts."""
+    problem, train_set, validation_set, network = tiny
+
+    def run(refinement):
+        return learned.train(problem, network, train_set, validation_set,
+                             optimizer=optax.adam(1e-3), refinement=refinement, epochs=2,
+                             batch_size=4)
+
+    run(fixed(3))
+    compiled = len(executables._EXECUTABLES)
+    shared = run(prdp(K0=5, dK=5))
+    assert len(executables._EXECUTABLES) == compiled
+    monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
+    alone = run(prdp(K0=5, dK=5))
+    tallies = [[(r.primal_iterations, r.adjoint_iterations_total, r.steps) for r in t.records]
+               for t in (shared, alone)]
+    assert tallies[0] == tallies[1] and tallies[0][-1][0] > 0
