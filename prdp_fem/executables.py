@@ -5,13 +5,17 @@ and the iteration tally (:mod:`prdp_fem.tally`) is one; ``jax.jit`` caches per f
 object, and every inversion builds its own step function. So a study of six configurations
 compiled six optimiser steps although five of them are the same program: they differ only in
 ``K``, ``K_adj`` and their counters, which are arguments. :class:`SharedCompile` lowers its
-function and looks the lowered program text up in a small process-wide table before
-compiling: equal programs compile once.
+function and looks the lowered program up in a small process-wide table before compiling:
+equal programs compile once.
 
-Sharing is sound because the text is the whole program: constants are in it, and the tally's
-host calls route by the counter slot they receive as an operand (not by a Python object the
-executable holds). A lowering that hands JAX constants as hidden arguments (JAX's
-``jax_use_simplified_jaxpr_constants`` mode) is compiled for itself, never shared.
+What makes two lowerings the same program: the same text (constants are in it; every
+argument is kept, used or not, so the text also says which inputs are read), the same
+argument shapes and dtypes, the same backend and device count, and host callbacks that do
+nothing but what the text says. The tally's host calls qualify (one module-level function;
+which counter and which tally arrive as operands); any other host callback -- a
+``jax.debug.callback``, pyamg's cycle behind a callable preconditioner -- holds Python state
+the text does not show, so such a program is compiled for itself, as is a lowering that
+passes constants apart from its text or whose compile arguments this JAX does not expose.
 
 >>> import jax.numpy as jnp
 >>> double = SharedCompile(lambda x, n: x * n, static_argnum=1)
@@ -25,45 +29,56 @@ executable holds). A lowering that hands JAX constants as hidden arguments (JAX'
 from __future__ import annotations
 
 import hashlib
+import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
+
+from .tally import is_tally_host_call
 
 __all__ = ["SharedCompile"]
 
 #: Executables by program; the least recently used is dropped beyond the limit.
 _EXECUTABLES: OrderedDict[tuple, Any] = OrderedDict()
 _LIMIT = 32
+_TABLE_LOCK = threading.Lock()
+
+
+class _Entry(NamedTuple):
+    treedef: Any          # the arguments' structure it was compiled for
+    executable: Any
+    out_tree: list        # [the result's structure], filled when the function is traced
 
 
 class SharedCompile:
     """``fn`` compiled once per value of its static argument (``static_argnum``, an int such
-    as an unrolled ``K``) and per argument types, reusing an executable of the same program
-    compiled earlier in the process. The other arguments' pytree structure must stay the same
-    between calls (as an inversion's do).
+    as an unrolled ``K``) and per argument structure, shapes and dtypes, reusing an
+    executable of the same program compiled earlier in the process.
 
-    ``seconds`` is the time spent lowering and compiling (so callers can time runs apart
-    from it); ``shared`` counts the compilations saved by reusing an executable.
+    Every array argument is taken as strongly typed (``jax.jit`` would let a weakly typed
+    scalar take the dtype of what it meets), so one executable fits every call with its key.
+    ``seconds`` is the time spent lowering and compiling (so callers can time runs apart from
+    it); ``shared`` counts the compilations saved by reusing an executable.
     """
 
     def __init__(self, fn: Callable, static_argnum: int | None = None):
         self._fn, self._static_argnum = fn, static_argnum
-        self._cache: dict[tuple, tuple[Any, list]] = {}
+        self._cache: dict[tuple, _Entry] = {}
         self.seconds, self.shared = 0.0, 0
 
     def __call__(self, *args):
         static, dynamic = self._split(args)
         leaves, treedef = jax.tree_util.tree_flatten(dynamic)
         key = (static, tuple(map(_argument_type, leaves)))
-        if key not in self._cache:
+        entry = self._cache.get(key)
+        if entry is None or entry.treedef != treedef:
             start = time.perf_counter()
-            self._cache[key] = self._compile(static, treedef, leaves)
+            entry = self._cache[key] = self._compile(static, treedef, leaves)
             self.seconds += time.perf_counter() - start
-        executable, out_tree = self._cache[key]
-        return jax.tree_util.tree_unflatten(out_tree[0], executable(*leaves))
+        return jax.tree_util.tree_unflatten(entry.out_tree[0], entry.executable(*leaves))
 
     def _split(self, args: tuple) -> tuple[int | None, tuple]:
         n = self._static_argnum
@@ -71,7 +86,7 @@ class SharedCompile:
             return None, args
         return int(args[n]), args[:n] + args[n + 1:]
 
-    def _compile(self, static, treedef, leaves) -> tuple[Any, list]:
+    def _compile(self, static, treedef, leaves) -> _Entry:
         out_tree: list = []  # filled when the flat function is traced
 
         def flat(*leaves):
@@ -82,33 +97,48 @@ class SharedCompile:
             out_tree.append(tree)
             return out_leaves
 
-        lowered = jax.jit(flat).lower(*leaves)
+        lowered = jax.jit(flat, keep_unused=True).lower(*map(_strong, leaves))
         key = _program_key(lowered, leaves)
         if key is None:
-            return lowered.compile(), out_tree
-        if key in _EXECUTABLES:
-            _EXECUTABLES.move_to_end(key)
-            self.shared += 1
-        else:
-            _EXECUTABLES[key] = lowered.compile()
+            return _Entry(treedef, lowered.compile(), out_tree)
+        with _TABLE_LOCK:
+            executable = _EXECUTABLES.get(key)
+            if executable is not None:
+                _EXECUTABLES.move_to_end(key)
+                self.shared += 1
+                return _Entry(treedef, executable, out_tree)
+        executable = lowered.compile()
+        with _TABLE_LOCK:
+            _EXECUTABLES[key] = executable
             while len(_EXECUTABLES) > _LIMIT:
                 _EXECUTABLES.popitem(last=False)
-        return _EXECUTABLES[key], out_tree
+        return _Entry(treedef, executable, out_tree)
 
 
 def _program_key(lowered, leaves) -> tuple | None:
-    """The program text's digest and the argument types; ``None``: do not share."""
-    constants = getattr(getattr(lowered, "_lowering", None), "const_args", None)
-    if constants is None or len(constants):
-        return None  # constants passed apart from the text, or a JAX that does not say
+    """What identifies the program (see the module docstring); ``None``: do not share."""
+    lowering = getattr(lowered, "_lowering", None)
+    constants = getattr(lowering, "const_args", None)
+    compile_args = getattr(lowering, "compile_args", None)
+    if constants is None or len(constants) or not isinstance(compile_args, dict):
+        return None  # constants apart from the text, or a JAX that does not say
+    callbacks = compile_args.get("host_callbacks")
+    backend = compile_args.get("backend")
+    if callbacks is None or backend is None or not all(map(is_tally_host_call, callbacks)):
+        return None  # host calls holding state the text does not show
     digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
-    return digest, tuple(map(_argument_type, leaves))
+    return (digest, tuple(map(_argument_type, leaves)), backend.platform,
+            compile_args.get("num_devices"))
 
 
 def _argument_type(leaf):
-    """Shape and dtype (a Python scalar: its type). Not the weak type: it steers tracing,
-    not the compiled program, and an optimiser state comes back from its first update with
-    other weak types than ``init`` gave it (keying on it compiled every run's step twice).
-    Read as attributes: this runs for every leaf of every call."""
+    """Shape and dtype (a Python scalar: its type), read as attributes: this runs for every
+    leaf of every call."""
     shape = getattr(leaf, "shape", None)
     return type(leaf) if shape is None else (shape, leaf.dtype)
+
+
+def _strong(leaf):
+    """An array leaf as a strongly typed abstract value (a Python scalar stays itself)."""
+    shape = getattr(leaf, "shape", None)
+    return leaf if shape is None else jax.ShapeDtypeStruct(shape, leaf.dtype)

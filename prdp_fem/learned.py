@@ -289,8 +289,9 @@ class BatchObjective:
     feeds :func:`prdp_fem.hig.hig` (:meth:`residual_jacobian` for the explicit Jacobian,
     :meth:`residual_blocks` for the matrix-free one) and :mod:`prdp_fem.newton`
     (:meth:`gauss_newton_operator`, ``J^T J``). Every solve taps ``counter``, so line-search
-    trials and Jacobian solves are in the tally. It closes over nothing mutable but the
-    host-side counter; build one per step (it holds the batch and the step's solver).
+    trials and Jacobian solves are in the tally. Inside a step ``counter`` is the counter's
+    traced slot (a step argument), so it holds nothing mutable; build one per step (it holds
+    the batch and the step's solver).
     """
 
     problem: LearnedInverse
@@ -547,7 +548,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
         run_time += time.perf_counter() - start
         if _uses_stored_value(opt_state) and _solver_changed(previous, control):
             # the stored value/gradient belong to the old solver: recompute them next step
-            # (same dtype and weak type as stored, or the jitted step would recompile, timed)
+            # (same shape and dtype as stored: the step is compiled per argument type)
             stored = optax.tree_utils.tree_get(opt_state, "value")
             opt_state = optax.tree_utils.tree_set(opt_state,
                                                   value=jax.lax.full_like(stored, jnp.inf))

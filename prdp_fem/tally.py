@@ -35,6 +35,8 @@ from __future__ import annotations
 
 import functools
 import itertools
+import logging
+import threading
 import weakref
 from typing import Any, NamedTuple
 
@@ -43,7 +45,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
-__all__ = ["IterationCounter", "tap"]
+__all__ = ["IterationCounter", "is_tally_host_call", "tap"]
+
+_LOG = logging.getLogger(__name__)
 
 
 @jax.tree_util.register_pytree_node_class
@@ -66,7 +70,10 @@ class IterationCounter:
     it (a weak table of live counters). Passed to a jitted function as an *argument*, the
     slot is traced, so the compiled program does not depend on which counter it counts into:
     runs that differ only in their counters share one executable (see
-    :func:`prdp_fem.inverse.invert`). Closed over, the slot is a constant of the program.
+    :mod:`prdp_fem.executables`). Closed over, the slot is a constant of the program. A
+    pytree map over a counter (``tree_map``, ``device_put``) therefore gives back a
+    reference to its slot, not a counter, and a copy (``copy.copy``) shares the original's
+    slot, so the original receives the copy's counts.
     """
 
     def __init__(self):
@@ -74,6 +81,7 @@ class IterationCounter:
         self.adjoint = 0
         self.primal_solves = 0
         self.adjoint_solves = 0
+        self._lock = threading.Lock()
         self.slot = np.int32(next(_SLOTS))
         _LIVE[int(self.slot)] = self
 
@@ -82,12 +90,13 @@ class IterationCounter:
         return self.primal, self.adjoint
 
     def _add(self, kind: str, iterations, solves) -> None:
-        if kind == "primal":
-            self.primal += int(iterations)
-            self.primal_solves += int(solves)
-        else:
-            self.adjoint += int(iterations)
-            self.adjoint_solves += int(solves)
+        with self._lock:  # unordered host calls may run on several XLA threads at once
+            if kind == "primal":
+                self.primal += int(iterations)
+                self.primal_solves += int(solves)
+            else:
+                self.adjoint += int(iterations)
+                self.adjoint_solves += int(solves)
 
     def tree_flatten(self):
         return (self.slot,), None
@@ -103,20 +112,31 @@ class _CounterRef(NamedTuple):
 
     slot: Any
 
-
-jax.tree_util.register_pytree_node(_CounterRef, lambda ref: ((ref.slot,), None),
-                                   lambda _, children: _CounterRef(children[0]))
-
 #: Live counters by slot: the host calls carry a slot, not the counter (see IterationCounter).
 _LIVE: weakref.WeakValueDictionary[int, IterationCounter] = weakref.WeakValueDictionary()
 _SLOTS = itertools.count()
 
 
-def _tally(kind: str, slot, iterations, solves) -> None:
-    """The host side of a tap: add to the counter in ``slot`` (gone: nothing to add to)."""
+_KINDS = ("primal", "adjoint")
+
+
+def _tally(kind, slot, iterations, solves) -> tuple:
+    """The host side of every tap: add to the counter in ``slot`` (gone: nothing to add to).
+
+    Everything it needs arrives as operands (``kind`` as its index in :data:`_KINDS`), so one
+    module-level function serves every program, and a program's text says all that its host
+    calls do (:func:`is_tally_host_call`, :mod:`prdp_fem.executables`).
+    """
     counter = _LIVE.get(int(slot))
     if counter is not None:
-        counter._add(kind, iterations, solves)
+        counter._add(_KINDS[int(kind)], iterations, solves)
+    return ()
+
+
+def is_tally_host_call(callback) -> bool:
+    """Whether a program's host callback (as JAX wraps it) is a tap of this module."""
+    return any(getattr(cell, "cell_contents", None) is _tally
+               for cell in getattr(callback, "__closure__", None) or ())
 
 
 def tap(counter: IterationCounter | _CounterRef | None, kind: str, iterations: jax.Array,
@@ -132,41 +152,47 @@ def tap(counter: IterationCounter | _CounterRef | None, kind: str, iterations: j
     if counter is None:
         return
     anchor = jax.lax.stop_gradient(jnp.sum(jnp.ravel(anchor)[:1]))
-    _batched(kind)(jnp.asarray(counter.slot, jnp.int32), jax.lax.stop_gradient(iterations),
-                   jnp.ones((), jnp.int32), anchor)
+    _batched_tap(jnp.int32(_KINDS.index(kind)), jnp.asarray(counter.slot, jnp.int32),
+                 jax.lax.stop_gradient(iterations), jnp.ones((), jnp.int32), anchor)
 
 
-def _batched(kind: str):
-    @jax.custom_batching.custom_vmap
-    def batched_tap(slot, iterations, solves, anchor):
-        _host_call(kind, slot, iterations, solves)
-        return anchor
-
-    @batched_tap.def_vmap
-    def batched_tap_rule(axis_size, in_batched, slot, iterations, solves, anchor):
-        def total(value, batched):
-            return jnp.sum(value) if batched else value * axis_size
-
-        # one unbatched tally: an enclosing vmap level (if any) multiplies again
-        batched_tap(slot[0] if in_batched[0] else slot,  # a batch of one counter
-                    total(iterations, in_batched[1]).astype(iterations.dtype),
-                    total(solves, in_batched[2]).astype(jnp.int32),
-                    jnp.sum(anchor) if in_batched[3] else anchor)
-        return anchor, in_batched[3]
-
-    return batched_tap
+@jax.custom_batching.custom_vmap
+def _batched_tap(kind, slot, iterations, solves, anchor):
+    _host_call(kind, slot, iterations, solves)
+    return anchor
 
 
-def _host_call(kind: str, slot: jax.Array, iterations: jax.Array, solves: jax.Array) -> None:
+@_batched_tap.def_vmap
+def _batched_tap_rule(axis_size, in_batched, kind, slot, iterations, solves, anchor):
+    def total(value, batched):
+        return jnp.sum(value) if batched else value * axis_size
+
+    def member(value, batched, i):
+        return value[i] if batched else value
+
+    if in_batched[1]:  # a batch of counters (vmap over a stack of them): one tap each
+        for i in range(axis_size):
+            _batched_tap(member(kind, in_batched[0], i), slot[i],
+                         member(iterations, in_batched[2], i), member(solves, in_batched[3], i),
+                         member(anchor, in_batched[4], i))
+        return anchor, in_batched[4]
+    # one unbatched tally: an enclosing vmap level (if any) multiplies again
+    _batched_tap(member(kind, in_batched[0], 0), slot,
+                 total(iterations, in_batched[2]).astype(iterations.dtype),
+                 total(solves, in_batched[3]).astype(jnp.int32),
+                 jnp.sum(anchor) if in_batched[4] else anchor)
+    return anchor, in_batched[4]
+
+
+def _host_call(kind, slot, iterations, solves) -> None:
     if _primitive_works():
-        _TAP_PRIMITIVE.bind(slot, iterations, solves, kind=kind)
+        _TAP_PRIMITIVE.bind(kind, slot, iterations, solves)
     else:
         _io_callback_tap(kind, slot, iterations, solves)
 
 
-def _io_callback_tap(kind: str, slot: jax.Array, iterations: jax.Array,
-                     solves: jax.Array) -> None:
-    io_callback(functools.partial(_tally, kind), None, slot, iterations, solves, ordered=False)
+def _io_callback_tap(kind, slot, iterations, solves) -> None:
+    io_callback(_tally, None, kind, slot, iterations, solves, ordered=False)
 
 
 # --------------------------------------------------------------------------------------
@@ -175,7 +201,7 @@ def _io_callback_tap(kind: str, slot: jax.Array, iterations: jax.Array,
 
 
 def _tap_primitive():
-    """``iteration_tap(slot, iterations, solves; kind)``: no outputs, :func:`_tally` called
+    """``iteration_tap(kind, slot, iterations, solves)``: no outputs, :func:`_tally` called
     on the host with NumPy scalars; ``None`` where this JAX lacks the pieces."""
     try:
         from jax._src.callback import _IOEffect
@@ -186,14 +212,11 @@ def _tap_primitive():
         return None
     primitive = Primitive("iteration_tap")
     primitive.multiple_results = True
-    primitive.def_effectful_abstract_eval(lambda *avals, kind: ([], {_IOEffect}))
-    primitive.def_impl(lambda *operands, kind: _tally(kind, *operands) or [])
+    primitive.def_effectful_abstract_eval(lambda *avals: ([], {_IOEffect}))
+    primitive.def_impl(lambda *operands: _tally(*operands) and [])
 
-    def lowering(ctx, *operands, kind):
-        def host(*values):
-            _tally(kind, *values)
-            return ()
-        emit(ctx, host, None, list(operands), ctx.avals_in, [], has_side_effect=True)
+    def lowering(ctx, *operands):
+        emit(ctx, _tally, None, list(operands), ctx.avals_in, [], has_side_effect=True)
         return []
 
     mlir.register_lowering(primitive, lowering, cacheable=False)
@@ -211,9 +234,13 @@ def _primitive_works() -> bool:
     probe = IterationCounter()
     try:
         with jax.ensure_compile_time_eval():  # a probe that runs, also mid-trace
-            jax.jit(lambda slot, k: _TAP_PRIMITIVE.bind(slot, k, jnp.ones((), jnp.int32),
-                                                        kind="adjoint"))(probe.slot, 3)
+            jax.jit(lambda slot, k: _TAP_PRIMITIVE.bind(jnp.int32(1), slot, k,
+                                                        jnp.ones((), jnp.int32)))(probe.slot, 3)
             jax.effects_barrier()
-    except Exception:  # any failure means: use io_callback
+    except Exception as error:  # any failure means: use io_callback
+        _LOG.debug("iteration_tap does not work here (%r); the tally uses io_callback", error)
         return False
-    return (probe.adjoint, probe.adjoint_solves, probe.primal) == (3, 1, 0)
+    works = (probe.adjoint, probe.adjoint_solves, probe.primal) == (3, 1, 0)
+    if not works:
+        _LOG.debug("iteration_tap lost its count here; the tally uses io_callback")
+    return works

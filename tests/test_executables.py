@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem import executables
+from prdp_fem import executables, tally
 from prdp_fem.cg import IterationCounter, TruncatedCG, solve
 from prdp_fem.executables import SharedCompile
 from prdp_fem.inverse import Validation, inverse_problem, invert
@@ -36,6 +36,40 @@ def test_equal_programs_share_and_different_ones_do_not():
     assert np.array_equal(again(x, 3), [0.0, 3.0, 6.0]) and again.shared == 1  # new K: own
     assert np.array_equal(shifted(x, 2), [2.0, 3.0, 4.0]) and shifted.shared == 0
     assert np.array_equal(scale(jnp.arange(4.0), 2), [0.0, 2.0, 4.0, 6.0])  # new shape: own
+
+
+def test_functions_reading_different_arguments_are_different_programs():
+    first = SharedCompile(lambda a, b: a * 2)
+    second = SharedCompile(lambda a, b: b * 2)
+    one, five = jnp.ones(3), jnp.full(3, 5.0)
+    assert np.array_equal(first(one, five), [2.0] * 3)
+    assert np.array_equal(second(one, five), [10.0] * 3) and second.shared == 0
+
+
+def test_programs_with_other_host_callbacks_are_never_shared():
+    """A callback holds Python state the text does not show (here: which list it fills)."""
+    seen_first, seen_second = [], []
+
+    def logging_to(seen):
+        return SharedCompile(lambda x: jax.debug.callback(seen.append, x) or x * 2)
+
+    first, second = logging_to(seen_first), logging_to(seen_second)
+    jax.block_until_ready(first(jnp.float64(1.0)))
+    jax.block_until_ready(second(jnp.float64(2.0)))
+    jax.effects_barrier()
+    assert [float(v) for v in seen_first] == [1.0] and [float(v) for v in seen_second] == [2.0]
+    assert second.shared == 0
+
+
+def test_primal_and_adjoint_taps_are_different_programs():
+    def tapping(kind):
+        return SharedCompile(lambda counter, k: tally.tap(counter, kind, k, jnp.ones(2)) or k)
+
+    primal, adjoint = IterationCounter(), IterationCounter()
+    jax.block_until_ready(tapping("primal")(primal, jnp.int32(5)))
+    jax.block_until_ready(tapping("adjoint")(adjoint, jnp.int32(5)))
+    jax.effects_barrier()
+    assert primal.snapshot() == (5, 0) and adjoint.snapshot() == (0, 5)
 
 
 def test_constants_are_part_of_the_program():
@@ -83,10 +117,12 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
     def run(refinement):
         return invert(source_problem, refinement=refinement, steps=4, monitor=monitor)
 
+    programs = 1 if monitor == "loss" else 2  # the step (and the validation misfit)
+    monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
     first = run(fixed(4))
-    compiled = len(executables._EXECUTABLES)
+    assert len(executables._EXECUTABLES) == programs
     second, third = run(prdp(K0=4, dK=4)), run(fixed(6))
-    assert len(executables._EXECUTABLES) == compiled  # K is an argument: the same program
+    assert len(executables._EXECUTABLES) == programs  # K is an argument: the same program
     assert _tallies(first) == _tallies(second)  # prdp does not refine in 4 steps
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
     alone = run(fixed(6))  # compiled for itself

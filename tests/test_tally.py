@@ -132,3 +132,12 @@ def test_a_tap_for_a_counter_that_is_gone_adds_nowhere():
     del counter
     tally._tally("primal", slot, 5, 1)  # no error: nothing left to add to
     assert slot not in tally._LIVE
+
+
+def test_a_vmap_over_a_stack_of_counters_counts_into_each(system, host_path):
+    A, _, B = system
+    counters = [IterationCounter() for _ in range(2)]
+    stacked = jax.tree_util.tree_map(lambda *slots: jnp.stack(slots), *counters)
+    run = jax.jit(jax.vmap(lambda counter, b: solve(A, b, TruncatedCG(3), counter=counter).x))
+    jax.block_until_ready(run(stacked, B[:2]))
+    assert [_counted(c) for c in counters] == [((3, 0), 1, 0)] * 2
