@@ -112,11 +112,10 @@ class _CounterRef(NamedTuple):
 
     slot: Any
 
+
 #: Live counters by slot: the host calls carry a slot, not the counter (see IterationCounter).
 _LIVE: weakref.WeakValueDictionary[int, IterationCounter] = weakref.WeakValueDictionary()
 _SLOTS = itertools.count()
-
-
 _KINDS = ("primal", "adjoint")
 
 
