@@ -103,7 +103,7 @@ from .errors import (
 )
 from .operator import SparseMatrix, prepare
 from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
-from .symmetric import symmetric_product
+from .products import symmetric_product
 from .tally import IterationCounter, tap
 from .validation import is_traced
 
@@ -436,7 +436,7 @@ class _Krylov:
 
     def product(self, vector: jax.Array) -> jax.Array:
         """``(S A S) v``; reverse mode transposes it as itself (CG's ``A`` is symmetric), with
-        no scatter per ELL slot (:mod:`prdp_fem.symmetric`)."""
+        no scatter per ELL slot (:mod:`prdp_fem.products`)."""
         return symmetric_product(self.operator, vector)
 
     def scaled(self, vector: jax.Array) -> jax.Array:

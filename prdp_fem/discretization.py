@@ -38,7 +38,7 @@ from skfem.helpers import dot, grad
 
 from .errors import CoefficientError, DataError, DiscretizationError
 from .host_cg import jacobi_pcg
-from .operator import SparseMatrix, ell_layout
+from .operator import FixedMatrix, ell_layout
 from .system import LinearSystem
 from .validation import finite_vector, is_traced, positive_coefficient
 
@@ -198,13 +198,13 @@ class Discretization:
     def system(self) -> LinearSystem:
         """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once."""
         return LinearSystem(
-            assembly=SparseMatrix.from_scipy(self.assembly),
+            assembly=FixedMatrix.from_scipy(self.assembly),
             rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),
             cols=jnp.asarray(self.pattern[1], dtype=jnp.int32),
-            lifting=SparseMatrix.from_scipy(self.lifting_assembly),
+            lifting=FixedMatrix.from_scipy(self.lifting_assembly),
             lifting_rows=jnp.asarray(self.lifting_pattern[0], dtype=jnp.int32),
             lifting_cols=jnp.asarray(self.lifting_pattern[1], dtype=jnp.int32),
-            source=SparseMatrix.from_scipy(self.source_matrix),
+            source=FixedMatrix.from_scipy(self.source_matrix),
             neumann=jnp.asarray(self.neumann),
             free_dofs=jnp.asarray(self.free_dofs, dtype=jnp.int32),
             dirichlet_dofs=jnp.asarray(self.dirichlet_dofs, dtype=jnp.int32),

@@ -54,8 +54,11 @@ import numpy as np
 import scipy.sparse as sp
 from jax.experimental import sparse as jsparse
 
-__all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "SparseMatrix",
-           "default_kernel", "diagonal", "ell_layout", "matvec", "prepare", "rmatvec"]
+from .products import paired_product
+
+__all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
+           "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "matvec", "prepare",
+           "rmatvec"]
 
 # the product kernels prepare() can build (see the module docstring)
 KERNELS = ("ell", "coo", "csr")
@@ -393,6 +396,54 @@ def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
 def _padded(values: jax.Array) -> jax.Array:
     """The values with the zero that a layout's missing entries point at (position nnz)."""
     return jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["forward", "transpose"],
+         meta_fields=["shape"])
+@dataclasses.dataclass(frozen=True)
+class FixedMatrix:
+    r"""A constant matrix, prepared once for ``A x`` and, in reverse mode, ``A^T y``.
+
+    :func:`matvec` prepares a :class:`SparseMatrix` per call, and JAX transposes the kernel's
+    gathers into scatter-adds. A matrix that never changes within a problem (the assembly map
+    ``G``, the lifting and source maps of :class:`~prdp_fem.system.LinearSystem`) is instead
+    laid out here both ways on the host, and its product goes through
+    :func:`~prdp_fem.products.paired_product`: the transpose is the second kernel, a gather
+    loop too. Both kernels are chosen by :func:`prepare`. The values stay differentiable (as
+    pytree leaves), but a tangent of them must keep the pair consistent: build a new one with
+    :meth:`from_sparse` for other values.
+
+    >>> import numpy as np, scipy.sparse as sp, jax
+    >>> G = FixedMatrix.from_scipy(sp.csr_matrix(np.array([[1.0, 0.0], [2.0, 3.0], [0.0, 4.0]])))
+    >>> y = np.array([1.0, 1.0, 1.0])
+    >>> jax.vjp(G, np.zeros(2))[1](y)[0].tolist(), G.T(y).tolist()
+    ([3.0, 7.0], [3.0, 7.0])
+    """
+
+    forward: EllMatrix | CooMatrix | CsrMatrix
+    transpose: EllMatrix | CooMatrix | CsrMatrix
+    shape: tuple[int, int]
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return paired_product(self.forward, self.transpose, x)
+
+    @property
+    def T(self) -> FixedMatrix:  # the matrix transpose, as in NumPy
+        return FixedMatrix(self.transpose, self.forward, self.shape[::-1])
+
+    @classmethod
+    def from_sparse(cls, matrix: SparseMatrix) -> FixedMatrix:
+        """Lay out ``matrix`` and its transpose (host: needs concrete indices and values)."""
+        transpose = SparseMatrix.from_scipy(matrix.to_scipy().T)
+        return cls(prepare(_laid_out(matrix)), prepare(_laid_out(transpose)), matrix.shape)
+
+    @classmethod
+    def from_scipy(cls, matrix: sp.spmatrix | sp.sparray) -> FixedMatrix:
+        return cls.from_sparse(SparseMatrix.from_scipy(matrix))
+
+
+def _laid_out(matrix: SparseMatrix) -> SparseMatrix:
+    return matrix if matrix.layout is not None else matrix.with_layout()
 
 
 def matvec(matrix: SparseMatrix, x: jax.Array) -> jax.Array:

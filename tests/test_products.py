@@ -1,9 +1,15 @@
-"""symmetric_product against the kernel differentiated by JAX, grouped by transformation.
+"""symmetric_product and paired_product against the kernel differentiated by JAX, grouped
+by transformation.
 
 The reference is the same kernel applied directly: its derivatives are JAX's own (a scatter
 per gather in reverse mode). The primitive must agree with them to round-off everywhere: value,
 jvp, vjp in the values and in x, vmap (x batched, values batched, nested), jit, second order.
+The paired product is checked on a rectangular matrix whose layouts both ways spill into
+overflow tails, with the transpose's values a gather of the forward values (so a tangent in
+them moves both kernels, as it must).
 """
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -11,8 +17,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from prdp_fem.operator import SparseMatrix, prepare
-from prdp_fem.symmetric import symmetric_product
+from prdp_fem.operator import FixedMatrix, SparseMatrix, prepare
+from prdp_fem.products import paired_product, symmetric_product
 
 N = 30
 
@@ -164,3 +170,119 @@ def test_jitted_hessian_vector_product(matrix):
         return jax.jit(lambda v, x: jax.jvp(grad, (v, x), direction)[1])
 
     _close(hvp(_symmetric(matrix))(values, x), hvp(_plain(matrix))(values, x))
+
+
+# ---- paired products (a rectangular A with a kernel laid out for A^T) --------------------
+
+ROWS, COLS = 40, 25
+
+
+def _tall() -> sp.csr_matrix:
+    """40 x 25, with one full row and one full column: both layouts spill into a tail."""
+    rng = np.random.default_rng(7)
+    a = sp.lil_matrix(sp.random(ROWS, COLS, density=0.1, random_state=rng))
+    a[3, :] = rng.uniform(0.5, 1.0, COLS)
+    a[:, 5] = rng.uniform(0.5, 1.0, (ROWS, 1))
+    return sp.csr_matrix(a)
+
+
+@functools.cache
+def _paired_parts():
+    """The forward matrix (with its layout) and, for the transpose, its pattern plus the
+    position in the forward values of each transposed entry."""
+    tall = _tall()
+    A = SparseMatrix.from_scipy(tall).with_layout()
+    positions = sp.csr_matrix((np.arange(1.0, A.nnz + 1.0), (np.asarray(A.rows),
+                                                             np.asarray(A.cols))), tall.shape)
+    T = SparseMatrix.from_scipy(positions.T).with_layout()
+    return A, T, np.asarray(T.values).astype(int) - 1
+
+
+def _paired():
+    A, T, gather = _paired_parts()
+    assert A.layout.overflow_rows.shape[0] > 0 and T.layout.overflow_rows.shape[0] > 0
+    return lambda values, x: paired_product(prepare(A.with_values(values)),
+                                            prepare(T.with_values(values[gather])), x)
+
+
+def _paired_plain():
+    A, _, _ = _paired_parts()
+    return lambda values, x: prepare(A.with_values(values))(x)
+
+
+def _paired_point(seed: int = 0):
+    A, _, _ = _paired_parts()
+    rng = np.random.default_rng(seed)
+    return jnp.asarray(A.values), jnp.asarray(rng.standard_normal(COLS))
+
+
+def test_paired_value_and_transpose_are_scipy_products():
+    values, x = _paired_point()
+    np.testing.assert_allclose(_paired()(values, x), _tall() @ np.asarray(x), rtol=1e-13)
+    fixed = FixedMatrix.from_scipy(_tall())
+    y = np.random.default_rng(1).standard_normal(ROWS)
+    np.testing.assert_allclose(fixed.T(y), _tall().T @ y, rtol=1e-13)
+    assert fixed.shape == (ROWS, COLS) and fixed.T.shape == (COLS, ROWS)
+
+
+def test_paired_jvp_and_vjp_in_values_and_x():
+    values, x = _paired_point()
+    rng = np.random.default_rng(2)
+    tangents = (jnp.asarray(rng.standard_normal(values.shape)),
+                jnp.asarray(rng.standard_normal(COLS)))
+    _close(_jit(lambda *p: jax.jvp(_paired(), p, tangents), values, x),
+           _jit(lambda *p: jax.jvp(_paired_plain(), p, tangents), values, x))
+    cotangent = jnp.asarray(rng.standard_normal(ROWS))
+    ours = _jit(lambda *p: jax.vjp(_paired(), *p)[1](cotangent), values, x)
+    _close(ours, _jit(lambda *p: jax.vjp(_paired_plain(), *p)[1](cotangent), values, x))
+    np.testing.assert_allclose(ours[1], _tall().T @ np.asarray(cotangent), rtol=1e-13)
+
+
+def test_paired_reverse_mode_in_x_is_the_transpose_kernel():
+    """The gradient in x compiles to the transpose kernel: its one tail scatter, not one per
+    slot of the forward kernel."""
+    fixed = FixedMatrix.from_scipy(_tall())
+    x = jnp.asarray(np.random.default_rng(3).standard_normal(COLS))
+
+    def scatters(fn, arg):
+        return jax.jit(fn).lower(arg).compile().as_text().count(" scatter(")
+
+    def gradient(product):
+        return jax.grad(lambda x: jnp.sum(jnp.sin(product(x))))
+
+    forward = scatters(lambda x: fixed(x), x)
+    transpose = scatters(lambda y: fixed.T(y), jnp.ones(ROWS))
+    assert scatters(gradient(fixed), x) == forward + transpose
+    assert scatters(gradient(fixed.forward), x) > forward + transpose
+
+
+def test_paired_vmap_nested_and_vmap_of_grad():
+    values, _ = _paired_point()
+    rng = np.random.default_rng(4)
+    xs = jnp.asarray(rng.standard_normal((2, 3, COLS)))
+    batched_values = jnp.asarray(rng.uniform(0.5, 2.0, (2, 1))) * values
+    nested = jax.vmap(jax.vmap(_paired(), in_axes=(None, 0)), in_axes=(0, 0))
+    reference = jax.vmap(jax.vmap(_paired_plain(), in_axes=(None, 0)), in_axes=(0, 0))
+    _close(_jit(nested, batched_values, xs), _jit(reference, batched_values, xs))
+
+    def loss(product):
+        return lambda v, x: jnp.sum(jnp.cos(product(v, x)))
+
+    for in_axes, v, x in (((None, 0), values, xs[0]), ((0, None), batched_values, xs[0, 0])):
+        _close(_jit(jax.vmap(jax.grad(loss(_paired()), argnums=(0, 1)), in_axes), v, x),
+               _jit(jax.vmap(jax.grad(loss(_paired_plain()), argnums=(0, 1)), in_axes), v, x))
+
+
+def test_paired_jitted_hessian_vector_product():
+    """Forward over reverse, in any direction of the values (no symmetry needed)."""
+    values, x = _paired_point()
+    rng = np.random.default_rng(6)
+    direction = (jnp.asarray(rng.standard_normal(values.shape)),
+                 jnp.asarray(rng.standard_normal(COLS)))
+
+    def hvp(product):
+        loss = lambda v, x: jnp.sum(jnp.sin(product(v, x))) * jnp.sum(x)  # noqa: E731
+        grad = jax.grad(loss, argnums=(0, 1))
+        return jax.jit(lambda v, x: jax.jvp(grad, (v, x), direction)[1])
+
+    _close(hvp(_paired())(values, x), hvp(_paired_plain())(values, x))
