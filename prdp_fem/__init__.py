@@ -79,12 +79,14 @@ from .operator import (
     CooMatrix,
     CsrMatrix,
     EllMatrix,
+    FixedMatrix,
     SparseMatrix,
     default_kernel,
     diagonal,
     matvec,
     prepare,
     rmatvec,
+    symmetric_matvec,
 )
 from .parameter_choice import AlphaChoice, l_curve, morozov
 from .parameters import Parameterization
@@ -127,6 +129,7 @@ __all__ = [
     "DiscretizationError",
     "DuplicateNodeError",
     "EllMatrix",
+    "FixedMatrix",
     "HeatProblem",
     "HigInfo",
     "HigState",
@@ -223,6 +226,7 @@ __all__ = [
     "rmatvec",
     "save_mesh",
     "solve",
+    "symmetric_matvec",
     "taylor_test",
     "tensor_mesh",
     "unit_cube",

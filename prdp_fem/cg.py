@@ -293,7 +293,8 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     (True, 2, <Status.SUCCESS: 0>)
     """
     b = jnp.asarray(b, dtype=matrix.values.dtype)
-    x0 = jnp.zeros_like(b) if x0 is None else jnp.asarray(x0, dtype=b.dtype)
+    zero_start = x0 is None  # then the solvers skip the product A x0 (a whole SpMV)
+    x0 = jnp.zeros_like(b) if zero_start else jnp.asarray(x0, dtype=b.dtype)
     if b.shape != (matrix.shape[0],) or x0.shape != b.shape:
         raise ShapeError(
             f"b{tuple(b.shape)} / x0{tuple(x0.shape)}: expected vectors of length "
@@ -310,19 +311,20 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
         precond = _Projected(precond, direction)
         incompatible = _incompatible(direction, b)
         b, x0 = precond.project(b), precond.project(x0)
+    start = None if zero_start else x0
     if isinstance(solver, TruncatedCG) and solver.gradient == "unrolled":
-        sol = _unrolled(matrix, precond, b, x0, solver.iterations, solver.checkpoint)
+        sol = _unrolled(matrix, precond, b, start, solver.iterations, solver.checkpoint)
         if counter is not None:
             sol = sol._replace(x=_adjoint_tap(sol.x, sol.iterations, counter))
     elif isinstance(solver, TruncatedCG):
         k_adj = solver.iterations if solver.adjoint_iterations is None \
             else solver.adjoint_iterations
-        sol = _implicit_solve(matrix, b, x0, solver.iterations, k_adj, precond, 0.0, 0.0,
+        sol = _implicit_solve(matrix, b, start, solver.iterations, k_adj, precond, 0.0, 0.0,
                               solver.history_size, solver.history_size > 0, counter)
     else:
         max_iterations = 10 * matrix.shape[0] if solver.max_iterations is None \
             else solver.max_iterations
-        sol = _implicit_solve(matrix, b, x0, max_iterations, max_iterations, precond,
+        sol = _implicit_solve(matrix, b, start, max_iterations, max_iterations, precond,
                               solver.rtol, solver.atol, solver.history_size, True, counter)
     sol = sol._replace(status=_final_status(sol, incompatible, _all_finite(matrix.values, b, x0)))
     tap(counter, "primal", sol.iterations, sol.x)
@@ -494,7 +496,7 @@ class _CGState(NamedTuple):
 
 class _Start(NamedTuple):
     state: _CGState
-    x0: jax.Array
+    x0: jax.Array | None  # None: a zero start
     r0_norm: jax.Array  # ||b - A x0||_2
     r0_scale: jax.Array  # the normalisation of the correction (||r0|| in the scaled system)
 
@@ -509,10 +511,16 @@ def _init(krylov: _Krylov, b, x0, *, stacked: bool) -> _Start:
 
     CG from ``x0`` equals CG from zero on ``A d = r0``; solving for ``d`` scaled by
     ``1/||r0||`` keeps every inner product O(1), so neither the values nor their derivatives
-    (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides.
+    (``d(a/b)/db = -a/b^2``) under- or overflow for tiny or huge right-hand sides. ``x0`` is
+    ``None`` for a zero start: ``r0 = b`` without the product (XLA cannot drop ``A 0``: its
+    gathers and ``0 * inf`` are not known to vanish), which was two SpMVs of an implicit
+    gradient's fixed cost (primal and adjoint solve).
     """
-    y0 = x0 if krylov.scale is None else x0 / krylov.scale
-    r0 = krylov.scaled(b) - krylov.product(y0)
+    if x0 is None:
+        r0 = krylov.scaled(b)
+    else:
+        y0 = x0 if krylov.scale is None else x0 / krylov.scale
+        r0 = krylov.scaled(b) - krylov.product(y0)
     if isinstance(krylov.precond, _Projected):  # round-off or a cotangent may leave a v part
         r0 = krylov.precond.project(r0)
     r0_scale = _norm(r0)
@@ -529,7 +537,8 @@ def _init(krylov: _Krylov, b, x0, *, stacked: bool) -> _Start:
 
 def _solution(krylov: _Krylov, start: _Start, d: jax.Array) -> jax.Array:
     # x0 + S (r0_scale d), not S (y0 + ...): K = 0 returns x0 bit for bit
-    return start.x0 + krylov.scaled(start.r0_scale * d)
+    correction = krylov.scaled(start.r0_scale * d)
+    return correction if start.x0 is None else start.x0 + correction
 
 
 def _norm(v: jax.Array) -> jax.Array:
@@ -670,7 +679,7 @@ def _solution_map(matrix, krylov: _Krylov, b, max_iterations: int) -> jax.Array:
     no_tolerance = jnp.zeros(2, b.dtype)
 
     def pcg(_, rhs):
-        return _while_solve(krylov, rhs, jnp.zeros_like(rhs), max_iterations, no_tolerance, 0,
+        return _while_solve(krylov, rhs, None, max_iterations, no_tolerance, 0,
                             track_norm=False).x
 
     return jax.lax.custom_linear_solve(prepare(matrix), b, pcg, symmetric=True)
@@ -812,7 +821,7 @@ def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, t
     krylov = _krylov(jax.lax.stop_gradient(matrix), precond)
 
     def sweep(_, right):
-        sol = _while_solve(krylov, right, jnp.zeros_like(right), iterations, tolerances, 0,
+        sol = _while_solve(krylov, right, None, iterations, tolerances, 0,
                            track_norm=track_norm)
         tap(counter, "adjoint", sol.iterations, sol.x)
         return sol.x

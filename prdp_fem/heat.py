@@ -78,7 +78,7 @@ from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile
 from .inverse import _solver
 from .learned import Network, Training, mlp_apply, mlp_init
-from .operator import SparseMatrix, matvec
+from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, prdp
 from .validation import finite_vector
 
@@ -132,7 +132,7 @@ class HeatProblem:
 
     def rhs(self, u: jax.Array) -> jax.Array:
         """``M u + dt b``: the right-hand side of the step from ``u``."""
-        return matvec(self.mass, u) + self.load
+        return symmetric_matvec(self.mass, u) + self.load
 
 
 def _positive(value: Any, name: str) -> float:

@@ -48,7 +48,7 @@ from .executables import SharedCompile
 from .hig import JACOBIAN_MODES
 from .inverse import _solver, _uses_stored_value
 from .observations import Observation
-from .operator import SparseMatrix, matvec
+from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, RefinementState, prdp
 from .reference import amg_solve
 from .residuals import square_root_factor
@@ -206,7 +206,7 @@ class LearnedInverse:
         """``1/2 ||B u(f) - d||_W^2`` with ``u`` from ``solver``, and its iteration count."""
         sol = self.system.solve(self.kappa, f, solver, counter=counter)
         r = matvec(self.observation.operator, self.system.expand(sol.x)) - d
-        return 0.5 * jnp.vdot(r, matvec(self.observation.weight, r)), sol.iterations
+        return 0.5 * jnp.vdot(r, symmetric_matvec(self.observation.weight, r)), sol.iterations
 
     def source_error(self, f: jax.Array, truth: jax.Array) -> jax.Array:
         """Relative L2 error ``||f - f*||_M / ||f*||_M``."""
@@ -264,7 +264,7 @@ def batch_loss(network: Network, problem: LearnedInverse, batch: SourceSamples,
         f = mlp_apply(network, d)
         misfit, iterations = problem.misfit(f, d, solver, counter)
         e = f - f_true
-        return misfit + problem.supervised * 0.5 * jnp.vdot(e, matvec(problem.mass, e)), \
+        return misfit + problem.supervised * 0.5 * jnp.vdot(e, symmetric_matvec(problem.mass, e)), \
             iterations
 
     losses, iterations = jax.vmap(one)(batch.sources, batch.observations)

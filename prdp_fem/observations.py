@@ -28,7 +28,7 @@ import scipy.sparse as sp
 
 from .discretization import Discretization
 from .errors import DataError, SensorError, ShapeError, SolverConfigError
-from .operator import SparseMatrix, matvec
+from .operator import SparseMatrix, matvec, symmetric_matvec
 from .validation import finite_vector
 
 __all__ = ["Observation", "boundary_values", "full_field", "point_sensors", "with_noise"]
@@ -55,7 +55,7 @@ class Observation:
     def misfit(self, u: jax.Array) -> jax.Array:
         """``1/2 ||B u - d||_W^2``."""
         r = self.residual(u)
-        return 0.5 * jnp.vdot(r, matvec(self.weight, r))
+        return 0.5 * jnp.vdot(r, symmetric_matvec(self.weight, r))
 
     def misfit_norm(self, u: jax.Array) -> jax.Array:
         """``||B u - d||_W`` (compare with :meth:`noise_norm`)."""

@@ -37,7 +37,7 @@ import scipy.sparse as sp
 
 from .discretization import Discretization
 from .errors import SolverConfigError
-from .operator import SparseMatrix, matvec
+from .operator import SparseMatrix, matvec, symmetric_matvec
 from .parameters import parameter_basis, parameter_mass
 from .validation import finite_vector
 
@@ -70,7 +70,7 @@ class Regularizer:
     def __call__(self, field: jax.Array) -> jax.Array:
         if self.gram is not None:
             m = field - self.reference
-            return 0.5 * jnp.vdot(m, matvec(self.gram, m))
+            return 0.5 * jnp.vdot(m, symmetric_matvec(self.gram, m))
         g = matvec(self.matrix, field).reshape(-1, self.dim)
         return jnp.vdot(self.weights, jnp.sqrt(jnp.sum(g * g, axis=1) + self.epsilon ** 2))
 

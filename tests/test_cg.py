@@ -4,6 +4,7 @@
 import dataclasses
 
 import jax
+import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -33,6 +34,39 @@ def test_zero_iterations_return_x0(small_problem):
         sol = solve_problem(disc, kappa, f, TruncatedCG(0, gradient=mode), x0=x0)
         np.testing.assert_array_equal(sol.x, x0)
         assert int(sol.iterations) == 0
+
+
+def _count_products(jaxpr) -> int:
+    """Sparse products (the primitive of prdp_fem.products) in a jaxpr, nested ones too."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == "sparse_product"
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            count += _count_products(sub)
+    return count
+
+
+@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
+def test_zero_start_skips_the_product_and_changes_nothing(small_problem, mode):
+    """x0=None runs CG from zero without forming A 0 (a whole SpMV per solve, two per
+    implicit gradient); x0=zeros forms it. Same iterates, same gradient."""
+    disc, kappa, f = small_problem
+    zeros = np.zeros(disc.n_free)
+
+    def loss(kappa, x0):
+        x = solve_problem(disc, kappa, f, TruncatedCG(7, gradient=mode), x0=x0).x
+        return jnp.sum(jnp.sin(x))
+
+    def products(x0):
+        jaxpr = jax.make_jaxpr(lambda k: jax.value_and_grad(loss)(k, x0))(kappa).jaxpr
+        return _count_products(jaxpr)
+
+    assert products(None) < products(zeros)
+    free_start = jax.jit(jax.value_and_grad(lambda k: loss(k, None)))(kappa)
+    given_start = jax.jit(jax.value_and_grad(lambda k: loss(k, zeros)))(kappa)
+    np.testing.assert_allclose(free_start[0], given_start[0], rtol=1e-13)
+    np.testing.assert_allclose(free_start[1], given_start[1], rtol=1e-11,
+                               atol=1e-13 * float(jnp.abs(given_start[1]).max()))
 
 
 @pytest.mark.parametrize("preconditioner", ["identity", "jacobi"])

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from prdp_fem.operator import FixedMatrix, SparseMatrix, prepare
+from prdp_fem.operator import FixedMatrix, SparseMatrix, matvec, prepare, symmetric_matvec
 from prdp_fem.products import paired_product, symmetric_product
 
 N = 30
@@ -223,6 +223,8 @@ def test_paired_value_and_transpose_are_scipy_products():
     y = np.random.default_rng(1).standard_normal(ROWS)
     np.testing.assert_allclose(fixed.T(y), _tall().T @ y, rtol=1e-13)
     assert fixed.shape == (ROWS, COLS) and fixed.T.shape == (COLS, ROWS)
+    for read_back, reference in ((fixed.to_scipy(), _tall()), (fixed.T.to_scipy(), _tall().T)):
+        assert abs(read_back - reference).max() == 0 and read_back.nnz == reference.nnz
 
 
 def test_paired_jvp_and_vjp_in_values_and_x():
@@ -286,3 +288,24 @@ def test_paired_jitted_hessian_vector_product():
         return jax.jit(lambda v, x: jax.jvp(grad, (v, x), direction)[1])
 
     _close(hvp(_paired())(values, x), hvp(_paired_plain())(values, x))
+
+
+# ---- symmetric_matvec: a quadratic form's gradient without scatters --------------------
+
+def test_symmetric_matvec_gradient_of_a_quadratic_form():
+    """``1/2 r^T W r`` through symmetric_matvec: the same value and gradient ``W r`` as
+    JAX's own transposes, compiled with the overflow tail's scatter only."""
+    W = SparseMatrix.from_scipy(_arrowhead())
+    r = jnp.asarray(np.random.default_rng(8).standard_normal(N))
+
+    def form(product):
+        return lambda r: 0.5 * jnp.vdot(r, product(W, r))
+
+    ours = jax.jit(jax.value_and_grad(form(symmetric_matvec)))(r)
+    _close(ours, jax.jit(jax.value_and_grad(form(matvec)))(r))
+    np.testing.assert_allclose(ours[1], _arrowhead() @ np.asarray(r), rtol=1e-13)
+
+    def scatters(product):
+        return jax.jit(jax.grad(form(product))).lower(r).compile().as_text().count(" scatter(")
+
+    assert scatters(symmetric_matvec) < scatters(matvec)
