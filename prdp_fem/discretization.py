@@ -28,7 +28,6 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from functools import cached_property
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
@@ -197,14 +196,7 @@ class Discretization:
 
     @cached_property
     def system(self) -> LinearSystem:
-        """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once.
-
-        Its arrays are concrete even when first asked for inside a traced function (it is
-        cached: a tracer kept here would leak into every later call)."""
-        with jax.ensure_compile_time_eval():
-            return self._system()
-
-    def _system(self) -> LinearSystem:
+        """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once."""
         return LinearSystem(
             assembly=FixedMatrix.from_scipy(self.assembly),
             rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),

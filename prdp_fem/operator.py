@@ -131,10 +131,17 @@ def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
     columns = np.tile(np.minimum(np.arange(n), max(n_cols - 1, 0)), (width, 1))
     slots[slot[inside], o_rows[inside]] = o_positions[inside]
     columns[slot[inside], o_rows[inside]] = o_cols[inside]
-    as_index = partial(jnp.asarray, dtype=jnp.int32)
+    as_index = partial(_on_device, dtype=np.int32)
     return EllLayout(as_index(diagonal), as_index(slots), as_index(columns),
                      as_index(o_positions[~inside]), as_index(o_rows[~inside]),
                      as_index(o_cols[~inside]), as_index(repeated), as_index(rows[repeated]))
+
+
+def _on_device(array, dtype) -> jax.Array:
+    """A host array on the default device: ``jax.device_put`` copies it, where
+    ``jnp.asarray`` compiles a conversion per shape and dtype (28 compiles, 0.25 s, to build
+    one small linear system)."""
+    return jax.device_put(np.asarray(array, dtype=dtype))
 
 
 def _ell_width(counts: np.ndarray) -> int:
@@ -242,8 +249,8 @@ class SparseMatrix:
         shape = tuple(int(s) for s in csr.shape)
         if layout is None:
             layout = shape[0] == shape[1]
-        return cls(jnp.asarray(coo.row, dtype=jnp.int32), jnp.asarray(coo.col, dtype=jnp.int32),
-                   jnp.asarray(coo.data, dtype=float), shape,
+        return cls(_on_device(coo.row, np.int32), _on_device(coo.col, np.int32),
+                   _on_device(coo.data, np.float64), shape,
                    ell_layout(coo.row, coo.col, *shape) if layout else None)
 
     def to_scipy(self) -> sp.csr_matrix:
@@ -401,8 +408,10 @@ def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
 
 
 def _padded(values: jax.Array) -> jax.Array:
-    """The values with the zero that a layout's missing entries point at (position nnz)."""
-    return jnp.concatenate([values, jnp.zeros((1,), values.dtype)])
+    """The values with the zero that a layout's missing entries point at (position nnz);
+    NumPy values stay NumPy (a kernel prepared on the host)."""
+    xp = np if isinstance(values, np.ndarray) else jnp
+    return xp.concatenate([values, xp.zeros((1,), values.dtype)])
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["forward", "transpose"],
@@ -440,13 +449,12 @@ class FixedMatrix:
 
     @classmethod
     def from_scipy(cls, matrix: sp.spmatrix | sp.sparray) -> FixedMatrix:
-        """Lay out ``matrix`` and its transpose (on the host, also while JAX traces)."""
+        """Lay out ``matrix`` and its transpose (on the host)."""
         csr = sp.csr_matrix(matrix)
-        # concrete arrays even under a trace: a cached system must not hold tracers
-        with jax.ensure_compile_time_eval():
-            forward = SparseMatrix.from_scipy(csr, layout=True)
-            transpose = SparseMatrix.from_scipy(csr.T, layout=True)
-            return cls(prepare(forward), prepare(transpose), forward.shape)
+        # prepared in NumPy: as eager JAX ops, the kernels of a system took ~70 compiles
+        forward, transpose = (_host_kernel(SparseMatrix.from_scipy(m, layout=True))
+                              for m in (csr, csr.T))
+        return cls(forward, transpose, tuple(int(s) for s in csr.shape))
 
     @classmethod
     def from_sparse(cls, matrix: SparseMatrix) -> FixedMatrix:
@@ -457,6 +465,13 @@ class FixedMatrix:
         """The matrix as SciPy CSR, read back from the forward kernel (host; the layout's
         padding and any stored zeros are dropped)."""
         return _kernel_entries(self.forward, self.shape)
+
+
+def _host_kernel(matrix: SparseMatrix):
+    """:func:`prepare` run in NumPy on the host (no JAX op to compile), then put on the
+    device."""
+    kernel = prepare(jax.tree_util.tree_map(np.asarray, matrix))
+    return jax.tree_util.tree_map(jax.device_put, kernel)
 
 
 def _kernel_entries(kernel, shape: tuple[int, int]) -> sp.csr_matrix:

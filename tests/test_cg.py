@@ -52,6 +52,7 @@ def test_zero_start_skips_the_product_and_changes_nothing(small_problem, mode):
     implicit gradient); x0=zeros forms it. Same iterates, same gradient."""
     disc, kappa, f = small_problem
     zeros = np.zeros(disc.n_free)
+    assert disc.system is not None  # built (and cached) outside the traces below
 
     def loss(kappa, x0):
         x = solve_problem(disc, kappa, f, TruncatedCG(7, gradient=mode), x0=x0).x
