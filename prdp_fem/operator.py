@@ -451,7 +451,7 @@ class FixedMatrix:
     def from_scipy(cls, matrix: sp.spmatrix | sp.sparray) -> FixedMatrix:
         """Lay out ``matrix`` and its transpose (on the host)."""
         csr = sp.csr_matrix(matrix)
-        # prepared in NumPy: as eager JAX ops, the kernels of a system took ~70 compiles
+        # prepared in NumPy: as eager JAX ops they compiled each gather and concatenation
         forward, transpose = (_host_kernel(SparseMatrix.from_scipy(m, layout=True))
                               for m in (csr, csr.T))
         return cls(forward, transpose, tuple(int(s) for s in csr.shape))
