@@ -203,8 +203,9 @@ class SparseMatrix:
 
         The constructors attach it to square matrices (operators, applied many times); a
         rectangular one applied many times (an AMG transfer operator) asks for it here. A
-        one-off rectangular product (the assembly map ``G @ kappa``) is cheaper to *compile*
-        as a segment sum: the backward pass of each ELL slot's gather is a scatter.
+        constant one that is also differentiated through (the assembly map ``G``) is a
+        :class:`FixedMatrix`: with a layout alone, the backward pass of each ELL slot's gather
+        would be a scatter.
         """
         return dataclasses.replace(self, layout=ell_layout(
             np.asarray(self.rows), np.asarray(self.cols), *self.shape))
@@ -427,7 +428,7 @@ class FixedMatrix:
     :func:`~prdp_fem.products.paired_product`: the transpose is the second kernel, a gather
     loop too. Both kernels are chosen by :func:`prepare`. The values stay differentiable (as
     pytree leaves), but a tangent of them must keep the pair consistent: build a new one with
-    :meth:`from_sparse` for other values.
+    :meth:`from_scipy` for other values.
 
     >>> import numpy as np, scipy.sparse as sp, jax
     >>> G = FixedMatrix.from_scipy(sp.csr_matrix(np.array([[1.0, 0.0], [2.0, 3.0], [0.0, 4.0]])))
@@ -455,11 +456,6 @@ class FixedMatrix:
         forward, transpose = (_host_kernel(SparseMatrix.from_scipy(m, layout=True))
                               for m in (csr, csr.T))
         return cls(forward, transpose, tuple(int(s) for s in csr.shape))
-
-    @classmethod
-    def from_sparse(cls, matrix: SparseMatrix) -> FixedMatrix:
-        """The same from a :class:`SparseMatrix` with concrete indices and values."""
-        return cls.from_scipy(matrix.to_scipy())
 
     def to_scipy(self) -> sp.csr_matrix:
         """The matrix as SciPy CSR, read back from the forward kernel (host; the layout's
