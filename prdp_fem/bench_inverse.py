@@ -65,6 +65,7 @@ __all__ = [
     "MotherSolve",
     "PeerFigure",
     "SavingRow",
+    "median_row",
     "mother_problem",
     "mother_whole_process",
     "prdp_saving",
@@ -331,6 +332,9 @@ class SavingRow(NamedTuple):
     below_iteration_saving: float
     converged_error: float
     prdp_error: float
+    repeats: int = 1            # studies whose medians these are (see median_row)
+    time_saving_low: float = math.nan   # the lowest and highest time_saving among them
+    time_saving_high: float = math.nan
 
     @property
     def error_difference(self) -> float:
@@ -381,21 +385,65 @@ def _restricted(scene, names: list[str]):
     return dataclasses.replace(scene, study=dataclasses.replace(scene.study, runs=kept))
 
 
-def prdp_saving(scene, *, out: str | Path | None = None, progress=None) -> list[SavingRow]:
+def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
+                progress=None) -> list[SavingRow]:
     """The PRDP saving of every comparable PRDP run of ``scene`` (a loaded Scene).
 
     Runs the reference and those runs with :func:`~prdp_fem.study.run_study` into ``out`` (a
     temporary directory when ``None``) and reads the figures from its summary and records.
+    ``repeats > 1`` runs the study that many times (into ``out/repeat-<i>``), so the reference
+    and the PRDP runs alternate, and returns each run's :func:`median_row`: on a shared 2-core
+    machine one study's time saving moved by 10 points from run to run.
     """
     from .study import inverse_histories, run_study  # here: they import matplotlib
 
+    if not (isinstance(repeats, int) and not isinstance(repeats, bool) and repeats >= 1):
+        raise SolverConfigError(f"repeats={repeats!r}: expected an integer >= 1")
     restricted = _restricted(scene, saving_configurations(scene))
+    per_study = []
     with tempfile.TemporaryDirectory(prefix="prdp-saving-") as scratch:
-        directory = Path(out) if out is not None else Path(scratch)
-        result = run_study(restricted, directory, progress=progress)
-        histories = inverse_histories(restricted, directory)
-    return saving_rows(scene.name, scene.study.reference, result.summary, histories,
-                       scene.study.band)
+        root = Path(out) if out is not None else Path(scratch)
+        for index in range(repeats):
+            directory = root if repeats == 1 else root / f"repeat-{index + 1}"
+            result = run_study(restricted, directory, progress=progress)
+            histories = inverse_histories(restricted, directory)
+            per_study.append(saving_rows(scene.name, scene.study.reference, result.summary,
+                                         histories, scene.study.band))
+    return [median_row(rows) for rows in zip(*per_study, strict=True)]
+
+
+def median_row(rows) -> SavingRow:
+    """One run's :class:`SavingRow` s from repeated studies as one: every figure's median.
+
+    A step or iteration count that is ``None`` (never reached) in any study is ``None``, and
+    a NaN saving makes the median NaN: a run counts as reaching ``e*`` only if it always did.
+    ``time_saving_low`` / ``_high`` keep the spread of the time saving.
+    """
+    first = rows[0]
+    if any((row.scene, row.run) != (first.scene, first.run) for row in rows):
+        raise ValueError("median_row: rows of different runs")
+
+    def count(values):
+        if any(value is None for value in values):
+            return None
+        return round(statistics.median(values))
+
+    def number(values):
+        return float(np.median(np.asarray(values, dtype=float)))
+
+    fields = dict(zip(SavingRow._fields, zip(*rows, strict=True), strict=True))
+    merged = {name: count(values) if name in _COUNT_FIELDS else number(values)
+              for name, values in fields.items() if name in _MEDIAN_FIELDS}
+    savings = np.asarray(fields["time_saving"], dtype=float)
+    return SavingRow(first.scene, first.run, **merged, repeats=len(rows),
+                     time_saving_low=float(np.min(savings)),
+                     time_saving_high=float(np.max(savings)))
+
+
+_COUNT_FIELDS = frozenset({"converged_iterations", "prdp_iterations", "reached_step",
+                           "below_step"})
+# the measured figures: every field after the run's name up to the repeat bookkeeping
+_MEDIAN_FIELDS = frozenset(SavingRow._fields[2:SavingRow._fields.index("repeats")])
 
 
 def saving_rows(scene_name: str, reference: str, summary: list[dict],

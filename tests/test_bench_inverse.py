@@ -270,6 +270,24 @@ def test_saving_goal_needs_both_the_time_and_the_error():
     assert not row._replace(time_saving=float("nan"), reached_step=None).goal_met
 
 
+def test_repeated_studies_give_medians_and_the_time_saving_range():
+    from prdp_fem.bench_inverse import SavingRow, median_row
+
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
+    rows = [row._replace(converged_s=12.0, time_saving=0.7),
+            row._replace(converged_s=8.0, prdp_s=3.0, time_saving=0.8, reached_step=7), row]
+    merged = median_row(rows)
+    assert (merged.converged_s, merged.prdp_s, merged.time_saving) == (10.0, 1.0, 0.8)
+    assert merged.reached_step == 5 and merged.prdp_iterations == 100
+    assert (merged.repeats, merged.time_saving_low, merged.time_saving_high) == (3, 0.7, 0.9)
+    # a run that missed the band in one study has not reached it: no step, NaN saving
+    missed = median_row([row, row._replace(reached_step=None, time_saving=float("nan"))])
+    assert missed.reached_step is None and np.isnan(missed.time_saving)
+    assert not missed.goal_met
+    with pytest.raises(ValueError, match="different runs"):
+        median_row([row, row._replace(run="other")])
+
+
 # --------------------------------------------------------------------------------------
 # the commands: bad options are one line and exit 2, before anything runs
 # --------------------------------------------------------------------------------------
@@ -286,6 +304,7 @@ def test_saving_goal_needs_both_the_time_and_the_error():
     (["bench", "prdp", "--scene", "poisson_h"], "expected an inverse study"),
     (["bench", "prdp", "--scene", "torus"], "scene 'torus': expected"),
     (["bench", "prdp", "--steps", "0"], "--steps 0: expected an integer >= 1"),
+    (["bench", "prdp", "--repeats", "0"], "--repeats 0: expected an integer >= 1"),
     (["bench", "prdp", "--scene", "mother", "poisson_h"], "expected an inverse study"),
 ])
 def test_bench_bad_options_are_one_line_and_exit_2(argv, message, capsys):
