@@ -117,12 +117,14 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
     def run(refinement):
         return invert(source_problem, refinement=refinement, steps=4, monitor=monitor)
 
-    programs = 1 if monitor == "loss" else 2  # the step (and the validation misfit)
+    # the step and the controller's update (and the validation misfit)
+    programs = 2 if monitor == "loss" else 3
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
     first = run(fixed(4))
     assert len(executables._EXECUTABLES) == programs
     second, third = run(prdp(K0=4, dK=4)), run(fixed(6))
-    assert len(executables._EXECUTABLES) == programs  # K is an argument: the same program
+    # K is an argument: the same step; prdp's update is one more program, fixed(6)'s is fixed(4)'s
+    assert len(executables._EXECUTABLES) == programs + 1
     assert _tallies(first) == _tallies(second)  # prdp does not refine in 4 steps
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
     alone = run(fixed(6))  # compiled for itself
