@@ -132,3 +132,22 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
     assert _tallies(third)[-1][0] > _tallies(first)[-1][0] > 0
     if isinstance(monitor, Validation):
         assert first.history[-1].validation_iterations > 0
+
+
+def test_empty_arrays_are_made_by_the_program_not_passed():
+    """A program with host calls pays per argument: empty arrays (a kernel's missing tail)
+    stay out of the call, and the results and sharing are as if they were passed."""
+    def program(x, empty, y):
+        return x + y, empty * 2.0, empty.sum() + x[0]
+
+    first, second = SharedCompile(program), SharedCompile(program)
+    x, y = jnp.arange(3.0), jnp.ones(3)
+    total, doubled, first_entry = first(x, jnp.zeros((0, 4)), y)
+    assert np.array_equal(total, [1.0, 2.0, 3.0]) and float(first_entry) == 0.0
+    assert doubled.shape == (0, 4) and doubled.dtype == jnp.float64
+    [entry] = first._cache.values()
+    assert len(jax.tree_util.tree_leaves(entry.executable.args_info)) == 2
+    assert np.array_equal(second(y, jnp.zeros((0, 4)), y)[0], [2.0] * 3)
+    assert second.shared == 1
+    other = second(x, jnp.zeros((0, 5)), y)  # another empty shape: its own executable
+    assert other[1].shape == (0, 5) and second.shared == 1
