@@ -101,9 +101,10 @@ class SharedCompile:
         kept = [i for i in range(len(leaves)) if i not in empty]
 
         def flat(*kept_leaves):
-            full = dict(zip(kept, kept_leaves, strict=True))
-            full.update({i: jnp.zeros(shape, dtype) for i, (shape, dtype) in empty.items()})
-            args = list(jax.tree_util.tree_unflatten(treedef, [full[i] for i in range(len(full))]))
+            given = iter(kept_leaves)
+            all_leaves = [jnp.zeros(*empty[i]) if i in empty else next(given)
+                          for i in range(len(leaves))]
+            args = list(jax.tree_util.tree_unflatten(treedef, all_leaves))
             if static is not None:
                 args.insert(self._static_argnum, static)
             out_leaves, tree = jax.tree_util.tree_flatten(self._fn(*args))

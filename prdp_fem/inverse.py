@@ -453,8 +453,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
     control = refinement.init()
-    # one dispatch per step, not dozens; a SharedCompile so that its compile (0.1 s, a fifth
-    # of a short run) is timed as compile time, not run time, and happens once per process
+    # one dispatch per step, not dozens; a SharedCompile so that its compile (about 0.1 s) is
+    # timed as compile time, not run time, and happens once per process
     update_control = SharedCompile(refinement.update)
     counter, validation_counter = IterationCounter(), IterationCounter()
     step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
