@@ -8,14 +8,15 @@ compiled six optimiser steps although five of them are the same program: they di
 function and looks the lowered program up in a small process-wide table before compiling:
 equal programs compile once.
 
-What makes two lowerings the same program: the same text (constants are in it; every
-argument is kept, used or not, so the text also says which inputs are read), the same
-argument shapes and dtypes, the same backend and device count, and host callbacks that do
-nothing but what the text says. The tally's host calls qualify (one module-level function;
-which counter and which tally arrive as operands); any other host callback -- a
-``jax.debug.callback``, pyamg's cycle behind a callable preconditioner -- holds Python state
-the text does not show, so such a program is compiled for itself, as is a lowering that
-passes constants apart from its text or whose compile arguments this JAX does not expose.
+What makes two lowerings the same program: the same text (constants are in it), the same
+arguments read (unread ones are left out of the text, so which ones it takes is part of the
+key), the same argument shapes and dtypes, the same backend and device count, and host
+callbacks that do nothing but what the text says. The tally's host calls qualify (one
+module-level function; which counter and which tally arrive as operands); any other host
+callback -- a ``jax.debug.callback``, pyamg's cycle behind a callable preconditioner --
+holds Python state the text does not show, so such a program is compiled for itself, as is a
+lowering that passes constants apart from its text or whose compile arguments this JAX does
+not expose.
 
 >>> import jax.numpy as jnp
 >>> double = SharedCompile(lambda x, n: x * n, static_argnum=1)
@@ -51,7 +52,8 @@ _TABLE_LOCK = threading.Lock()
 
 class _Entry(NamedTuple):
     treedef: Any          # the arguments' structure it was compiled for
-    executable: Any
+    executable: Any       # a jax.stages.Compiled
+    run: Callable         # its call (see _runner)
     out_tree: list        # [the result's structure], filled when the function is traced
     passed: Callable      # leaves -> the ones the executable takes (not the empty arrays)
 
@@ -66,10 +68,12 @@ class SharedCompile:
     ``seconds`` is the time spent lowering and compiling (so callers can time runs apart from
     it); ``shared`` counts the compilations saved by reusing an executable.
 
-    Empty arrays (a kernel's missing COO tail, a layout without repeated diagonals) are not
-    passed: the program makes its own from the shape it was compiled for. A program with host
-    callbacks (the iteration tally) is called through JAX's Python dispatch, at about 4 us
-    per argument; an inversion step passed 123 arrays, 45 of them empty.
+    A program with host callbacks (the iteration tally) is called through JAX's Python
+    dispatch, at about 4 us per argument, and an inversion step had 123 arrays. So it is
+    given only what it reads: empty arrays (a kernel's missing COO tail, a layout without
+    repeated diagonals; 45 of them) are made by the program from the shape it was compiled
+    for, arrays it does not read (the COO form of a matrix applied through its ELL layout;
+    19) are dropped, and JAX's per-argument checks are skipped (see :func:`_runner`).
     """
 
     def __init__(self, fn: Callable, static_argnum: int | None = None):
@@ -87,7 +91,7 @@ class SharedCompile:
             entry = self._cache[key] = self._compile(static, treedef, leaves)
             self.seconds += time.perf_counter() - start
         return jax.tree_util.tree_unflatten(entry.out_tree[0],
-                                            entry.executable(*entry.passed(leaves)))
+                                            entry.run(*entry.passed(leaves)))
 
     def _split(self, args: tuple) -> tuple[int | None, tuple]:
         n = self._static_argnum
@@ -113,22 +117,22 @@ class SharedCompile:
 
         kept_leaves = [leaves[i] for i in kept]
         passed = _selector(kept)
-        lowered = jax.jit(flat, keep_unused=True).lower(*map(_strong, kept_leaves))
+        lowered = jax.jit(flat).lower(*map(_strong, kept_leaves))
         key = _program_key(lowered, leaves)
         if key is None:
-            return _Entry(treedef, lowered.compile(), out_tree, passed)
+            return _entry(treedef, lowered.compile(), out_tree, passed)
         with _TABLE_LOCK:
             executable = _EXECUTABLES.get(key)
             if executable is not None:
                 _EXECUTABLES.move_to_end(key)
                 self.shared += 1
-                return _Entry(treedef, executable, out_tree, passed)
+                return _entry(treedef, executable, out_tree, passed)
         executable = lowered.compile()
         with _TABLE_LOCK:
             _EXECUTABLES[key] = executable
             while len(_EXECUTABLES) > _LIMIT:
                 _EXECUTABLES.popitem(last=False)
-        return _Entry(treedef, executable, out_tree, passed)
+        return _entry(treedef, executable, out_tree, passed)
 
 
 def _program_key(lowered, leaves) -> tuple | None:
@@ -140,11 +144,38 @@ def _program_key(lowered, leaves) -> tuple | None:
         return None  # constants apart from the text, or a JAX that does not say
     callbacks = compile_args.get("host_callbacks")
     backend = compile_args.get("backend")
+    read = compile_args.get("kept_var_idx")
     if callbacks is None or backend is None or not all(map(is_tally_host_call, callbacks)):
         return None  # host calls holding state the text does not show
+    if read is None:
+        return None  # which arguments the text's parameters are: unknown
     digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
-    return (digest, tuple(map(_argument_type, leaves)), backend.platform,
+    return (digest, tuple(sorted(read)), tuple(map(_argument_type, leaves)), backend.platform,
             compile_args.get("num_devices"))
+
+
+def _entry(treedef, compiled, out_tree: list, passed: Callable) -> _Entry:
+    return _Entry(treedef, compiled, _runner(compiled), out_tree, passed)
+
+
+def _runner(compiled) -> Callable:
+    """How to call ``compiled``: its own call, or, for a program with host callbacks, the
+    executable's unchecked call.
+
+    A program with host callbacks (the iteration tally) cannot take JAX's C++ dispatch path;
+    its Python path first checks every argument's type and placement (about 1.3 us each on a
+    2-core CPU) and then places them (about 3 us each). The checks repeat what the key of
+    :class:`SharedCompile` has already established (shapes, dtypes, the structure), so they
+    are skipped where this JAX exposes the call behind them (``unsafe_call``). Unread
+    arguments are dropped there too: the program is lowered without them (JAX's
+    ``keep_unused=False``), and that call passes only the read ones on.
+    """
+    executable = getattr(compiled, "_executable", None)
+    unchecked = getattr(executable, "unsafe_call", None)
+    if getattr(unchecked, "has_host_callbacks", False) and \
+            getattr(executable, "_kept_var_idx", None) is not None:
+        return unchecked
+    return compiled
 
 
 def _is_empty(leaf) -> bool:

@@ -151,3 +151,26 @@ def test_empty_arrays_are_made_by_the_program_not_passed():
     assert second.shared == 1
     other = second(x, jnp.zeros((0, 5)), y)  # another empty shape: its own executable
     assert other[1].shape == (0, 5) and second.shared == 1
+
+
+def test_a_program_with_host_calls_skips_the_checked_call_and_its_unread_arguments():
+    """JAX's checked Python call costs a few microseconds per argument; a tally program takes
+    the executable's unchecked call, with only the arguments it reads. A program without
+    host calls keeps JAX's own (C++) call."""
+    def counted(counter, x, unread, k):
+        tally.tap(counter, "primal", k, x)
+        return x * 2.0
+
+    tallied, plain = SharedCompile(counted), SharedCompile(lambda x, unread: x * 3.0)
+    counter, x = IterationCounter(), jnp.arange(3.0)
+    doubled = tallied(counter, x, jnp.ones(5), jnp.int32(4))
+    tripled = plain(x, jnp.ones(5))
+    jax.effects_barrier()
+    assert np.array_equal(doubled, [0.0, 2.0, 4.0]) and np.array_equal(tripled, [0.0, 3.0, 6.0])
+    assert counter.snapshot() == (4, 0)
+    [with_calls], [without] = tallied._cache.values(), plain._cache.values()
+    assert with_calls.run is not with_calls.executable and without.run is without.executable
+    assert with_calls.executable._executable._kept_var_idx == {0, 1, 3}  # not `unread`
+    assert np.array_equal(tallied(counter, x + 1, jnp.zeros(5), jnp.int32(2)), [2.0, 4.0, 6.0])
+    jax.effects_barrier()
+    assert counter.snapshot() == (6, 0)
