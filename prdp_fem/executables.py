@@ -116,23 +116,27 @@ class SharedCompile:
             return out_leaves
 
         kept_leaves = [leaves[i] for i in kept]
-        passed = _selector(kept)
         lowered = jax.jit(flat).lower(*map(_strong, kept_leaves))
+        executable = self._executable(lowered, leaves)
+        return _Entry(treedef, executable, _runner(executable), out_tree, _selector(kept))
+
+    def _executable(self, lowered, leaves):
+        """An executable of the same program compiled earlier in the process, else a new one."""
         key = _program_key(lowered, leaves)
         if key is None:
-            return _entry(treedef, lowered.compile(), out_tree, passed)
+            return lowered.compile()
         with _TABLE_LOCK:
             executable = _EXECUTABLES.get(key)
             if executable is not None:
                 _EXECUTABLES.move_to_end(key)
                 self.shared += 1
-                return _entry(treedef, executable, out_tree, passed)
+                return executable
         executable = lowered.compile()
         with _TABLE_LOCK:
             _EXECUTABLES[key] = executable
             while len(_EXECUTABLES) > _LIMIT:
                 _EXECUTABLES.popitem(last=False)
-        return _entry(treedef, executable, out_tree, passed)
+        return executable
 
 
 def _program_key(lowered, leaves) -> tuple | None:
@@ -152,10 +156,6 @@ def _program_key(lowered, leaves) -> tuple | None:
     digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
     return (digest, tuple(sorted(read)), tuple(map(_argument_type, leaves)), backend.platform,
             compile_args.get("num_devices"))
-
-
-def _entry(treedef, compiled, out_tree: list, passed: Callable) -> _Entry:
-    return _Entry(treedef, compiled, _runner(compiled), out_tree, passed)
 
 
 def _runner(compiled) -> Callable:
