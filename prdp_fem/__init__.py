@@ -71,6 +71,7 @@ from .inverse import (
     inverse_problem,
     invert,
 )
+from .linesearch import lbfgs, scale_by_zoom_linesearch
 from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
 from .newton import NewtonCGState, gauss_newton, newton_cg, regularization_preconditioner
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
@@ -207,6 +208,7 @@ __all__ = [
     "l2_norm",
     "l_curve",
     "l_shape",
+    "lbfgs",
     "load_mesh",
     "matvec",
     "mesh_from_arrays",
@@ -225,6 +227,7 @@ __all__ = [
     "residual_jacobian",
     "rmatvec",
     "save_mesh",
+    "scale_by_zoom_linesearch",
     "solve",
     "symmetric_matvec",
     "taylor_test",

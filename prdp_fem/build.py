@@ -43,6 +43,7 @@ from .learned import (
     random_sources,
     source_samples,
 )
+from .linesearch import lbfgs
 from .mesh import load_mesh
 from .newton import newton_cg
 from .observations import boundary_values, full_field, point_sensors, with_noise
@@ -351,7 +352,7 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
     ``decay = "cosine"`` learning rate decays over; default ``optimizer.steps``)."""
     spec = scene.optimizer
     if spec.name == "lbfgs":
-        return optax.lbfgs(memory_size=spec.memory_size)
+        return lbfgs(memory_size=spec.memory_size)
     if spec.name in ("newton_cg", "gauss_newton"):
         return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                          max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,

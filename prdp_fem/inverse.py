@@ -41,6 +41,7 @@ from .errors import (
 )
 from .executables import SharedCompile
 from .history import History, StepRecord
+from .linesearch import lbfgs
 from .observations import Observation
 from .operator import SparseMatrix, matvec
 from .parameters import Parameterization, parameter_basis, parameter_mass
@@ -400,7 +401,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     Parameters
     ----------
     optimizer
-        Any optax ``GradientTransformation``; default ``optax.lbfgs()`` (zoom line search).
+        Any optax ``GradientTransformation``; default :func:`prdp_fem.linesearch.lbfgs`
+        (optax's L-BFGS and zoom line search; the search gives up as soon as the values rise
+        where a truncated gradient says they fall).
         Its update gets the extra arguments ``value``, ``grad`` and ``value_fn``, an
         :class:`Objective` (``J`` at the step's solver) whose ``gauss_newton_operator`` is
         what :func:`prdp_fem.newton.gauss_newton` multiplies with.
@@ -448,7 +451,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")
-    optimizer = optax.with_extra_args_support(optax.lbfgs() if optimizer is None else optimizer)
+    optimizer = optax.with_extra_args_support(lbfgs() if optimizer is None else optimizer)
 
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)

@@ -248,6 +248,25 @@ def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
     assert History.from_jsonl(path)[-1] == result.history[-1]
 
 
+def test_a_truncated_gradient_s_failed_line_search_costs_three_or_four_evaluations():
+    # at K = 2 the implicit gradient says "down" where the truncated loss rises: optax's zoom
+    # search spends all 20 evaluations; prdp_fem's stops once three trials show it
+    _disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
+    runs = {name: invert(problem, optimizer=optimizer, refinement=fixed(2, 2), steps=2)
+            for name, optimizer in (("optax", optax.lbfgs()), ("prdp_fem", pf.lbfgs()))}
+    for name, run in runs.items():
+        failures = np.diff(run.history.column("failed_steps"), prepend=0)
+        assert list(failures) == [0, 1], name
+    evaluations = {name: np.diff(run.history.column("evaluations"), prepend=0)
+                   for name, run in runs.items()}
+    assert evaluations["optax"][0] == evaluations["prdp_fem"][0]  # the same first search
+    assert evaluations["optax"][1] == 20
+    assert 3 <= evaluations["prdp_fem"][1] <= 4
+    # the contradicted search takes no step: the parameters stay where step 1 left them
+    one_step = invert(problem, optimizer=pf.lbfgs(), refinement=fixed(2, 2), steps=1)
+    np.testing.assert_array_equal(runs["prdp_fem"].params, one_step.params)
+
+
 def test_a_failed_line_search_is_read_from_the_optimizer_state():
     def f(x):
         return jnp.sum(x ** 2)

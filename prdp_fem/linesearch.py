@@ -1,0 +1,204 @@
+r"""A zoom line search that gives up once the values contradict the gradient.
+
+optax's zoom line search (strong Wolfe conditions, Nocedal and Wright's algorithms 3.5 and
+3.6) assumes that the gradient ``g`` is the derivative of the value ``J``. A *truncated*
+adjoint gradient is not: at a small ``K`` the slope ``s_0 = g.d`` along the search direction
+``d`` can say "down" where ``J(z + t d)`` goes up. No step then meets the conditions, and
+the search spends all its ``max_linesearch_steps`` evaluations (20 in :func:`optax.lbfgs`)
+shrinking ``t`` towards zero. For PRDP such a failure is the signal to refine ``K``
+(``stall_on_failure``), so those evaluations buy nothing.
+
+:func:`scale_by_zoom_linesearch` runs optax's own search steps and stops once the values
+slope *up* at ``t = 0``: three successive trials ``t_1 > t_2 > t_3`` all raise the value,
+the slope at ``t = 0`` of the parabola through ``J(0)`` and two successive trials,
+
+.. math::
+
+    \hat s_i = \frac{m_{i+1} t_i - m_i t_{i+1}}{t_i - t_{i+1}},
+    \qquad m_i = \frac{J(t_i) - J(0)}{t_i},
+
+is positive for both pairs and agrees within a factor two, and at ``t_3`` the gradient's
+slope has the sign of ``s_0 < 0`` and fails the curvature condition
+``|g(t_3).d| <= c_2 |s_0|``. Then no smaller step meets the sufficient decrease (the values
+rise) nor, with the gradient's slope running from ``s_0`` to ``g(t_3).d``, the curvature
+condition, which optax's approximate (Hager-Zhang) decrease would otherwise let through.
+
+For a correct gradient this cannot happen where the secant slope ``m(t)`` is convex on
+``[0, t_1]`` (a quadratic ``J`` included): the linear extrapolation of ``m`` to ``t = 0`` then
+stays below ``m(0) = s_0 < 0``. The converged reference runs of the built-in scenes take the
+same steps with it as with optax's search.
+
+The search then ends the way optax's own failure does, minus the wasted evaluations: with
+the best trial that met the sufficient decrease if there is one, else a zero step (the
+value and gradient at the start), and a positive decrease or curvature error, so that
+:func:`prdp_fem.inverse.invert` counts the step as failed. Without a contradiction every
+step, value and gradient is optax's.
+
+A gradient with the wrong sign: optax's search spends its 20 evaluations, this one three.
+
+>>> import jax, jax.numpy as jnp, optax, optax.tree_utils as otu
+>>> @jax.custom_jvp
+... def J(z):
+...     return jnp.sum((z - 1.0) ** 2)
+>>> @J.defjvp
+... def J_jvp(primals, tangents):
+...     (z,), (dz,) = primals, tangents
+...     return J(z), -jnp.sum(2.0 * (z - 1.0) * dz)
+>>> def evaluations_and_step(opt):
+...     z = jnp.zeros(2); value, grad = jax.value_and_grad(J)(z)
+...     updates, state = opt.update(grad, opt.init(z), z, value=value, grad=grad,
+...                                 value_fn=J)
+...     return int(otu.tree_get(state, "num_linesearch_steps")), float(jnp.abs(updates).max())
+>>> evaluations_and_step(optax.lbfgs())[0]
+20
+>>> evaluations_and_step(lbfgs())
+(3, 0.0)
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+try:  # the search's init/step/stop functions; optax's transform hides them in its loop
+    from optax._src.linesearch import zoom_linesearch as _optax_zoom
+except ImportError as error:  # pragma: no cover - depends on the installed optax
+    raise ImportError("prdp_fem.linesearch needs optax's zoom line search "
+                      "(optax._src.linesearch.zoom_linesearch, optax >= 0.2.5)") from error
+
+__all__ = ["Contradiction", "lbfgs", "scale_by_zoom_linesearch"]
+
+
+class Contradiction(NamedTuple):
+    """What the search has seen of the values against the gradient.
+
+    ``stepsizes``/``rises``: the last two trial steps and ``J(t) - J(0)`` there (oldest
+    first; zero before any trial); ``extrapolated_slope``: the last parabola's slope at
+    ``t = 0`` (NaN unless the last two trials both rose and shrank); ``found``: the values
+    slope up where the gradient says down (the search stops).
+    """
+
+    stepsizes: jax.Array
+    rises: jax.Array
+    extrapolated_slope: jax.Array
+    found: jax.Array
+
+
+def _nothing_seen(dtype) -> Contradiction:
+    return Contradiction(stepsizes=jnp.zeros(2, dtype), rises=jnp.zeros(2, dtype),
+                         extrapolated_slope=jnp.asarray(jnp.nan, dtype),
+                         found=jnp.asarray(False))
+
+
+def _watch(seen: Contradiction, state) -> Contradiction:
+    """``seen`` updated with the trial the search has just made (optax's state)."""
+    t, rise = state.stepsize, state.value - state.value_init
+    t_last, rise_last = seen.stepsizes[1], seen.rises[1]
+    both_rising = (t > 0) & (t < t_last) & (rise > 0) & (rise_last > 0)
+    slope = (rise * t_last / t - rise_last * t / t_last) / jnp.where(both_rising,
+                                                                     t_last - t, 1.0)
+    slope = jnp.where(both_rising, slope, jnp.nan)
+    previous = seen.extrapolated_slope
+    uphill = (slope > 0) & (previous > 0) & (slope <= 2 * previous) & (previous <= 2 * slope)
+    # the gradient still says down, too steeply for the curvature condition
+    steep = (state.slope * state.slope_init > 0) & (state.curvature_error > 0)
+    return Contradiction(stepsizes=jnp.stack([t_last, t]), rises=jnp.stack([rise_last, rise]),
+                         extrapolated_slope=slope, found=uphill & steep)
+
+
+def _give_up(state, curv_rtol: float):
+    """End a contradicted search: its best trial with sufficient decrease, else no step.
+
+    The errors reported are the returned step's: at the safe trial the decrease error is zero
+    and the curvature error positive (else the search would have stopped there, done); with
+    no safe trial, the last trial's, one of them positive (the search was not done).
+    """
+    safe = state.safe_stepsize > 0
+    slope_safe = optax.tree.real(optax.tree.vdot(state.updates, state.safe_grad))
+    curvature_safe = jnp.maximum(jnp.abs(slope_safe) - curv_rtol * jnp.abs(state.slope_init),
+                                 0.0)
+    return state._replace(stepsize=jnp.where(safe, state.safe_stepsize, 0.0),
+                          value=state.safe_value, grad=state.safe_grad,
+                          decrease_error=jnp.where(safe, 0.0, state.decrease_error),
+                          curvature_error=jnp.where(safe, curvature_safe,
+                                                    state.curvature_error),
+                          failed=jnp.asarray(True))
+
+
+def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
+                             max_learning_rate: float | None = None,
+                             slope_rtol: float = 1e-4, curv_rtol: float = 0.9,
+                             increase_factor: float = 2.0,
+                             approx_dec_rtol: float | None = 1e-6,
+                             stepsize_precision: float = 1e-5,
+                             initial_guess_strategy: str = "one",
+                             ) -> optax.GradientTransformationExtraArgs:
+    """optax's :func:`optax.scale_by_zoom_linesearch` that stops on a contradiction.
+
+    The arguments are optax's (the defaults are those :func:`optax.lbfgs` uses; extra update
+    arguments go on to ``value_fn`` as keywords); the state is
+    :class:`optax.ScaleByZoomLinesearchState`, so :func:`optax.value_and_grad_from_state`
+    and the failure test of :func:`prdp_fem.inverse.invert` read it as they read optax's.
+    """
+    if not (isinstance(max_linesearch_steps, int) and max_linesearch_steps >= 1):
+        raise ValueError(f"max_linesearch_steps={max_linesearch_steps!r}: expected an "
+                         "integer >= 1")
+    if initial_guess_strategy not in ("one", "keep"):
+        raise ValueError(f"initial_guess_strategy={initial_guess_strategy!r}: expected "
+                         "'one' or 'keep'")
+    init_search, step_search, searching = _optax_zoom(
+        max_linesearch_steps=max_linesearch_steps, max_stepsize=max_learning_rate, tol=0.0,
+        increase_factor=increase_factor, slope_rtol=slope_rtol, curv_rtol=curv_rtol,
+        approx_dec_rtol=approx_dec_rtol, interval_threshold=stepsize_precision,
+        verbose=False)
+    # the state, and so its init, are optax's own
+    init = optax.scale_by_zoom_linesearch(max_linesearch_steps).init
+
+    def update(updates, state, params, *, value, grad,
+               value_fn: Callable[..., Any], **value_fn_kwargs):
+        value_and_grad = jax.value_and_grad(value_fn)
+        start = init_search(updates, params, value=value, grad=grad,
+                            prev_stepsize=state.learning_rate,
+                            initial_guess_strategy=initial_guess_strategy)
+
+        def going_on(carry):
+            search, seen = carry
+            return searching(search) & ~seen.found
+
+        def trial(carry):
+            search, seen = carry
+            search = step_search(search, value_and_grad_fn=value_and_grad,
+                                 fn_kwargs=value_fn_kwargs)
+            return search, _watch(seen, search)
+
+        dtype = jnp.result_type(start.value_init)
+        final, seen = jax.lax.while_loop(going_on, trial,
+                                         (start, _nothing_seen(dtype)))
+        final = jax.lax.cond(seen.found, functools.partial(_give_up, curv_rtol=curv_rtol),
+                             lambda s: s, final)
+        info = optax.ZoomLinesearchInfo(num_linesearch_steps=final.count,
+                                        decrease_error=final.decrease_error,
+                                        curvature_error=final.curvature_error)
+        new_state = optax.ScaleByZoomLinesearchState(
+            learning_rate=final.stepsize, value=final.value, grad=final.grad, info=info)
+        return (optax.tree.scale(final.stepsize, updates),
+                optax.tree.cast_like(new_state, other_tree=state))
+
+    return optax.GradientTransformationExtraArgs(init, update)
+
+
+def lbfgs(memory_size: int = 10, *, max_linesearch_steps: int = 20,
+          ) -> optax.GradientTransformationExtraArgs:
+    """:func:`optax.lbfgs` with :func:`scale_by_zoom_linesearch` as its line search.
+
+    optax's defaults otherwise (unit initial step, ``scale_init_precond``): on a problem
+    whose gradients match its values it takes optax's steps exactly.
+    """
+    return optax.lbfgs(memory_size=memory_size, linesearch=scale_by_zoom_linesearch(
+        max_linesearch_steps, initial_guess_strategy="one"))
+
