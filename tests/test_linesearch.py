@@ -61,15 +61,25 @@ def test_a_right_gradient_gets_optax_steps_exactly(fn, start, longest_search):
     assert max(their_searches) >= longest_search
 
 
-@jax.custom_jvp
-def _wrong_sign(z):
-    return jnp.sum((z - 1.0) ** 2)
+def _paraboloid_with_gradient_times(factor):
+    """``sum((z - 1)^2)`` whose derivative is ``factor`` times the true one: a stand-in for a
+    truncated gradient that does not match its loss."""
+    @jax.custom_jvp
+    def paraboloid(z):
+        return jnp.sum((z - 1.0) ** 2)
+
+    @paraboloid.defjvp
+    def paraboloid_jvp(primals, tangents):
+        (z,), (dz,) = primals, tangents
+        return paraboloid(z), factor * jnp.sum(2.0 * (z - 1.0) * dz)
+
+    return paraboloid
 
 
-@_wrong_sign.defjvp
-def _wrong_sign_jvp(primals, tangents):
-    (z,), (dz,) = primals, tangents
-    return _wrong_sign(z), -jnp.sum(2.0 * (z - 1.0) * dz)
+_wrong_sign = _paraboloid_with_gradient_times(-1.0)
+# the right direction, ten times too steep: the unit trial (scaled by 1/|g|) lands far past
+# the minimum along the line
+_too_steep = _paraboloid_with_gradient_times(10.0)
 
 
 def _one_search(optimizer, fn, z):
@@ -91,19 +101,6 @@ def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():
     *_, optax_state = _one_search(optax.lbfgs(), _wrong_sign, z)
     assert int(otu.tree_get(optax_state, "num_linesearch_steps")) == 20
     assert bool(_step_failed(optax_state))
-
-
-@jax.custom_jvp
-def _too_steep(z):
-    return jnp.sum((z - 1.0) ** 2)
-
-
-@_too_steep.defjvp
-def _too_steep_jvp(primals, tangents):
-    # a truncated gradient's failure: the right direction, ten times too steep, so the
-    # unit trial (scaled by 1/|g|) lands far past the minimum along the line
-    (z,), (dz,) = primals, tangents
-    return _too_steep(z), 10.0 * jnp.sum(2.0 * (z - 1.0) * dz)
 
 
 def test_a_too_steep_gradient_is_not_a_contradiction():
