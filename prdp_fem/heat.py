@@ -461,7 +461,8 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     counted = step is heat_step and solves and mode == "wig"
     step_fn = SharedCompile(_make_step(optimizer, setup, mode, gradient,
                                        refinement.tolerance_mode, preconditioner, step, counted),
-                            static_argnum=5 if gradient == "unrolled" else None)
+                            static_argnum=5 if gradient == "unrolled" else None,
+                            packed_argnums=(2,))
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(

@@ -388,7 +388,7 @@ def _make_validation(rtol, preconditioner):
     def misfit(problem, counter, z):
         return problem.loss(z, ConvergedCG(rtol=rtol, preconditioner=preconditioner),
                             counter=counter)[1].misfit
-    return SharedCompile(misfit)
+    return SharedCompile(misfit, packed_argnums=(0,))
 
 
 def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
@@ -462,7 +462,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     counter, validation_counter = IterationCounter(), IterationCounter()
     step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
                                     preconditioner),
-                         static_argnum=4 if gradient == "unrolled" else None)
+                         static_argnum=4 if gradient == "unrolled" else None,
+                         packed_argnums=(0,))
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
     validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,

@@ -507,7 +507,8 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     counter = IterationCounter()
     step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
                                     preconditioner),
-                         static_argnum=6 if gradient == "unrolled" else None)
+                         static_argnum=6 if gradient == "unrolled" else None,
+                         packed_argnums=(3,))
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
     update_control = jax.jit(refinement.update)  # one dispatch per epoch, not dozens

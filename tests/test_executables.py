@@ -174,3 +174,52 @@ def test_a_program_with_host_calls_skips_the_checked_call_and_its_unread_argumen
     assert np.array_equal(tallied(counter, x + 1, jnp.zeros(5), jnp.int32(2)), [2.0, 4.0, 6.0])
     jax.effects_barrier()
     assert counter.snapshot() == (6, 0)
+
+
+def _constants(scale=1.0):
+    """A stand-in for an inverse problem: many small arrays of two dtypes and a large one."""
+    return {"values": [jnp.full(k + 1, scale * (k + 1)) for k in range(6)],
+            "columns": [jnp.arange(k + 2, dtype=jnp.int32) for k in range(4)],
+            "single": jnp.full((2, 3), 7.0 * scale, jnp.float32),  # alone in its dtype
+            "large": jnp.full(40, scale)}
+
+
+def _reads_constants(x, constants, k):
+    total = sum(jnp.sum(v) for v in constants["values"]) + jnp.sum(constants["large"])
+    offsets = sum(jnp.sum(c) for c in constants["columns"]).astype(x.dtype)
+    return x * k + total + offsets + jnp.sum(constants["single"]).astype(x.dtype)
+
+
+def test_packed_arguments_travel_as_one_buffer_per_dtype_and_follow_new_arrays(monkeypatch):
+    """An inversion step's problem is ~60 arrays, each costing a dispatch: packed, its small
+    arrays arrive in one buffer per dtype. The results are those of the unpacked program, and
+    a call with other arrays (another problem of the same shapes) repacks them."""
+    monkeypatch.setattr(executables, "_PACK_LIMIT", 10)  # `large` (40 entries) stays apart
+    counter = IterationCounter()
+
+    def program(k, x, constants, counter):
+        tally.tap(counter, "primal", jnp.int32(1), x)
+        return _reads_constants(x, constants, k)
+
+    packed = SharedCompile(program, static_argnum=0, packed_argnums=(2,))
+    plain = SharedCompile(program, static_argnum=0)
+    x, one, two = jnp.arange(3.0), _constants(), _constants(2.0)
+    for constants in (one, one, two, one):
+        assert np.array_equal(packed(3, x, constants, counter), plain(3, x, constants, counter))
+        assert np.array_equal(packed(3, x, constants, counter),
+                              _reads_constants(x, constants, 3))
+    [entry] = packed._cache.values()
+    [unpacked] = plain._cache.values()
+    # 6 float64 + 4 int32 small arrays -> 2 buffers; `single` and `large` stay apart
+    assert len(entry.executable.args_info[0]) == 2 + 4  # buffers, x, single, large, counter
+    assert len(unpacked.executable.args_info[0]) == 14
+    buffers = entry.packing.buffers(jax.tree_util.tree_leaves((x, one, counter)))
+    assert sorted((b.dtype.name, b.shape) for b in buffers) == [("float64", (21,)),
+                                                               ("int32", (14,))]
+    jax.effects_barrier()
+    assert counter.primal == 12  # every call taps once: 8 packed, 4 plain
+
+
+def test_an_argument_cannot_be_both_static_and_packed():
+    with pytest.raises(ValueError, match="both static and packed"):
+        SharedCompile(lambda k, x: x * k, static_argnum=0, packed_argnums=(0,))
