@@ -223,3 +223,21 @@ def test_packed_arguments_travel_as_one_buffer_per_dtype_and_follow_new_arrays(m
 def test_an_argument_cannot_be_both_static_and_packed():
     with pytest.raises(ValueError, match="both static and packed"):
         SharedCompile(lambda k, x: x * k, static_argnum=0, packed_argnums=(0,))
+
+
+def test_an_inversion_step_takes_its_problem_packed(source_problem, monkeypatch):
+    """The step of `invert` gets the problem's arrays in a few buffers, not one by one."""
+    made = []
+    original = SharedCompile.__init__
+
+    def recording(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    invert(source_problem, refinement=fixed(4), steps=2)
+    problem_arrays = [leaf for leaf in jax.tree_util.tree_leaves(source_problem) if leaf.size]
+    [step] = [compiled for compiled in made if compiled._packed_argnums == (0,)]
+    [entry] = step._cache.values()
+    taken = len(jax.tree_util.tree_leaves(entry.executable.args_info))
+    assert len(problem_arrays) > 40 and taken < 25
