@@ -145,7 +145,7 @@ class SharedCompile:
     19) are dropped, and JAX's per-argument checks are skipped (see :func:`_runner`).
 
     ``packed_argnums`` names arguments that stay the same from call to call (an inverse
-    problem: 55-70 non-empty arrays): their arrays of up to :data:`_PACK_LIMIT` elements are
+    problem: 60-75 non-empty arrays): their arrays of up to :data:`_PACK_LIMIT` elements are
     passed as one flat buffer per dtype, built when the arrays change (see :class:`_Packing`),
     and sliced back inside the program. Passed one by one they cost about 2.4 us each on a
     2-core CPU, a fifth of a small inversion step (``plate_hole``: 0.53 -> 0.42 ms).
