@@ -81,8 +81,8 @@ class _Packing:
         self._dtypes = [np.dtype(leaves[group[0]].dtype) for group in groups]
         self.indices = [i for group in groups for i in group]
         self._take = _selector(self.indices)
-        self._sources: tuple = ()
-        self._buffers: tuple = ()
+        # (the arrays, their buffers), replaced as one: a call on another thread sees a pair
+        self._last: tuple[tuple, tuple] = ((), ())
 
     def buffer_types(self) -> list[jax.ShapeDtypeStruct]:
         return [jax.ShapeDtypeStruct((sum(size for _, _, size in layout),), dtype)
@@ -92,15 +92,16 @@ class _Packing:
         if not self.indices:
             return ()
         sources = self._take(leaves)
-        if len(sources) != len(self._sources) or \
-                not all(a is b for a, b in zip(sources, self._sources, strict=True)):
-            by_index = dict(zip(self.indices, sources, strict=True))
-            self._buffers = tuple(
-                jax.device_put(np.concatenate([np.ravel(np.asarray(by_index[i]))
-                                               for i, _, _ in layout]))
-                for layout in self.layout)
-            self._sources = sources
-        return self._buffers
+        last_sources, last_buffers = self._last
+        if len(sources) == len(last_sources) and \
+                all(a is b for a, b in zip(sources, last_sources, strict=True)):
+            return last_buffers
+        by_index = dict(zip(self.indices, sources, strict=True))
+        buffers = tuple(jax.device_put(np.concatenate([np.ravel(np.asarray(by_index[i]))
+                                                       for i, _, _ in layout]))
+                        for layout in self.layout)
+        self._last = (sources, buffers)
+        return buffers
 
     def unpack(self, buffers) -> dict[int, jax.Array]:
         """Inside the program: leaf index -> its slice of its buffer."""
