@@ -129,7 +129,7 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
                                "postsmoother": None}
     if strength is not None:
         options["strength"] = strength
-    with _seeded_numpy_random():
+    with seeded_numpy_random():
         try:
             if kind == "sa":
                 ml = pyamg.smoothed_aggregation_solver(csr, symmetry="symmetric", **options)
@@ -152,9 +152,10 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
 
 
 @contextlib.contextmanager
-def _seeded_numpy_random(seed: int = 0):
+def seeded_numpy_random(seed: int = 0):
     """pyamg starts its spectral-radius estimates from NumPy's global generator: seed it for
-    the build (the same matrix gives the same hierarchy) and give the caller's state back."""
+    the build (the same matrix gives the same hierarchy) and give the caller's state back.
+    Every pyamg build of the package runs in it (:func:`prdp_fem.reference.amg_solve` too)."""
     saved = np.random.get_state()  # noqa: NPY002 (pyamg draws from the legacy generator)
     np.random.seed(seed)  # noqa: NPY002
     try:

@@ -20,6 +20,7 @@ import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
 
+from .amg import seeded_numpy_random
 from .discretization import Discretization
 
 __all__ = [
@@ -43,10 +44,17 @@ class ReferenceSolution(NamedTuple):
 
 def amg_solve(matrix: sp.spmatrix, b: np.ndarray, *, rtol: float = 1e-12,
               max_iterations: int = 500) -> ReferenceSolution:
-    """pyamg smoothed aggregation as a CG preconditioner, to ``||r|| <= rtol ||b||``."""
+    """pyamg smoothed aggregation as a CG preconditioner, to ``||r|| <= rtol ||b||``.
+
+    The hierarchy is built with NumPy's global generator seeded (and restored after), so the
+    same system gives the same solution bit for bit in every process: unseeded, pyamg's
+    spectral-radius estimates moved the synthetic data of a learned study in its last bits
+    from run to run, and Newton-CG trainings on it ended at different errors.
+    """
     matrix = sp.csr_matrix(matrix)
     b = np.asarray(b, dtype=float)
-    hierarchy = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric")
+    with seeded_numpy_random():
+        hierarchy = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric")
     residuals: list[float] = []
     x = hierarchy.solve(b, tol=rtol, accel="cg", maxiter=max_iterations, residuals=residuals)
     return ReferenceSolution(x, max(len(residuals) - 1, 0), float(np.linalg.norm(b - matrix @ x)))
