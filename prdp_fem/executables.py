@@ -29,6 +29,7 @@ not expose.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import operator
 import threading
@@ -138,18 +139,20 @@ class SharedCompile:
     ``seconds`` is the time spent lowering and compiling (so callers can time runs apart from
     it); ``shared`` counts the compilations saved by reusing an executable.
 
-    A program with host callbacks (the iteration tally) is called through JAX's Python
-    dispatch, at about 4 us per argument, and an inversion step had 123 arrays. So it is
-    given only what it reads: empty arrays (a kernel's missing COO tail, a layout without
-    repeated diagonals; 45 of them) are made by the program from the shape it was compiled
-    for, arrays it does not read (the COO form of a matrix applied through its ELL layout;
-    19) are dropped, and JAX's per-argument checks are skipped (see :func:`_runner`).
+    A program with host callbacks (the iteration tally) cannot take JAX's C++ dispatch; its
+    Python dispatch cost about 4 us per argument, and an inversion step had 123 arrays. So
+    it is given only what it reads: empty arrays (a kernel's missing COO tail, a layout
+    without repeated diagonals; 45 of them) are made by the program from the shape it was
+    compiled for, arrays it does not read (the COO form of a matrix applied through its ELL
+    layout; 19) are dropped, and JAX's per-call work is skipped (see :func:`_runner`).
 
     ``packed_argnums`` names arguments that stay the same from call to call (an inverse
     problem: 60-75 non-empty arrays): their arrays of up to :data:`_PACK_LIMIT` elements are
     passed as one flat buffer per dtype, built when the arrays change (see :class:`_Packing`),
-    and sliced back inside the program. Passed one by one they cost about 2.4 us each on a
-    2-core CPU, a fifth of a small inversion step (``plate_hole``: 0.53 -> 0.42 ms).
+    and sliced back inside the program. Through JAX's Python dispatch they cost about 2.4 us
+    each on a 2-core CPU, a fifth of a small inversion step (``plate_hole``: 0.53 -> 0.42 ms).
+    The direct call (:class:`_DirectCall`) passes arrays for a fraction of that, and there
+    packing measured neutral; it stays for the JAX versions that do not allow that call.
     """
 
     def __init__(self, fn: Callable, static_argnum: int | None = None,
@@ -251,23 +254,126 @@ def _program_key(lowered, leaves) -> tuple | None:
 
 
 def _runner(compiled) -> Callable:
-    """How to call ``compiled``: its own call, or, for a program with host callbacks, the
-    executable's unchecked call.
+    """How to call ``compiled``: its own call, or, for a program with host callbacks, a call
+    that skips JAX's per-call work.
 
     A program with host callbacks (the iteration tally) cannot take JAX's C++ dispatch path;
-    its Python path first checks every argument's type and placement (about 1.3 us each on a
-    2-core CPU) and then places them (about 3 us each). The checks repeat what the key of
-    :class:`SharedCompile` has already established (shapes, dtypes, the structure), so they
-    are skipped where this JAX exposes the call behind them (``unsafe_call``). Unread
-    arguments are dropped there too: the program is lowered without them (JAX's
-    ``keep_unused=False``), and that call passes only the read ones on.
+    its Python path checks every argument's type and placement (about 1.3 us each on a 2-core
+    CPU), places them (about 1.5 us each) and handles the runtime tokens. The checks repeat
+    what the key of :class:`SharedCompile` has already established (shapes, dtypes, the
+    structure), so they are skipped where this JAX exposes the call behind them
+    (``unsafe_call``), and where it exposes the executable behind that, so is the rest (see
+    :class:`_DirectCall`). Unread arguments are dropped there too: the program is lowered
+    without them (JAX's ``keep_unused=False``), and those calls pass only the read ones on.
     """
     executable = getattr(compiled, "_executable", None)
     unchecked = getattr(executable, "unsafe_call", None)
     if getattr(unchecked, "has_host_callbacks", False) and \
             getattr(executable, "_kept_var_idx", None) is not None:
-        return unchecked
+        return _DirectCall.of(unchecked) or unchecked
     return compiled
+
+
+class _DirectCall:
+    """A single-device program with host callbacks, run by its XLA executable directly.
+
+    What JAX's Python path does per call besides running the program: argument checks and
+    placement (about 2.4 us per argument), a runtime-token dance and a profiler annotation:
+    about 60 us of a 0.45 ms ``plate_hole`` inversion step with 19 arguments. Here the
+    arguments are ``jax.Array`` s of the program's one device already (the key checked their
+    shapes and dtypes; the device is the backend's only one), a NumPy or Python scalar (a
+    counter's slot) is placed once and kept, and the output token is handed to JAX as its own
+    path does, so that :func:`jax.effects_barrier` still waits for the host calls.
+
+    Falls back to JAX's path (``unsafe_call``) when NaN/Inf checking is on (it wraps the
+    outputs), and for good when an argument lives on another device (the executable refuses
+    it before running anything). Built only where this JAX has every piece and a probe
+    program gives the same result and tally both ways (:func:`_direct_calls_work`).
+    """
+
+    def __init__(self, unchecked, parts):
+        self._unchecked = unchecked
+        self._executable, self._handlers, self._device, self._token_set, \
+            self._check_special, self._array_type = parts
+        self._take = _selector(sorted(unchecked.kept_var_idx))
+        self._placed: dict[int, tuple] = {}  # id -> (scalar, its device array)
+        self._foreign = False  # an argument came from another device: JAX's path from now on
+
+    @classmethod
+    def of(cls, unchecked) -> _DirectCall | None:
+        parts = _direct_parts(unchecked)
+        if parts is None or not _direct_calls_work():
+            return None
+        return cls(unchecked, parts)
+
+    def __call__(self, *args):
+        if self._foreign or self._check_special():
+            return self._unchecked(*args)
+        arguments = [a if type(a) is self._array_type else self._place(a)
+                     for a in self._take(args)]
+        try:
+            results = self._executable.execute_sharded(arguments, with_tokens=True)
+        except jax.errors.JaxRuntimeError as error:
+            if "Buffer passed to Execute()" not in str(error):
+                raise  # the program ran and failed: not ours to retry
+            self._foreign = True
+            return self._unchecked(*args)
+        self._token_set(self._device, results.consume_token().get_token(0))
+        return results.consume_with_handlers(self._handlers)
+
+    def _place(self, value):
+        if not isinstance(value, np.generic | int | float | bool):
+            return jax.device_put(value, self._device)  # mutable: placed every call
+        kept = self._placed.get(id(value))
+        if kept is None or kept[0] is not value:
+            if len(self._placed) > 16:
+                self._placed.clear()
+            kept = self._placed[id(value)] = (value, jax.device_put(value, self._device))
+        return kept[1]
+
+
+def _direct_parts(unchecked) -> tuple | None:
+    """What :class:`_DirectCall` needs of JAX's internals; ``None`` where any is missing or
+    the program is beyond it (ordered effects, mutable arrays, several devices, a
+    profile-guided build)."""
+    try:
+        from jax._src import dispatch
+        from jax._src.array import ArrayImpl
+        devices = unchecked._local_devices
+        parts = (unchecked.xla_executable, unchecked.out_handler.handlers, devices[0],
+                 dispatch.runtime_tokens.set_output_runtime_token,
+                 dispatch.needs_check_special, ArrayImpl)
+        plain = not (unchecked.ordered_effects or unchecked.mut or unchecked.pgle_profiler)
+        local = len(devices) == 1 and len(devices[0].client.local_devices()) == 1
+    except (ImportError, AttributeError, IndexError, TypeError):
+        return None
+    return parts if plain and local else None
+
+
+@functools.cache
+def _direct_calls_work() -> bool:
+    """Whether a probe program (a tally tap and a result) gives the same result and tally
+    run directly as through JAX (once per process)."""
+    from .tally import IterationCounter, tap
+
+    def probe(counter, x):
+        tap(counter, "primal", jnp.int32(3), x)
+        return 2.0 * x
+
+    try:
+        counter = IterationCounter()
+        x = jax.device_put(np.arange(3.0))
+        compiled = jax.jit(probe).lower(counter, x).compile()
+        unchecked = compiled._executable.unsafe_call
+        parts = _direct_parts(unchecked)
+        if parts is None:
+            return False
+        [result] = _DirectCall(unchecked, parts)(counter.slot, x)
+        jax.effects_barrier()
+        return bool(np.array_equal(np.asarray(result), [0.0, 2.0, 4.0])) and \
+            (counter.primal, counter.primal_solves) == (3, 1)
+    except Exception:  # any failure: JAX's own path
+        return False
 
 
 def _is_empty(leaf) -> bool:

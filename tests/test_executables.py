@@ -1,6 +1,9 @@
 """Executables shared within a process: equal programs compile once, and nothing else is
 shared (results, constants and iteration tallies stay each caller's own)."""
 
+import os
+import subprocess
+import sys
 from collections import OrderedDict
 from types import SimpleNamespace
 
@@ -174,6 +177,85 @@ def test_a_program_with_host_calls_skips_the_checked_call_and_its_unread_argumen
     assert np.array_equal(tallied(counter, x + 1, jnp.zeros(5), jnp.int32(2)), [2.0, 4.0, 6.0])
     jax.effects_barrier()
     assert counter.snapshot() == (6, 0)
+
+
+def _tapped_sine(counter, x, k):
+    tally.tap(counter, "primal", k, x)
+    return jnp.sin(x) * k
+
+
+def _without_direct_calls(monkeypatch):
+    monkeypatch.setattr(executables._DirectCall, "of", classmethod(lambda cls, unchecked: None))
+
+
+def test_a_program_with_host_calls_runs_directly_with_jax_results_and_tallies(monkeypatch):
+    """The direct call skips JAX's per-call work: the same results and counts as JAX's path,
+    for arrays, a NumPy scalar (placed once) and a Python int, and `effects_barrier` still
+    waits for the taps."""
+    direct, counter = SharedCompile(_tapped_sine), IterationCounter()
+    calls = [(jnp.linspace(0.0, 1.0, 5), jnp.int32(4)), (jnp.linspace(1.0, 2.0, 5), np.int32(3)),
+             (jnp.linspace(2.0, 3.0, 5), 2)]
+    results = [direct(counter, x, k) for x, k in calls]
+    jax.effects_barrier()
+    assert counter.snapshot() == (9, 0) and counter.primal_solves == 3
+    assert all(isinstance(entry.run, executables._DirectCall) for entry in direct._cache.values())
+
+    _without_direct_calls(monkeypatch)
+    through_jax, reference = SharedCompile(_tapped_sine), IterationCounter()
+    expected = [through_jax(reference, x, k) for x, k in calls]
+    jax.effects_barrier()
+    assert reference.snapshot() == counter.snapshot()
+    assert not any(isinstance(entry.run, executables._DirectCall)
+                   for entry in through_jax._cache.values())
+    for got, want in zip(results, expected, strict=True):
+        assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+def test_a_direct_call_leaves_nan_checks_and_foreign_arguments_to_jax():
+    """With NaN checking on, JAX's path checks the outputs; an argument the executable
+    refuses (another device's) is handed to JAX's path, which moves it, from then on; any
+    other error of the run is the caller's."""
+    program, counter, x = SharedCompile(_tapped_sine), IterationCounter(), jnp.ones(3)
+    program(counter, x, jnp.int32(1))
+    [entry] = program._cache.values()
+    run = entry.run
+    with jax.debug_nans(True), pytest.raises(Exception, match="nan") as raised:
+        program(counter, jnp.full(3, jnp.inf), jnp.int32(1))
+    assert "FloatingPointError" in type(raised.value).__name__  # JAX's (internal) check
+
+    def refusing(message):
+        def execute_sharded(arguments, with_tokens):
+            raise jax.errors.JaxRuntimeError(message)
+        return SimpleNamespace(execute_sharded=execute_sharded)
+
+    run._executable = refusing("INTERNAL: the program failed")
+    with pytest.raises(jax.errors.JaxRuntimeError, match="program failed"):
+        program(counter, x, jnp.int32(1))
+    run._executable = refusing("INVALID_ARGUMENT: Buffer passed to Execute() as argument 1 "
+                               "to replica 0 is on device cpu:1, but replica is assigned to "
+                               "device cpu:0.")
+    before = counter.primal
+    assert np.array_equal(program(counter, x, jnp.int32(2)), jnp.sin(x) * 2)
+    assert np.array_equal(program(counter, x, jnp.int32(2)), jnp.sin(x) * 2)  # JAX's path now
+    jax.effects_barrier()
+    assert counter.primal == before + 4
+
+
+def test_several_devices_take_jax_path():
+    """With several devices the direct call could be handed another device's array: it is
+    not used there (a fresh process with two CPU devices)."""
+    script = ("import jax, jax.numpy as jnp\n"
+              "from prdp_fem import executables, tally\n"
+              "from prdp_fem.cg import IterationCounter\n"
+              "p = executables.SharedCompile(lambda c, x: tally.tap(c, 'primal', jnp.int32(1), x)"
+              " or x)\n"
+              "x = jax.device_put(jnp.ones(2), jax.devices()[1])\n"
+              "print(len(jax.devices()), float(p(IterationCounter(), x).sum()),\n"
+              "      type(next(iter(p._cache.values())).run).__name__)\n")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out[:2] == ["2", "2.0"] and out[2] != "_DirectCall"
 
 
 def _constants(scale=1.0):
