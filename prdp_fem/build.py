@@ -352,7 +352,7 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
     ``decay = "cosine"`` learning rate decays over; default ``optimizer.steps``)."""
     spec = scene.optimizer
     if spec.name == "lbfgs":
-        return lbfgs(memory_size=spec.memory_size)
+        return lbfgs(memory_size=spec.memory_size, first_step=spec.first_step)
     if spec.name in ("newton_cg", "gauss_newton"):
         return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                          max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,

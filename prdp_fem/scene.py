@@ -15,8 +15,10 @@ takes the default written in the dataclass below):
 ``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
 ``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
 ``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton | hig), ``steps``,
-                  ``learning_rate``, ``memory_size``; Newton: ``max_cg``, ``forcing``, ``c1``,
-                  ``max_backtracking``, ``gradient_rtol`` (see :mod:`.newton`); hig
+                  ``learning_rate``; lbfgs: ``memory_size``, ``first_step`` (unit | polyak:
+                  the first line search starts at J / |slope|); Newton: ``max_cg``,
+                  ``forcing``, ``c1``, ``max_backtracking``, ``gradient_rtol`` (see
+                  :mod:`.newton`); hig
                   (:func:`~prdp_fem.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``;
                   adam, sgd: ``decay`` (constant | cosine: to zero over the run)
 ``[learned]``     a learned inverse (:mod:`.learned`): ``samples``, ``validation_samples``,
@@ -312,6 +314,7 @@ class OptimizerSpec:
     steps: int = 100
     learning_rate: float = 1e-2   # adam, sgd, hig
     memory_size: int = 10         # lbfgs
+    first_step: str = "unit"      # lbfgs: the first search's trial (prdp_fem.linesearch)
     # newton_cg, gauss_newton (prdp_fem.newton): inner CG cap, forcing term ("eisenstat_walker",
     # "hippylib" or a number in (0, 1)), Armijo c1, halvings, stop at ||g|| <= rtol ||g_0||
     max_cg: int = 100
@@ -609,8 +612,13 @@ def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
                          t.number("learning_rate", 1e-2, low=0.0, open_low=True),
                          t.integer("memory_size", 10, 1), **_newton_options(t),
                          **_hig_options(t), decay=t.choice("decay", "constant",
-                                                           ("constant", "cosine")))
+                                                           ("constant", "cosine")),
+                         first_step=t.choice("first_step", "unit", _FIRST_STEPS))
     t.finish()
+    if spec.first_step != "unit" and spec.name != "lbfgs":
+        raise SceneSolverConfigError(f"{t.source}: optimizer.first_step = "
+                                     f"{spec.first_step!r} with optimizer.name = "
+                                     f"{spec.name!r}: expected a first step only for 'lbfgs'")
     if spec.decay != "constant" and spec.name not in ("adam", "sgd"):
         raise SceneSolverConfigError(f"{t.source}: optimizer.decay = {spec.decay!r} with "
                                      f"optimizer.name = {spec.name!r}: expected a decay only "
@@ -619,6 +627,9 @@ def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
 
 
 _NEWTON = ("newton_cg", "gauss_newton")
+#: lbfgs's first line-search trials (prdp_fem.linesearch.FIRST_STEPS: this module stays free
+#: of jax, so that a scene is checked before jax is imported)
+_FIRST_STEPS = ("unit", "polyak")
 
 
 def _hig_options(t: _Table) -> dict[str, Any]:

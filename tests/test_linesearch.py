@@ -166,3 +166,49 @@ def test_two_rising_trials_or_disagreeing_slopes_are_not_enough():
 def test_bad_settings_are_refused_at_construction(kwargs):
     with pytest.raises(ValueError, match=next(iter(kwargs))):
         pf.scale_by_zoom_linesearch(**kwargs)
+
+
+def _quadratic_line(minimum):
+    """``J(z) = minimum + |z - 3|^2 / 2`` (``J(0) = minimum + 9/2`` in 1-D): along the first
+    direction it is quadratic with the given minimum."""
+    def objective(z):
+        return minimum + 0.5 * jnp.sum((z - 3.0) ** 2)
+    return objective
+
+
+def test_a_polyak_first_step_ends_the_first_search_after_one_evaluation():
+    """On a badly scaled least-squares objective the unit first trial doubles 20 times; the
+    trial J / |s_0| is accepted at once, and it is that step exactly."""
+    z = jnp.zeros(3)
+    value, grad, updates, state = _one_search(pf.lbfgs(first_step="polyak"), _badly_scaled, z)
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 1
+    direction = -grad  # L-BFGS's first direction: the bare gradient
+    slope = float(jnp.vdot(direction, grad))
+    np.testing.assert_allclose(updates, float(value) / -slope * direction, rtol=1e-13)
+    *_, unit = _one_search(pf.lbfgs(), _badly_scaled, z)
+    assert int(otu.tree_get(unit, "num_linesearch_steps")) == 20
+
+
+@pytest.mark.parametrize("share, one_evaluation", [(0.0, True), (0.5, True), (0.72, True),
+                                                   (0.76, False), (0.9, False)])
+def test_the_polyak_trial_meets_the_wolfe_conditions_up_to_the_stated_minimum(share,
+                                                                             one_evaluation):
+    """The docstring's claim: on a quadratic line with minimum m, one evaluation whenever
+    m <= 0.73 J(z_0)."""
+    minimum = share * 4.5 / (1.0 - share)  # m = share * J(0), J(0) = m + 4.5
+    *_, state = _one_search(pf.lbfgs(first_step="polyak"), _quadratic_line(minimum),
+                            jnp.zeros(1))
+    assert (int(otu.tree_get(state, "num_linesearch_steps")) == 1) == one_evaluation
+
+
+def test_a_polyak_first_step_needs_a_positive_value_and_a_descent_slope():
+    """Where J(z_0) <= 0 the guess means nothing: the first trial is optax's unit step, and
+    later searches are optax's in any case."""
+    negative = _quadratic_line(-20.0)  # J(z_0) = -8.875
+    z = jnp.array([0.5, -1.0])
+    ours, our_searches = _run(pf.lbfgs(first_step="polyak"), negative, z, 4)
+    theirs, their_searches = _run(pf.lbfgs(), negative, z, 4)
+    np.testing.assert_array_equal(ours, theirs)
+    assert our_searches == their_searches
+    with pytest.raises(ValueError, match="first_step='half'"):
+        pf.lbfgs(first_step="half")

@@ -4,7 +4,9 @@ import filecmp
 import json
 from pathlib import Path
 
+import jax
 import numpy as np
+import optax
 import pytest
 
 import prdp_fem as pf
@@ -58,6 +60,27 @@ def test_defaults_are_documented_values():
     assert not scene.refinement.stall_on_failure and scene.refinement.restart
     assert (scene.optimizer.name, scene.optimizer.steps) == ("lbfgs", 100)
     assert scene.inverse is None and scene.study.kind == "forward"
+
+
+def test_first_step_reaches_the_line_search():
+    """`[optimizer] first_step = "polyak"` builds L-BFGS whose first search takes J / |s_0|
+    in one evaluation; the scene reader knows the same choices as the line search."""
+    from prdp_fem.linesearch import FIRST_STEPS
+    from prdp_fem.scene import _FIRST_STEPS
+    assert _FIRST_STEPS == FIRST_STEPS
+
+    def fn(z):
+        return 1e-8 * jax.numpy.sum((z - 3.0) ** 2)
+
+    searches = {}
+    for first_step in FIRST_STEPS:
+        optimizer = build.optimizer(parse_scene({"optimizer": {"first_step": first_step}}))
+        z = jax.numpy.zeros(2)
+        value, grad = jax.value_and_grad(fn)(z)
+        _, state = optimizer.update(grad, optimizer.init(z), z, value=value, grad=grad,
+                                    value_fn=fn)
+        searches[first_step] = int(optax.tree_utils.tree_get(state, "num_linesearch_steps"))
+    assert searches["polyak"] == 1 and searches["unit"] > 10
 
 
 def test_stall_on_failure_reaches_the_controller():
@@ -119,6 +142,8 @@ def test_fingerprint_follows_settings_not_names():
     ("[refinement]\nmonitor = 'misfit'", "refinement.monitor = 'misfit'"),
     ("[refinement]\nstall_on_failure = 1", "refinement.stall_on_failure = 1"),
     ("[optimizer]\nname = 'newton'", "optimizer.name = 'newton'"),
+    ("[optimizer]\nfirst_step = 'half'", "optimizer.first_step = 'half'"),
+    ("[optimizer]\nname = 'adam'\nfirst_step = 'polyak'", "a first step only for 'lbfgs'"),
     ("[study]\nkind = 'inverse'", "needs an [inverse] section"),
     ("[study]\nlevels = [8, 4]", "study.levels = [8, 4]: expected an increasing list"),
     ("[[study.runs]]\nname = 'a'\nsolver = {gradient = 'magic'}", "solver.gradient = 'magic'"),
