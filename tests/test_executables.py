@@ -308,7 +308,8 @@ def test_an_argument_cannot_be_both_static_and_packed():
 
 
 def test_an_inversion_step_takes_its_problem_packed(source_problem, monkeypatch):
-    """The step of `invert` gets the problem's arrays in a few buffers, not one by one."""
+    """The step of `invert` gets the problem's arrays in a few buffers, not one by one, and
+    runs its executable directly."""
     made = []
     original = SharedCompile.__init__
 
@@ -323,3 +324,4 @@ def test_an_inversion_step_takes_its_problem_packed(source_problem, monkeypatch)
     [entry] = step._cache.values()
     taken = len(jax.tree_util.tree_leaves(entry.executable.args_info))
     assert len(problem_arrays) > 40 and taken < 25
+    assert isinstance(entry.run, executables._DirectCall)  # and skips JAX's per-call work
