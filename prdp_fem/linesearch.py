@@ -58,6 +58,7 @@ A gradient with the wrong sign: optax's search spends its 20 evaluations, this o
 from __future__ import annotations
 
 import functools
+import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -67,9 +68,8 @@ import optax
 
 try:  # the search's init/step/stop functions; optax's transform hides them in its loop
     from optax._src.linesearch import zoom_linesearch as _optax_zoom
-except ImportError as error:  # pragma: no cover - depends on the installed optax
-    raise ImportError("prdp_fem.linesearch needs optax's zoom line search "
-                      "(optax._src.linesearch.zoom_linesearch, optax >= 0.2.5)") from error
+except ImportError:  # pragma: no cover - depends on the installed optax
+    _optax_zoom = None  # optax's own search then (see _optax_search)
 
 __all__ = ["FIRST_STEPS", "Contradiction", "lbfgs", "scale_by_zoom_linesearch"]
 
@@ -172,15 +172,32 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
                          "'one' or 'keep'")
     if first_step not in FIRST_STEPS:
         raise ValueError(f"first_step={first_step!r}: expected one of {FIRST_STEPS}")
-    init_search, step_search, searching = _optax_zoom(
-        max_linesearch_steps=max_linesearch_steps, max_stepsize=max_learning_rate, tol=0.0,
-        increase_factor=increase_factor, slope_rtol=slope_rtol, curv_rtol=curv_rtol,
-        approx_dec_rtol=approx_dec_rtol, interval_threshold=stepsize_precision,
-        verbose=False)
-    # the state, and so its init, are optax's own
-    init = optax.scale_by_zoom_linesearch(max_linesearch_steps).init
+    # optax's own search, with the same settings: the state, and so its init, are its own,
+    # and it is what runs where this optax's internals do not fit (see _optax_search)
+    optax_search = optax.scale_by_zoom_linesearch(
+        max_linesearch_steps, max_learning_rate=max_learning_rate, increase_factor=increase_factor,
+        slope_rtol=slope_rtol, curv_rtol=curv_rtol, approx_dec_rtol=approx_dec_rtol,
+        stepsize_precision=stepsize_precision, initial_guess_strategy=initial_guess_strategy)
+    try:
+        init_search, step_search, searching = _optax_zoom(
+            max_linesearch_steps=max_linesearch_steps, max_stepsize=max_learning_rate,
+            tol=0.0, increase_factor=increase_factor, slope_rtol=slope_rtol,
+            curv_rtol=curv_rtol, approx_dec_rtol=approx_dec_rtol,
+            interval_threshold=stepsize_precision, verbose=False)
+    except TypeError as error:  # no such function (None), or other arguments
+        return _optax_search(optax_search, first_step, error)
 
     def update(updates, state, params, *, value, grad,
+               value_fn: Callable[..., Any], **value_fn_kwargs):
+        try:
+            return search(updates, state, params, value=value, grad=grad, value_fn=value_fn,
+                          **value_fn_kwargs)
+        except AttributeError as error:  # optax's search state without the fields read here
+            _warn_optax_search(first_step, error)
+            return optax_search.update(updates, state, params, value=value, grad=grad,
+                                       value_fn=value_fn, **value_fn_kwargs)
+
+    def search(updates, state, params, *, value, grad,
                value_fn: Callable[..., Any], **value_fn_kwargs):
         value_and_grad = jax.value_and_grad(value_fn)
         guess = jnp.asarray(1.0) if initial_guess_strategy == "one" else state.learning_rate
@@ -212,7 +229,23 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
         return (optax.tree.scale(final.stepsize, updates),
                 optax.tree.cast_like(new_state, other_tree=state))
 
-    return optax.GradientTransformationExtraArgs(init, update)
+    return optax.GradientTransformationExtraArgs(optax_search.init, update)
+
+
+def _optax_search(optax_search, first_step: str, error: Exception):
+    """optax's own zoom search, for an optax whose internals this module cannot drive: the
+    same steps where the gradient is right, but 20 evaluations (not 3) where a truncated
+    gradient contradicts the values, and a unit first trial."""
+    _warn_optax_search(first_step, error)
+    return optax_search
+
+
+def _warn_optax_search(first_step: str, error: Exception) -> None:
+    ignored = "; first_step='polyak' is ignored" if first_step == "polyak" else ""
+    warnings.warn(f"prdp_fem.linesearch: this optax ({optax.__version__}) does not offer the "
+                  f"zoom search's internals as expected ({error!r}); using "
+                  "optax.scale_by_zoom_linesearch, which does not stop on a contradicted "
+                  f"gradient{ignored}", RuntimeWarning, stacklevel=3)
 
 
 def lbfgs(memory_size: int = 10, *, max_linesearch_steps: int = 20,
