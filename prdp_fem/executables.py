@@ -313,7 +313,7 @@ class _DirectCall:
                      for a in self._take(args)]
         try:
             results = self._executable.execute_sharded(arguments, with_tokens=True)
-        except jax.errors.JaxRuntimeError as error:
+        except RuntimeError as error:  # JAX's JaxRuntimeError
             if "Buffer passed to Execute()" not in str(error):
                 raise  # the program ran and failed: not ours to retry
             self._foreign = True
