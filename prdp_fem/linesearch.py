@@ -184,20 +184,11 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
             tol=0.0, increase_factor=increase_factor, slope_rtol=slope_rtol,
             curv_rtol=curv_rtol, approx_dec_rtol=approx_dec_rtol,
             interval_threshold=stepsize_precision, verbose=False)
-    except TypeError as error:  # no such function (None), or other arguments
+        _check_search_state(init_search)
+    except (TypeError, AttributeError) as error:  # none (None), other arguments or state
         return _optax_search(optax_search, first_step, error)
 
     def update(updates, state, params, *, value, grad,
-               value_fn: Callable[..., Any], **value_fn_kwargs):
-        try:
-            return search(updates, state, params, value=value, grad=grad, value_fn=value_fn,
-                          **value_fn_kwargs)
-        except AttributeError as error:  # optax's search state without the fields read here
-            _warn_optax_search(first_step, error)
-            return optax_search.update(updates, state, params, value=value, grad=grad,
-                                       value_fn=value_fn, **value_fn_kwargs)
-
-    def search(updates, state, params, *, value, grad,
                value_fn: Callable[..., Any], **value_fn_kwargs):
         value_and_grad = jax.value_and_grad(value_fn)
         guess = jnp.asarray(1.0) if initial_guess_strategy == "one" else state.learning_rate
@@ -230,6 +221,23 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
                 optax.tree.cast_like(new_state, other_tree=state))
 
     return optax.GradientTransformationExtraArgs(optax_search.init, update)
+
+
+#: The fields of optax's zoom-search state that this module reads or replaces.
+_READ_FIELDS = ("count", "updates", "stepsize", "value", "grad", "slope", "value_init",
+                "slope_init", "decrease_error", "curvature_error", "failed", "safe_stepsize",
+                "safe_value", "safe_grad")
+
+
+def _check_search_state(init_search) -> None:
+    """Raise ``AttributeError`` unless optax's search state has every field read here
+    (checked on its shapes: nothing is computed)."""
+    state = jax.eval_shape(lambda: init_search(jnp.ones(1), jnp.zeros(1), value=jnp.ones(()),
+                                               grad=jnp.ones(1), prev_stepsize=1.0,
+                                               initial_guess_strategy="keep"))
+    missing = [name for name in _READ_FIELDS if not hasattr(state, name)]
+    if missing or not hasattr(state, "_replace"):
+        raise AttributeError(f"optax's zoom-search state has no field(s) {missing}")
 
 
 def _optax_search(optax_search, first_step: str, error: Exception):

@@ -5,6 +5,8 @@ the gradient's slope it must stop after three trials with a failure optax's stat
 """
 from __future__ import annotations
 
+import collections
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -225,15 +227,21 @@ def test_an_optax_without_the_expected_internals_gets_optax_search_and_a_warning
     def other_arguments(**kwargs):
         raise TypeError("zoom_linesearch() got an unexpected keyword argument 'tol'")
 
-    def other_state(seen, state):
-        raise AttributeError("'ZoomLinesearchState' object has no attribute 'stepsize'")
+    zoom = linesearch._optax_zoom
 
-    if break_it == "no internals":
-        monkeypatch.setattr(linesearch, "_optax_zoom", None)
-    elif break_it == "other arguments":
-        monkeypatch.setattr(linesearch, "_optax_zoom", other_arguments)
-    else:
-        monkeypatch.setattr(linesearch, "_watch", other_state)
+    def other_state(**kwargs):  # a state without one of the fields read
+        init, step, stop = zoom(**kwargs)
+        fields = [name for name in init(jnp.ones(1), jnp.zeros(1), value=jnp.ones(()),
+                                        grad=jnp.ones(1))._fields if name != "safe_grad"]
+        reduced = collections.namedtuple("ZoomLinesearchState", fields)
+
+        def reduced_init(*args, **kw):
+            return reduced(*(getattr(init(*args, **kw), name) for name in fields))
+        return reduced_init, step, stop
+
+    monkeypatch.setattr(linesearch, "_optax_zoom", {"no internals": None,
+                                                    "other arguments": other_arguments,
+                                                    "other state": other_state}[break_it])
     z = jnp.array([-3.0, 4.0, -2.0, 3.0])
     with pytest.warns(RuntimeWarning, match="does not stop on a contradicted gradient; "
                       "first_step='polyak' is ignored"):
