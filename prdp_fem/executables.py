@@ -286,9 +286,11 @@ class _DirectCall:
     path does, so that :func:`jax.effects_barrier` still waits for the host calls.
 
     Falls back to JAX's path (``unsafe_call``) when NaN/Inf checking is on (it wraps the
-    outputs), and for good when an argument lives on another device (the executable refuses
-    it before running anything). Built only where this JAX has every piece and a probe
-    program gives the same result and tally both ways (:func:`_direct_calls_work`).
+    outputs), for an argument it does not pass itself (a typed PRNG key, as in
+    ``optax.noisy_sgd``'s state) or a deleted one (JAX's path says which), and for good when
+    an argument lives on another device (the executable refuses it before running
+    anything). Built only where this JAX has every piece and a probe program gives the same
+    result and tally both ways (:func:`_direct_calls_work`).
     """
 
     def __init__(self, unchecked, parts):
@@ -309,11 +311,18 @@ class _DirectCall:
     def __call__(self, *args):
         if self._foreign or self._check_special():
             return self._unchecked(*args)
-        arguments = [a if type(a) is self._array_type else self._place(a)
-                     for a in self._take(args)]
+        arguments = list(self._take(args))
+        for i, argument in enumerate(arguments):
+            if type(argument) is not self._array_type:
+                placed = self._place(argument)
+                if placed is None:  # a key array, ...: JAX's path knows how to pass it
+                    return self._unchecked(*args)
+                arguments[i] = placed
         try:
             results = self._executable.execute_sharded(arguments, with_tokens=True)
         except RuntimeError as error:  # JAX's JaxRuntimeError
+            if any(argument.is_deleted() for argument in arguments):
+                return self._unchecked(*args)  # refused before running: JAX's path says why
             if "Buffer passed to Execute()" not in str(error):
                 raise  # the program ran and failed: not ours to retry
             self._foreign = True
@@ -322,14 +331,24 @@ class _DirectCall:
         return results.consume_with_handlers(self._handlers)
 
     def _place(self, value):
+        """``value`` (NumPy or Python) as an array of the device, transferred the way JAX's
+        path does (implicitly: a transfer guard applies); a scalar once, then kept (an array
+        is mutable: every call). ``None`` for anything else."""
+        if isinstance(value, np.ndarray):
+            return self._transferred(value)
         if not isinstance(value, np.generic | int | float | bool):
-            return jax.device_put(value, self._device)  # mutable: placed every call
+            return None
         kept = self._placed.get(id(value))
         if kept is None or kept[0] is not value:
             if len(self._placed) > 16:
                 self._placed.clear()
-            kept = self._placed[id(value)] = (value, jax.device_put(value, self._device))
+            kept = self._placed[id(value)] = (value, self._transferred(value))
         return kept[1]
+
+    def _transferred(self, value):
+        with jax.default_device(self._device):
+            placed = jnp.asarray(value)
+        return placed if type(placed) is self._array_type else None
 
 
 def _direct_parts(unchecked) -> tuple | None:

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import prdp_fem as pf
@@ -239,6 +240,37 @@ def test_a_direct_call_leaves_nan_checks_and_foreign_arguments_to_jax():
     assert np.array_equal(program(counter, x, jnp.int32(2)), jnp.sin(x) * 2)  # JAX's path now
     jax.effects_barrier()
     assert counter.primal == before + 4
+
+
+def test_a_direct_call_passes_what_it_cannot_pass_itself_to_jax(source_problem, monkeypatch):
+    """A typed PRNG key (optax.noisy_sgd keeps one in its state) goes through JAX's path; a
+    deleted argument gets JAX's error; a transfer guard holds as on JAX's path."""
+    def keyed(counter, x, key):
+        tally.tap(counter, "primal", jnp.int32(2), x)
+        return x + jax.random.uniform(key, x.shape)
+
+    program, counter, x = SharedCompile(keyed), IterationCounter(), jnp.zeros(3)
+    key = jax.random.key(7)
+    np.testing.assert_array_equal(program(counter, x, key), jax.random.uniform(key, (3,)))
+    jax.effects_barrier()
+    assert counter.primal == 2
+
+    def noisy_run():
+        return invert(source_problem, optimizer=optax.noisy_sgd(1e-2, key=0),
+                      refinement=fixed(4), steps=3)
+
+    direct = noisy_run()
+    gone = jnp.ones(3)
+    gone.delete()
+    with pytest.raises(RuntimeError, match="deleted"):
+        program(counter, gone, key)
+    with jax.transfer_guard("disallow"), pytest.raises(Exception, match="Disallowed"):
+        program(IterationCounter(), x, key)  # a new counter's slot must be transferred
+
+    _without_direct_calls(monkeypatch)
+    through_jax = noisy_run()
+    np.testing.assert_array_equal(direct.params, through_jax.params)
+    assert _tallies(direct) == _tallies(through_jax) and _tallies(direct)[-1][2] == 3
 
 
 def test_several_devices_take_jax_path():
