@@ -174,8 +174,14 @@ class SharedCompile:
             entry = self._cache[key] = self._compile(static, treedef, leaves)
             self.seconds += time.perf_counter() - start
         buffers = entry.packing.buffers(leaves)
-        return jax.tree_util.tree_unflatten(entry.out_tree[0],
-                                            entry.run(*buffers, *entry.passed(leaves)))
+        try:
+            outputs = entry.run(*buffers, *entry.passed(leaves))
+        except Exception as error:
+            reported = _floating_point_error(error, self._fn)
+            if reported is None:
+                raise
+            raise reported from error
+        return jax.tree_util.tree_unflatten(entry.out_tree[0], outputs)
 
     def _split(self, args: tuple) -> tuple[int | None, tuple]:
         n = self._static_argnum
@@ -393,6 +399,16 @@ def _direct_calls_work() -> bool:
             (counter.primal, counter.primal_solves) == (3, 1)
     except Exception:  # any failure: JAX's own path
         return False
+
+
+def _floating_point_error(error: Exception, fn) -> FloatingPointError | None:
+    """JAX's internal report of a NaN/Inf output (``jax_debug_nans``/``jax_debug_infs``) as
+    the ``FloatingPointError`` that ``jax.jit`` raises; ``None`` for any other error."""
+    if type(error).__name__ != "InternalFloatingPointError":
+        return None
+    name = getattr(fn, "__qualname__", type(fn).__name__)
+    return FloatingPointError(f"invalid value ({getattr(error, 'ty', 'nan')}) encountered in "
+                              f"{name}; run it under jax.disable_jit() to find the operation")
 
 
 def _is_empty(leaf) -> bool:
