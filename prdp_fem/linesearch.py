@@ -241,19 +241,15 @@ def _check_search_state(init_search) -> None:
 
 
 def _optax_search(optax_search, first_step: str, error: Exception):
-    """optax's own zoom search, for an optax whose internals this module cannot drive: the
-    same steps where the gradient is right, but 20 evaluations (not 3) where a truncated
-    gradient contradicts the values, and a unit first trial."""
-    _warn_optax_search(first_step, error)
-    return optax_search
-
-
-def _warn_optax_search(first_step: str, error: Exception) -> None:
+    """optax's own zoom search, with a warning, for an optax whose internals this module
+    cannot drive: the same steps where the gradient is right, but 20 evaluations (not 3)
+    where a truncated gradient contradicts the values, and a unit first trial."""
     ignored = "; first_step='polyak' is ignored" if first_step == "polyak" else ""
     warnings.warn(f"prdp_fem.linesearch: this optax ({optax.__version__}) does not offer the "
                   f"zoom search's internals as expected ({error!r}); using "
                   "optax.scale_by_zoom_linesearch, which does not stop on a contradicted "
                   f"gradient{ignored}", RuntimeWarning, stacklevel=3)
+    return optax_search
 
 
 def lbfgs(memory_size: int = 10, *, max_linesearch_steps: int = 20,
