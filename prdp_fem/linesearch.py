@@ -17,11 +17,17 @@ the slope at ``t = 0`` of the parabola through ``J(0)`` and two successive trial
     \hat s_i = \frac{m_{i+1} t_i - m_i t_{i+1}}{t_i - t_{i+1}},
     \qquad m_i = \frac{J(t_i) - J(0)}{t_i},
 
-is positive for both pairs and agrees within a factor two, and at ``t_3`` the gradient's
-slope has the sign of ``s_0 < 0`` and fails the curvature condition
-``|g(t_3).d| <= c_2 |s_0|``. Then no smaller step meets the sufficient decrease (the values
-rise) nor, with the gradient's slope running from ``s_0`` to ``g(t_3).d``, the curvature
-condition, which optax's approximate (Hager-Zhang) decrease would otherwise let through.
+is positive for both pairs and agrees within a factor two, and at ``t_3`` either
+
+- the gradient's slope has the sign of ``s_0 < 0`` and fails the curvature condition
+  ``|g(t_3).d| <= c_2 |s_0|``: then no smaller step meets the sufficient decrease (the values
+  rise) nor, with the gradient's slope running from ``s_0`` to ``g(t_3).d``, the curvature
+  condition, which optax's approximate (Hager-Zhang) decrease would otherwise let through;
+  optax's search would fail too, after more evaluations; or
+- the value has risen by more than the approximate decrease's tolerance,
+  ``J(t_3) - J(0) > \epsilon |J(0)|`` (``approx_dec_rtol``): the values rise on all of
+  ``(0, t_3]``, so what optax's search may still accept there is a step that *raises* ``J``
+  by up to ``\epsilon |J(0)|``, no progress and, for PRDP, the failure it is.
 
 For a correct gradient this cannot happen where the secant slope ``m(t)`` is convex on
 ``[0, t_1]`` (a quadratic ``J`` included): the linear extrapolation of ``m`` to ``t = 0`` then
@@ -31,8 +37,21 @@ same steps with it as with optax's search.
 The search then ends the way optax's own failure does, minus the wasted evaluations: with
 the best trial that met the sufficient decrease if there is one, else a zero step (the
 value and gradient at the start), and a positive decrease or curvature error, so that
-:func:`prdp_fem.inverse.invert` counts the step as failed. Without a contradiction every
-step, value and gradient is optax's.
+:func:`prdp_fem.inverse.invert` counts the step as failed.
+
+One more departure, only in the first search after the objective changed (the stored value
+is ``inf`` although a search has run: :func:`prdp_fem.inverse.invert` does that when PRDP
+refines ``K``): L-BFGS's direction then comes from another objective's curvature pairs and
+can be thousands of times too long. Where the first trial ``t`` overshoots so far that the
+minimiser of the quadratic through ``J(0)``, ``s_0`` and ``J(t)``,
+
+.. math::
+
+    t_q = \frac{-s_0 t^2}{2 (J(t) - J(0) - s_0 t)},
+
+lies below ``t / 10`` (where optax's zoom discards it and bisects, one halving per
+evaluation), the search starts afresh at ``max(t_q, 10^{-3} t)``; all trials count against
+``max_linesearch_steps``. Everywhere else, every step, value and gradient is optax's.
 
 A gradient with the wrong sign: optax's search spends its 20 evaluations, this one three.
 
@@ -98,8 +117,9 @@ def _nothing_seen(dtype) -> Contradiction:
                          found=jnp.asarray(False))
 
 
-def _watch(seen: Contradiction, state) -> Contradiction:
-    """``seen`` updated with the trial the search has just made (optax's state)."""
+def _watch(seen: Contradiction, state, approx_dec_rtol: float | None = 1e-6) -> Contradiction:
+    """``seen`` updated with the trial the search has just made (optax's state);
+    ``approx_dec_rtol`` is the search's (``None``: no approximate decrease)."""
     t, rise = state.stepsize, state.value - state.value_init
     t_last, rise_last = seen.stepsizes[1], seen.rises[1]
     both_rising = (t > 0) & (t < t_last) & (rise > 0) & (rise_last > 0)
@@ -110,8 +130,11 @@ def _watch(seen: Contradiction, state) -> Contradiction:
     uphill = (slope > 0) & (previous > 0) & (slope <= 2 * previous) & (previous <= 2 * slope)
     # the gradient still says down, too steeply for the curvature condition
     steep = (state.slope * state.slope_init > 0) & (state.curvature_error > 0)
+    # a rise no approximate decrease forgives: what it would accept below t raises J
+    tolerance = 0.0 if approx_dec_rtol is None else approx_dec_rtol * jnp.abs(state.value_init)
     return Contradiction(stepsizes=jnp.stack([t_last, t]), rises=jnp.stack([rise_last, rise]),
-                         extrapolated_slope=slope, found=uphill & steep)
+                         extrapolated_slope=slope,
+                         found=uphill & (steep | (rise > tolerance)))
 
 
 def _give_up(state, curv_rtol: float):
@@ -142,7 +165,8 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
                              initial_guess_strategy: str = "one",
                              first_step: str = "unit",
                              ) -> optax.GradientTransformationExtraArgs:
-    r"""optax's :func:`optax.scale_by_zoom_linesearch` that stops on a contradiction.
+    r"""optax's :func:`optax.scale_by_zoom_linesearch` that stops on a contradiction and,
+    after the objective changed, restarts a far overshoot (see the module's docstring).
 
     The arguments are optax's (the defaults are those :func:`optax.lbfgs` uses; extra update
     arguments go on to ``value_fn`` as keywords); the state is
@@ -194,25 +218,43 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
         guess = jnp.asarray(1.0) if initial_guess_strategy == "one" else state.learning_rate
         if first_step == "polyak":
             guess = _polyak_first_guess(state, updates, value, grad, guess)
-        start = init_search(updates, params, value=value, grad=grad,
-                            prev_stepsize=guess, initial_guess_strategy="keep")
+        def start_at(stepsize):
+            return init_search(updates, params, value=value, grad=grad,
+                               prev_stepsize=stepsize, initial_guess_strategy="keep")
+
+        start = start_at(guess)
+        # invert stores inf when PRDP changed the objective (see the module's docstring)
+        objective_changed = ~jnp.isfinite(state.value) & \
+            (state.info.num_linesearch_steps > 0)
 
         def going_on(carry):
-            search, seen = carry
-            return searching(search) & ~seen.found
+            search, seen, spent = carry
+            return searching(search) & ~seen.found & \
+                (spent + search.count < max_linesearch_steps)
 
         def trial(carry):
-            search, seen = carry
+            search, seen, spent = carry
             search = step_search(search, value_and_grad_fn=value_and_grad,
                                  fn_kwargs=value_fn_kwargs)
-            return search, _watch(seen, search)
+            seen = _watch(seen, search, approx_dec_rtol)
+            overshot, restart_at = _overshoot(search)
+            restart = objective_changed & overshot & ~seen.found & \
+                (spent + search.count < max_linesearch_steps)
+            spent = spent + jnp.where(restart, search.count, 0)
+            search = jax.lax.cond(
+                restart, lambda s: optax.tree.cast_like(start_at(restart_at), other_tree=s),
+                lambda s: s, search)
+            return search, seen, spent
 
         dtype = jnp.result_type(start.value_init)
-        final, seen = jax.lax.while_loop(going_on, trial,
-                                         (start, _nothing_seen(dtype)))
+        final, seen, spent = jax.lax.while_loop(
+            going_on, trial, (start, _nothing_seen(dtype), jnp.zeros_like(start.count)))
         final = jax.lax.cond(seen.found, functools.partial(_give_up, curv_rtol=curv_rtol),
                              lambda s: s, final)
-        info = optax.ZoomLinesearchInfo(num_linesearch_steps=final.count,
+        # only the cap on all trials stops a search that is still going (after restarts)
+        final = jax.lax.cond(searching(final) & ~seen.found, _out_of_trials, lambda s: s,
+                             final)
+        info = optax.ZoomLinesearchInfo(num_linesearch_steps=spent + final.count,
                                         decrease_error=final.decrease_error,
                                         curvature_error=final.curvature_error)
         new_state = optax.ScaleByZoomLinesearchState(
@@ -225,8 +267,39 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
 
 #: The fields of optax's zoom-search state that this module reads or replaces.
 _READ_FIELDS = ("count", "updates", "stepsize", "value", "grad", "slope", "value_init",
-                "slope_init", "decrease_error", "curvature_error", "failed", "safe_stepsize",
-                "safe_value", "safe_grad")
+                "slope_init", "decrease_error", "curvature_error", "interval_found", "done",
+                "failed", "safe_stepsize", "safe_value", "safe_grad")
+
+#: optax's zoom discards an interpolated step within this share of the interval from an end
+#: and bisects instead (its ``quad_chk``)
+_ZOOM_MARGIN = 0.1
+#: the most a restart shrinks the first trial: a non-quadratic rise can put t_q far too low
+_LEAST_RESTART = 1e-3
+
+
+def _overshoot(search):
+    """Whether the search's first trial overshot beyond its zoom's reach, and the step to
+    start afresh from: ``max(t_q, 1e-3 t)``, ``t_q`` the minimiser of the quadratic through
+    ``J(0)``, ``s_0`` and ``J(t)`` (see the module's docstring)."""
+    t, s0 = search.stepsize, search.slope_init
+    rise = search.value - search.value_init
+    excess = rise - s0 * t  # the quadratic's c t^2: positive where t failed the decrease
+    quadratic = -s0 * t * t / (2.0 * jnp.where(excess > 0, excess, 1.0))
+    overshot = ((search.count == 1) & search.interval_found & ~search.done & ~search.failed
+                & (search.decrease_error > 0) & (s0 < 0) & jnp.isfinite(rise) & (excess > 0)
+                & (quadratic < _ZOOM_MARGIN * t))
+    return overshot, jnp.maximum(quadratic, _LEAST_RESTART * t)
+
+
+def _out_of_trials(state):
+    """End a search that spent all its trials as optax's does (its ``_try_safe_step``): at
+    the best trial with sufficient decrease, or where the last trial left the domain, else
+    at the last trial; failed."""
+    use_safe = (state.safe_stepsize > 0) | jnp.isinf(state.decrease_error)
+    stepsize, value, grad = optax.tree.where(
+        use_safe, [state.safe_stepsize, state.safe_value, state.safe_grad],
+        [state.stepsize, state.value, state.grad])
+    return state._replace(stepsize=stepsize, value=value, grad=grad, failed=jnp.asarray(True))
 
 
 def _check_search_state(init_search) -> None:
@@ -257,7 +330,9 @@ def lbfgs(memory_size: int = 10, *, max_linesearch_steps: int = 20,
     """:func:`optax.lbfgs` with :func:`scale_by_zoom_linesearch` as its line search.
 
     optax's defaults otherwise (unit initial step, ``scale_init_precond``): on a problem
-    whose gradients match its values it takes optax's steps exactly. ``first_step="polyak"``
+    whose gradients match its values it takes optax's steps exactly, unless the objective
+    changes under it (a far overshoot of the first search after that restarts; see
+    :func:`scale_by_zoom_linesearch`). ``first_step="polyak"``
     starts the first line search at ``J(z_0) / |s_0|`` instead (see
     :func:`scale_by_zoom_linesearch`): one evaluation instead of 10-20 for the first step
     of the built-in scenes, and a different path from there on.

@@ -267,6 +267,34 @@ def test_a_truncated_gradient_s_failed_line_search_costs_three_or_four_evaluatio
     np.testing.assert_array_equal(runs["prdp_fem"].params, one_step.params)
 
 
+def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
+    """When K changes, the line search's stored value and gradient belong to the old solver:
+    invert marks them stale (inf), so the next step's loss is the new solver's, and the
+    line search knows the objective changed (pf.scale_by_zoom_linesearch's restart)."""
+    from prdp_fem.inverse import Objective
+    from prdp_fem.prdp import Refinement
+
+    _disc, problem = _coefficient_problem(n=8, alpha=1e-6)
+    base = fixed(2, 2)
+
+    def refine_after_the_first_step(state, value, failed=False):
+        state = base.update(state, value, failed)
+        return state._replace(iterations=jnp.where(state.count >= 1, 30, 2),
+                              adjoint_iterations=jnp.where(state.count >= 1, 30, 2))
+
+    params = []
+    result = invert(problem, refinement=Refinement(base.init, refine_after_the_first_step),
+                    steps=2, callback=lambda record, z: params.append(np.asarray(z)))
+    assert list(result.history.column("iterations")) == [2, 30]
+    solver = TruncatedCG(30, "jacobi", gradient="implicit", adjoint_iterations=30)
+    fresh = float(Objective(problem, solver, None)(jnp.asarray(params[0])))
+    assert result.history[1].loss == pytest.approx(fresh, rel=1e-12)
+    stale = float(Objective(problem, TruncatedCG(2, "jacobi", gradient="implicit",
+                                                 adjoint_iterations=2), None)(
+        jnp.asarray(params[0])))
+    assert abs(fresh - stale) > 1e-6 * abs(fresh)  # the test can tell them apart
+
+
 def test_a_failed_line_search_is_read_from_the_optimizer_state():
     def f(x):
         return jnp.sum(x ** 2)

@@ -117,17 +117,19 @@ def test_a_too_steep_gradient_is_not_a_contradiction():
 class _Trial:
     """The fields of optax's zoom state that the watch reads."""
 
-    def __init__(self, t, value, *, slope=-1.0, slope_init=-1.0, curvature_error=1.0):
-        self.stepsize, self.value, self.value_init = (jnp.asarray(t), jnp.asarray(value),
-                                                      jnp.asarray(0.0))
+    def __init__(self, t, rise, *, slope=-1.0, slope_init=-1.0, curvature_error=1.0,
+                 value_init=0.0):
+        self.stepsize, self.value, self.value_init = (jnp.asarray(t),
+                                                      jnp.asarray(value_init + rise),
+                                                      jnp.asarray(value_init))
         self.slope, self.slope_init = jnp.asarray(slope), jnp.asarray(slope_init)
         self.curvature_error = jnp.asarray(curvature_error)
 
 
-def _watched(trials) -> Contradiction:
+def _watched(trials, approx_dec_rtol=1e-6) -> Contradiction:
     seen = _nothing_seen(jnp.float64)
     for trial in trials:
-        seen = _watch(seen, trial)
+        seen = _watch(seen, trial, approx_dec_rtol)
     return seen
 
 
@@ -148,10 +150,28 @@ def test_the_extrapolated_slope_is_a_parabola_s_slope_at_zero():
     (dict(curvature_error=0.0), "the curvature condition holds at the last trial"),
     (dict(slope=+0.5), "the gradient's slope has turned: a smaller step may meet curvature"),
 ])
-def test_a_contradiction_needs_a_gradient_that_still_says_down_too_steeply(trial_kwargs, why):
-    rising = [_Trial(t, 0.3 * t + 2.0 * t * t) for t in (1.0, 0.4)]
-    last = _Trial(0.1, 0.3 * 0.1 + 2.0 * 0.01, **trial_kwargs)
+def test_a_rise_within_the_approximate_tolerance_needs_a_steep_gradient(trial_kwargs, why):
+    # J(0) = 1e6: the last rise, 0.05, is within optax's approximate decrease (1e-6 J(0)),
+    # which a step below t_3 may meet with the curvature condition
+    rising = [_Trial(t, 0.3 * t + 2.0 * t * t, value_init=1e6) for t in (1.0, 0.4)]
+    last = _Trial(0.1, 0.3 * 0.1 + 2.0 * 0.01, value_init=1e6, **trial_kwargs)
     assert not bool(_watched([*rising, last]).found), why
+    # the same trials with a steep gradient at t_3: optax's search would fail as well
+    steep = _Trial(0.1, 0.3 * 0.1 + 2.0 * 0.01, value_init=1e6)
+    assert bool(_watched([*rising, steep]).found)
+
+
+@pytest.mark.parametrize("trial_kwargs", [dict(curvature_error=0.0), dict(slope=+0.5)])
+@pytest.mark.parametrize("value_init, approx_dec_rtol, found", [
+    (1e3, 1e-6, True),    # rise 0.05 > 1e-3: what optax might still accept raises J
+    (1e5, 1e-6, False),   # rise 0.05 < 0.1: within the tolerance
+    (1e5, None, True),    # no approximate decrease: nothing below t_3 meets the decrease
+])
+def test_a_rise_beyond_the_approximate_tolerance_is_a_contradiction(
+        trial_kwargs, value_init, approx_dec_rtol, found):
+    trials = [_Trial(t, 0.3 * t + 2.0 * t * t, value_init=value_init) for t in (1.0, 0.4)]
+    trials.append(_Trial(0.1, 0.3 * 0.1 + 2.0 * 0.01, value_init=value_init, **trial_kwargs))
+    assert bool(_watched(trials, approx_dec_rtol).found) == found
 
 
 def test_two_rising_trials_or_disagreeing_slopes_are_not_enough():
@@ -249,3 +269,96 @@ def test_an_optax_without_the_expected_internals_gets_optax_search_and_a_warning
     theirs, their_searches = _run(optax.lbfgs(), _rosenbrock, z, 6)
     np.testing.assert_array_equal(ours, theirs)
     assert our_searches == their_searches
+
+
+# --- the first search after the objective changed ----------------------------------------
+
+
+def _half_squared_distance_to_one(z):
+    return 0.5 * jnp.sum((z - 1.0) ** 2)
+
+
+def _search_along(direction_scale, *, changed, max_linesearch_steps=20):
+    """One search of `pf.scale_by_zoom_linesearch` along ``direction_scale`` times the
+    steepest descent direction of a quadratic, whose line minimum is at
+    ``t* = 1 / direction_scale``; ``changed``: the state says the objective changed since the
+    last search (the value invert stores when PRDP refines), else a finite stored value."""
+    fn, z = _half_squared_distance_to_one, jnp.array([0.2, -0.4, 0.7])
+    value, grad = jax.value_and_grad(fn)(z)
+    search = pf.scale_by_zoom_linesearch(max_linesearch_steps)
+    state = search.init(z)
+    state = state._replace(value=jnp.asarray(jnp.inf if changed else value), grad=grad,
+                           info=state.info._replace(num_linesearch_steps=jnp.asarray(3)))
+    direction = -direction_scale * grad
+    updates, state = search.update(direction, state, z, value=value, grad=grad, value_fn=fn)
+    return direction, updates, state
+
+
+def test_an_overshoot_after_the_objective_changed_restarts_at_the_quadratic_step():
+    # the direction is 1000 times too long: optax's zoom halves the unit trial (the quadratic
+    # step 1e-3 lies within 10 % of the interval's end) where the restart lands on t* at once
+    direction, updates, state = _search_along(1000.0, changed=True)
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 2
+    np.testing.assert_allclose(updates, 1e-3 * direction, rtol=1e-12)
+    assert not bool(_step_failed(state))
+    # the same search with the objective unchanged is optax's, many halvings long
+    _, our_updates, ours = _search_along(1000.0, changed=False)
+    fn, z = _half_squared_distance_to_one, jnp.array([0.2, -0.4, 0.7])
+    value, grad = jax.value_and_grad(fn)(z)
+    theirs = optax.scale_by_zoom_linesearch(20)
+    their_updates, theirs = theirs.update(-1000.0 * grad, theirs.init(z), z, value=value,
+                                          grad=grad, value_fn=fn)
+    np.testing.assert_array_equal(our_updates, their_updates)
+    assert int(otu.tree_get(ours, "num_linesearch_steps")) == \
+        int(otu.tree_get(theirs, "num_linesearch_steps")) > 5
+
+
+def test_a_restart_shrinks_the_trial_by_at_most_a_thousand_and_repeats():
+    # t* = 1e-8: restarts at 1e-3 (the floor), 1e-6 (the floor) and 1e-8 (t_q), then done
+    direction, updates, state = _search_along(1e8, changed=True)
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 4
+    np.testing.assert_allclose(updates, 1e-8 * direction, rtol=1e-9)
+    assert not bool(_step_failed(state))
+
+
+def test_restarts_count_against_the_search_s_trials():
+    # three trials allowed: 1, 1e-3, 1e-6 all overshoot; the search ends there, failed,
+    # at its last trial as optax's ends without a step that met the sufficient decrease
+    direction, updates, state = _search_along(1e8, changed=True, max_linesearch_steps=3)
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
+    assert bool(_step_failed(state))
+    np.testing.assert_allclose(updates, 1e-6 * direction, rtol=1e-12)
+    z = jnp.array([0.2, -0.4, 0.7])
+    np.testing.assert_allclose(float(otu.tree_get(state, "value")),
+                               float(_half_squared_distance_to_one(z + updates)), rtol=1e-12)
+
+
+@pytest.mark.parametrize("direction_scale", [5.0, 1.0])
+def test_a_first_trial_within_the_zoom_s_reach_is_not_restarted(direction_scale):
+    # t* = 0.2 (the zoom's quadratic step is usable) and t* = 1 (the unit trial is right):
+    # optax's search exactly, objective changed or not
+    _, changed_updates, changed = _search_along(direction_scale, changed=True)
+    _, kept_updates, kept = _search_along(direction_scale, changed=False)
+    np.testing.assert_array_equal(changed_updates, kept_updates)
+    assert int(otu.tree_get(changed, "num_linesearch_steps")) == \
+        int(otu.tree_get(kept, "num_linesearch_steps"))
+
+
+def test_a_search_out_of_trials_after_a_restart_ends_at_its_safe_step_as_optax_s_does():
+    # along the line: slope -1000 up to a wall at t = 1.5e-3. The unit trial overshoots, the
+    # restart at 1e-3 meets the decrease (not the curvature), the doubled 2e-3 hits the
+    # wall; with three trials the search ends there, failed, at the safe 1e-3
+    def walled(z):
+        return jnp.sum(-z + 1e6 * jnp.maximum(z - 1.5, 0.0) ** 2)
+
+    z = jnp.zeros(1)
+    value, grad = jax.value_and_grad(walled)(z)
+    search = pf.scale_by_zoom_linesearch(3)
+    state = search.init(z)
+    state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
+    updates, state = search.update(jnp.array([1000.0]), state, z, value=value, grad=grad,
+                                   value_fn=walled)
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
+    np.testing.assert_allclose(updates, [1.0], rtol=1e-12)
+    assert float(otu.tree_get(state, "value")) == pytest.approx(float(walled(jnp.ones(1))))
+    assert bool(_step_failed(state))
