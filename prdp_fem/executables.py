@@ -6,7 +6,8 @@ object, and every inversion builds its own step function. So a study of six conf
 compiled six optimiser steps although five of them are the same program: they differ only in
 ``K``, ``K_adj`` and their counters, which are arguments. :class:`SharedCompile` lowers its
 function and looks the lowered program up in a small process-wide table before compiling:
-equal programs compile once.
+equal programs compile once, and a later process loads what an earlier one compiled
+(:mod:`prdp_fem.program_store`).
 
 What makes two lowerings the same program: the same text (constants are in it), the same
 arguments read (unread ones are left out of the text, so which ones it takes is part of the
@@ -42,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .program_store import compile_lowered
 from .tally import is_tally_host_call
 
 __all__ = ["SharedCompile"]
@@ -225,14 +227,14 @@ class SharedCompile:
         """An executable of the same program compiled earlier in the process, else a new one."""
         key = _program_key(lowered, leaves)
         if key is None:
-            return lowered.compile()
+            return compile_lowered(lowered)
         with _TABLE_LOCK:
             executable = _EXECUTABLES.get(key)
             if executable is not None:
                 _EXECUTABLES.move_to_end(key)
                 self.shared += 1
                 return executable
-        executable = lowered.compile()
+        executable = compile_lowered(lowered)
         with _TABLE_LOCK:
             _EXECUTABLES[key] = executable
             while len(_EXECUTABLES) > _LIMIT:
