@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from typing import Any, NamedTuple
 
@@ -352,7 +353,7 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
     ``decay = "cosine"`` learning rate decays over; default ``optimizer.steps``)."""
     spec = scene.optimizer
     if spec.name == "lbfgs":
-        return lbfgs(memory_size=spec.memory_size, first_step=spec.first_step)
+        return _lbfgs(spec.memory_size, spec.first_step)
     if spec.name in ("newton_cg", "gauss_newton"):
         return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                          max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
@@ -365,6 +366,13 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
         updates = spec.steps if updates is None else updates
         learning_rate = optax.cosine_decay_schedule(spec.learning_rate, max(updates, 1))
     return getattr(optax, spec.name)(learning_rate)
+
+
+@functools.lru_cache(maxsize=16)
+def _lbfgs(memory_size: int, first_step: str) -> optax.GradientTransformationExtraArgs:
+    """One L-BFGS object per setting (pure and immutable, as optax's transformations are):
+    a study's runs then share one compiled step (see ``prdp_fem.inverse._step_program``)."""
+    return lbfgs(memory_size=memory_size, first_step=first_step)
 
 
 def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:

@@ -20,7 +20,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
-from functools import partial
+from functools import lru_cache, partial
 from typing import Any, NamedTuple
 
 import jax
@@ -384,6 +384,41 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
     return step
 
 
+@lru_cache(maxsize=1)
+def _default_optimizer() -> optax.GradientTransformationExtraArgs:
+    """:func:`~prdp_fem.linesearch.lbfgs`, one object for every call that passes none (pure
+    and immutable, as optax's transformations are): such runs share their compiled step."""
+    return lbfgs()
+
+
+def _step_program(optimizer, gradient: str, tolerance_mode: bool,
+                  preconditioner) -> SharedCompile:
+    """The compiled step for these settings, kept for the process (the last
+    :data:`_STEP_PROGRAMS`): inversions with equal settings -- the same optimizer object, a
+    study's runs, an alpha sweep's -- trace and lower their step once, not once each
+    (0.4-1 s). A preconditioner object (a pytree of arrays: no key) or an optimizer that
+    cannot be hashed gets a step of its own."""
+    settings = (optimizer, gradient, tolerance_mode, preconditioner)
+    if not isinstance(preconditioner, str):
+        return _new_step_program(*settings)
+    try:
+        hash(optimizer)
+    except Exception:  # an optimizer object that is not a key
+        return _new_step_program(*settings)
+    return _shared_step_program(*settings)
+
+
+def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
+    return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
+                         static_argnum=4 if gradient == "unrolled" else None,
+                         packed_argnums=(0,))
+
+
+#: How many step programs (settings) the process keeps.
+_STEP_PROGRAMS = 8
+_shared_step_program = lru_cache(maxsize=_STEP_PROGRAMS)(_new_step_program)
+
+
 def _make_validation(rtol, preconditioner):
     def misfit(problem, counter, z):
         return problem.loss(z, ConvergedCG(rtol=rtol, preconditioner=preconditioner),
@@ -451,7 +486,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")
-    optimizer = optax.with_extra_args_support(lbfgs() if optimizer is None else optimizer)
+    optimizer = optax.with_extra_args_support(_default_optimizer() if optimizer is None
+                                              else optimizer)
 
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
@@ -460,15 +496,13 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     # timed as compile time, not run time, and happens once per process
     update_control = SharedCompile(refinement.update)
     counter, validation_counter = IterationCounter(), IterationCounter()
-    step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
-                                    preconditioner),
-                         static_argnum=4 if gradient == "unrolled" else None,
-                         packed_argnums=(0,))
+    step = _step_program(optimizer, gradient, refinement.tolerance_mode, preconditioner)
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
     validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,
                                                                       preconditioner)
     compiled = [step, update_control] + ([] if validate is None else [validate])
+    compiled_before_run = sum(c.seconds for c in compiled)  # the step may be an earlier run's
     history, run_time, evaluations, failed_steps = History(), 0.0, 0, 0
     failed_since_update = False  # a monitor read every few steps still hears of each failure
     for k in range(1, steps + 1):
@@ -512,7 +546,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             rtol=previous_K[2], refinements=int(control.refinements),
             primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
             validation_iterations=validation_counter.primal, evaluations=evaluations,
-            time=run_time, compile_time=compile_time, loss=float(value), misfit=float(misfit),
+            time=run_time, compile_time=compile_time - compiled_before_run, loss=float(value),
+            misfit=float(misfit),
             parameter_error=float(error), state_error=state_error, failed_steps=failed_steps)
         history = history.append(record)
         if callback is not None and callback(record, z):

@@ -14,7 +14,7 @@ import optax
 import pytest
 
 import prdp_fem as pf
-from prdp_fem import executables, tally
+from prdp_fem import executables, inverse, tally
 from prdp_fem.cg import IterationCounter, TruncatedCG, solve
 from prdp_fem.executables import SharedCompile
 from prdp_fem.inverse import Validation, inverse_problem, invert
@@ -123,6 +123,7 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
 
     # the step and the controller's update (and the validation misfit)
     programs = 2 if monitor == "loss" else 3
+    inverse._shared_step_program.cache_clear()  # no step kept from an earlier test
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
     first = run(fixed(4))
     assert len(executables._EXECUTABLES) == programs
@@ -131,6 +132,7 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
     assert len(executables._EXECUTABLES) == programs + 1
     assert _tallies(first) == _tallies(second)  # prdp does not refine in 4 steps
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
+    inverse._shared_step_program.cache_clear()
     alone = run(fixed(6))  # compiled for itself
     assert _tallies(third) == _tallies(alone)
     assert _tallies(third)[-1][0] > _tallies(first)[-1][0] > 0
@@ -353,6 +355,7 @@ def test_an_inversion_step_takes_its_problem_packed(source_problem, monkeypatch)
         made.append(self)
 
     monkeypatch.setattr(SharedCompile, "__init__", recording)
+    inverse._shared_step_program.cache_clear()  # build the step here
     invert(source_problem, refinement=fixed(4), steps=2)
     problem_arrays = [leaf for leaf in jax.tree_util.tree_leaves(source_problem) if leaf.size]
     [step] = [compiled for compiled in made if compiled._packed_argnums == (0,)]

@@ -1,5 +1,6 @@
 """Inverse problems: gradients (Taylor), observations, regularisers, the loop, alpha choice."""
 
+import dataclasses
 import math
 
 import jax
@@ -293,6 +294,56 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
                                                  adjoint_iterations=2), None)(
         jnp.asarray(params[0])))
     assert abs(fresh - stale) > 1e-6 * abs(fresh)  # the test can tell them apart
+
+
+def _step_programs_made(monkeypatch) -> list:
+    """The step programs (SharedCompile with a packed problem) built from now on."""
+    from prdp_fem import inverse
+    from prdp_fem.executables import SharedCompile
+
+    made, original = [], SharedCompile.__init__
+
+    def recording(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self)
+
+    inverse._shared_step_program.cache_clear()
+    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    return made
+
+
+def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once(
+        monkeypatch):
+    """A study's runs or an alpha sweep call invert again and again with equal settings: the
+    step is traced and compiled once, and each run's compile time is its own."""
+    _, problem = _source_problem(n=6)
+    made = _step_programs_made(monkeypatch)
+    first = invert(problem, refinement=fixed(3), steps=3)
+    second = invert(problem, refinement=fixed(3), steps=3)
+    other_alpha = invert(dataclasses.replace(problem, alpha=1e-3), refinement=fixed(3), steps=3)
+    steps = [c for c in made if c._packed_argnums == (0,)]
+    assert len(steps) == 1
+    # no run counts another's compilation: together they are at most what was compiled
+    runs = (first, second, other_alpha)
+    assert sum(run.history[-1].compile_time for run in runs) <= sum(c.seconds for c in made)
+    assert first.history[-1].compile_time > 0
+    for name in ("loss", "primal_iterations", "adjoint_iterations_total", "evaluations"):
+        assert np.array_equal(first.history.column(name), second.history.column(name)), name
+    assert other_alpha.history[-1].loss != first.history[-1].loss
+    # another optimizer object is another step
+    invert(problem, optimizer=pf.lbfgs(), refinement=fixed(3), steps=1)
+    assert len([c for c in made if c._packed_argnums == (0,)]) == 2
+
+
+def test_a_preconditioner_object_gets_a_step_of_its_own(monkeypatch):
+    # a pytree of arrays: its hash is no key (numpy arrays refuse one)
+    disc, problem = _source_problem(n=6)
+    amg = pf.amg_preconditioner(disc.system.operator(jnp.ones(disc.n_kappa)))
+    made = _step_programs_made(monkeypatch)
+    runs = [invert(problem, refinement=fixed(3), steps=2, preconditioner=amg)
+            for _ in range(2)]
+    assert len([c for c in made if c._packed_argnums == (0,)]) == 2
+    assert np.array_equal(runs[0].history.column("loss"), runs[1].history.column("loss"))
 
 
 def test_a_failed_line_search_is_read_from_the_optimizer_state():

@@ -83,6 +83,14 @@ def test_first_step_reaches_the_line_search():
     assert searches["polyak"] == 1 and searches["unit"] > 10
 
 
+def test_equal_lbfgs_settings_build_one_optimizer_object():
+    """A study's runs then share one compiled step (`invert` keys its steps by the object)."""
+    first = build.optimizer(parse_scene({"optimizer": {"first_step": "unit"}}))
+    again = build.optimizer(parse_scene({"optimizer": {"first_step": "unit"}}))
+    other = build.optimizer(parse_scene({"optimizer": {"first_step": "polyak"}}))
+    assert first is again and other is not first
+
+
 def test_stall_on_failure_reaches_the_controller():
     for flag, expected in ((True, 20), (False, 10)):
         spec = parse_scene({"refinement": {"K0": 10, "stall_on_failure": flag}})
