@@ -161,17 +161,50 @@ def test_a_rise_within_the_approximate_tolerance_needs_a_steep_gradient(trial_kw
     assert bool(_watched([*rising, steep]).found)
 
 
-@pytest.mark.parametrize("trial_kwargs", [dict(curvature_error=0.0), dict(slope=+0.5)])
+# at t_3 = 0.1 the rise is 0.05: the secant slope m_3 = 0.5
+@pytest.mark.parametrize("trial_kwargs", [dict(curvature_error=0.0), dict(slope=+0.4)])
 @pytest.mark.parametrize("value_init, approx_dec_rtol, found", [
     (1e3, 1e-6, True),    # rise 0.05 > 1e-3: what optax might still accept raises J
     (1e5, 1e-6, False),   # rise 0.05 < 0.1: within the tolerance
-    (1e5, None, True),    # no approximate decrease: nothing below t_3 meets the decrease
+    (1e5, None, True),    # no approximate decrease: no tolerance
 ])
 def test_a_rise_beyond_the_approximate_tolerance_is_a_contradiction(
         trial_kwargs, value_init, approx_dec_rtol, found):
     trials = [_Trial(t, 0.3 * t + 2.0 * t * t, value_init=value_init) for t in (1.0, 0.4)]
     trials.append(_Trial(0.1, 0.3 * 0.1 + 2.0 * 0.01, value_init=value_init, **trial_kwargs))
     assert bool(_watched(trials, approx_dec_rtol).found) == found
+
+
+def test_a_gradient_slope_above_the_secant_is_no_contradiction_however_high_the_rise():
+    # J'(t_3) >= m_3, as for any J convex on [0, t_3] with its true gradient
+    trials = [_Trial(t, 0.3 * t + 2.0 * t * t) for t in (1.0, 0.4)]
+    trials.append(_Trial(0.1, 0.3 * 0.1 + 2.0 * 0.01, slope=+0.6, curvature_error=0.0))
+    assert not bool(_watched(trials, None).found)
+
+
+def _smoothed_kink(z):
+    # convex, right gradient: J = 10 - t + (sqrt(1 + (100 t)^2) - 1) along z; the secant
+    # slope is concave and the values rise from far below the unit trial down to t ~ 1e-2
+    return jnp.sum(10.0 - z + jnp.sqrt(1.0 + (100.0 * z) ** 2) - 1.0)
+
+
+@pytest.mark.parametrize("approx_dec_rtol", [1e-6, None])
+def test_a_convex_kink_with_its_true_gradient_gets_optax_s_search(approx_dec_rtol):
+    """The values seem to rise from t = 0 (a smoothed total variation's kink), but the
+    gradient's slope stays above the secant's: optax's search, which finds the step."""
+    z = jnp.zeros(1)
+    value, grad = jax.value_and_grad(_smoothed_kink)(z)
+    results = []
+    for search in (pf.scale_by_zoom_linesearch(approx_dec_rtol=approx_dec_rtol),
+                   optax.scale_by_zoom_linesearch(20, approx_dec_rtol=approx_dec_rtol)):
+        updates, state = search.update(-grad, search.init(z), z, value=value, grad=grad,
+                                       value_fn=_smoothed_kink)
+        results.append((np.asarray(updates), int(otu.tree_get(state, "num_linesearch_steps")),
+                        bool(_step_failed(state))))
+    (ours, our_count, we_failed), (theirs, their_count, they_failed) = results
+    np.testing.assert_array_equal(ours, theirs)
+    assert our_count == their_count > 3 and not we_failed and not they_failed
+    assert float(_smoothed_kink(z + ours)) < float(value)
 
 
 def test_two_rising_trials_or_disagreeing_slopes_are_not_enough():
@@ -362,3 +395,24 @@ def test_a_search_out_of_trials_after_a_restart_ends_at_its_safe_step_as_optax_s
     np.testing.assert_allclose(updates, [1.0], rtol=1e-12)
     assert float(otu.tree_get(state, "value")) == pytest.approx(float(walled(jnp.ones(1))))
     assert bool(_step_failed(state))
+
+
+def test_float32_parameters_keep_their_dtype_when_a_search_gives_up_or_runs_out():
+    # the give-up and out-of-trials branches must return the state's float32 types
+    z = jnp.array([0.2, -0.4, 0.7], dtype=jnp.float32)
+    _, _, updates, state = _one_search(pf.lbfgs(), _wrong_sign, z)
+    assert updates.dtype == jnp.float32 and int(otu.tree_get(state, "num_linesearch_steps")) == 3
+    np.testing.assert_array_equal(updates, np.zeros(3, np.float32))
+
+    def walled(z):
+        return jnp.sum(-z + 1e6 * jnp.maximum(z - 1.5, 0.0) ** 2)
+
+    z = jnp.zeros(1, jnp.float32)
+    value, grad = jax.value_and_grad(walled)(z)
+    search = pf.scale_by_zoom_linesearch(3)
+    state = search.init(z)
+    state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
+    updates, state = search.update(jnp.array([1000.0], jnp.float32), state, z, value=value,
+                                   grad=grad, value_fn=walled)
+    assert updates.dtype == jnp.float32 and bool(_step_failed(state))
+    np.testing.assert_allclose(updates, [1.0], rtol=1e-6)
