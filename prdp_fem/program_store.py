@@ -53,27 +53,46 @@ _LOCK = threading.Lock()  # one compile through the store at a time (it swaps a 
 
 
 def store_directory() -> Path | None:
-    """``tally/`` in JAX's persistent cache directory; ``None`` with the cache off."""
-    directory = jax.config.jax_compilation_cache_dir
-    if not directory or not jax.config.jax_enable_compilation_cache:
+    """``tally/`` in JAX's persistent cache directory; ``None`` with the cache off or in a
+    remote store (a URL such as ``gs://...``: JAX's cache handles those, this one does not)."""
+    return _tally_directory(jax.config.jax_compilation_cache_dir,
+                            jax.config.jax_enable_compilation_cache)
+
+
+def _tally_directory(cache_directory: str | None, enabled: bool) -> Path | None:
+    if not cache_directory or not enabled or "://" in cache_directory:
         return None
-    return Path(directory) / "tally"
+    return Path(cache_directory) / "tally"
 
 
 def compile_lowered(lowered):
     """``lowered.compile()``; a program whose only host callbacks are the tally's is loaded
     from the store when it is there and stored once compiled (see the module docstring)."""
     directory = store_directory()
-    original = getattr(_jax_compiler, "compile_or_get_cached", None)
-    if directory is None or original is None or not hasattr(_jax_cache, "get_cache_key"):
+    if directory is None or not hasattr(_jax_compiler, "compile_or_get_cached") or \
+            not hasattr(_jax_cache, "get_cache_key"):
         return lowered.compile()
+    with _LOCK:  # read JAX's function under the lock: another compile may have swapped it
+        original = _jax_compiler.compile_or_get_cached
+        _jax_compiler.compile_or_get_cached = _serving(original, directory,
+                                                       threading.get_ident())
+        try:
+            return lowered.compile()
+        finally:
+            _jax_compiler.compile_or_get_cached = original
+
+
+def _serving(original, directory: Path, owner: int):
+    """JAX's ``compile_or_get_cached`` serving this thread's tally programs from the store;
+    other threads' compilations (they see the swap too) go to JAX's function untouched."""
 
     def stored_or_compiled(backend, computation, devices, compile_options, host_callbacks,
                            executable_devices, *args, **kwargs):
         def compiled():
             return original(backend, computation, devices, compile_options, host_callbacks,
                             executable_devices, *args, **kwargs)
-        if not host_callbacks or not all(map(is_tally_host_call, host_callbacks)):
+        if threading.get_ident() != owner or not host_callbacks or \
+                not all(map(is_tally_host_call, host_callbacks)):
             return compiled()
         path = _path(directory, computation, devices, compile_options, backend)
         if path is None:
@@ -87,12 +106,7 @@ def compile_lowered(lowered):
             _store(path, backend, executable, len(host_callbacks))
         return executable
 
-    with _LOCK:
-        _jax_compiler.compile_or_get_cached = stored_or_compiled
-        try:
-            return lowered.compile()
-        finally:
-            _jax_compiler.compile_or_get_cached = original
+    return stored_or_compiled
 
 
 def _path(directory: Path, computation, devices, compile_options, backend) -> Path | None:
@@ -136,6 +150,9 @@ def _store(path: Path, backend, executable, host_calls: int) -> None:
         stored = sorted(path.parent.glob(f"*{_SUFFIX}"), key=lambda p: p.stat().st_mtime)
         for old in stored[:-CAPACITY]:
             old.unlink(missing_ok=True)
+        for left in path.parent.glob("*.tmp"):  # a write a crash cut short, an hour ago
+            if time.time() - left.stat().st_mtime > 3600:
+                left.unlink(missing_ok=True)
     except Exception:  # full disk, read-only directory, unserialisable
         return
 

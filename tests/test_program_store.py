@@ -127,12 +127,61 @@ def test_the_store_keeps_the_most_recently_used(store, monkeypatch):
     assert not list(directory.glob("*.tmp"))
 
 
+def test_the_store_follows_jax_s_cache_directory():
+    assert program_store._tally_directory("/some/cache", True) == Path("/some/cache/tally")
+    assert program_store._tally_directory("/some/cache", False) is None  # cache disabled
+    assert program_store._tally_directory("", True) is None              # no directory
+    assert program_store._tally_directory("gs://bucket/cache", True) is None  # remote: JAX's
+    assert program_store.store_directory() == Path(
+        jax.config.jax_compilation_cache_dir) / "tally"  # the session's (tests/conftest.py)
+
+
 def test_with_the_cache_off_nothing_is_stored(store, monkeypatch):
     directory, compiled = store
     monkeypatch.setattr(program_store, "store_directory", lambda: None)
     _run_fresh_lowering()
     _run_fresh_lowering()
     assert len(compiled) == 2 and not directory.exists()
+
+
+def test_concurrent_compiles_leave_jax_s_function_in_place_and_others_programs_alone(store):
+    """While one thread compiles through the store (JAX's function swapped), another
+    thread's tally program compiled by plain `jax.jit` is not stored, a second
+    `compile_lowered` waits, and JAX's function is JAX's again afterwards."""
+    import threading
+
+    directory, _ = store
+    jax_function = jax_compiler.compile_or_get_cached
+    holding, release = threading.Event(), threading.Event()
+
+    class Waiting:  # a lowering whose compile waits until released
+        def compile(self):
+            holding.set()
+            release.wait(timeout=60)
+            return "compiled"
+
+    class Quick:
+        def compile(self):
+            return "quick"
+
+    results = {}
+    first = threading.Thread(target=lambda: results.update(
+        first=program_store.compile_lowered(Waiting())))
+    first.start()
+    assert holding.wait(timeout=60)
+    assert jax_compiler.compile_or_get_cached is not jax_function  # swapped, for `first`
+    second = threading.Thread(target=lambda: results.update(
+        second=program_store.compile_lowered(Quick())))
+    second.start()
+    counter = IterationCounter()
+    jax.jit(_tapped)(counter, jnp.ones(3), jnp.int32(2))  # this thread: not the owner
+    jax.effects_barrier()
+    assert counter.snapshot() == (2, 0) and not directory.exists()
+    release.set()
+    first.join(timeout=60)
+    second.join(timeout=60)
+    assert results == {"first": "compiled", "second": "quick"}
+    assert jax_compiler.compile_or_get_cached is jax_function
 
 
 SCRIPT = """
