@@ -51,6 +51,8 @@ __all__ = ["SharedCompile"]
 #: Executables by program; the least recently used is dropped beyond the limit.
 _EXECUTABLES: OrderedDict[tuple, Any] = OrderedDict()
 _LIMIT = 32
+#: Executables one SharedCompile keeps (per static value and argument types).
+_ENTRY_LIMIT = 8
 _TABLE_LOCK = threading.Lock()
 
 
@@ -105,6 +107,10 @@ class _Packing:
                         for layout in self.layout)
         self._last = (sources, buffers)
         return buffers
+
+    def forget(self) -> None:
+        """Drop the last arrays and their buffers (the caller is done with them)."""
+        self._last = ((), ())
 
     def unpack(self, buffers) -> dict[int, jax.Array]:
         """Inside the program: leaf index -> its slice of its buffer."""
@@ -163,7 +169,7 @@ class SharedCompile:
         if static_argnum in packed_argnums:
             raise ValueError(f"argument {static_argnum} cannot be both static and packed")
         self._packed_argnums = tuple(packed_argnums)
-        self._cache: dict[tuple, _Entry] = {}
+        self._cache: OrderedDict[tuple, _Entry] = OrderedDict()  # the most recent last
         self.seconds, self.shared = 0.0, 0
 
     def __call__(self, *args):
@@ -175,6 +181,10 @@ class SharedCompile:
             start = time.perf_counter()
             entry = self._cache[key] = self._compile(static, treedef, leaves)
             self.seconds += time.perf_counter() - start
+            while len(self._cache) > _ENTRY_LIMIT:  # a long sweep of shapes or unrolled K
+                self._cache.popitem(last=False)
+        elif len(self._cache) > 1:
+            self._cache.move_to_end(key)
         buffers = entry.packing.buffers(leaves)
         try:
             outputs = entry.run(*buffers, *entry.passed(leaves))
@@ -184,6 +194,12 @@ class SharedCompile:
                 raise
             raise reported from error
         return jax.tree_util.tree_unflatten(entry.out_tree[0], outputs)
+
+    def release(self) -> None:
+        """Let go of the arrays the last calls packed (the executables stay): a program kept
+        for later callers should not keep a finished caller's problem alive."""
+        for entry in self._cache.values():
+            entry.packing.forget()
 
     def _split(self, args: tuple) -> tuple[int | None, tuple]:
         n = self._static_argnum

@@ -552,6 +552,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         history = history.append(record)
         if callback is not None and callback(record, z):
             break
+    for program in compiled:  # kept for later runs: without this run's problem
+        program.release()
     return Inversion(z, problem.field(z), control, opt_state, history)
 
 

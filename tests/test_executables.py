@@ -42,6 +42,15 @@ def test_equal_programs_share_and_different_ones_do_not():
     assert np.array_equal(scale(jnp.arange(4.0), 2), [0.0, 2.0, 4.0, 6.0])  # new shape: own
 
 
+def test_a_shared_compile_keeps_its_most_recent_executables_only():
+    scale = SharedCompile(lambda x: x * 2.0)
+    for size in range(1, executables._ENTRY_LIMIT + 4):   # a sweep of shapes
+        assert np.array_equal(scale(jnp.ones(size)), np.full(size, 2.0))
+    assert len(scale._cache) == executables._ENTRY_LIMIT
+    assert np.array_equal(scale(jnp.ones(1)), [2.0])      # dropped, compiled again
+    assert len(scale._cache) == executables._ENTRY_LIMIT
+
+
 def test_functions_reading_different_arguments_are_different_programs():
     first = SharedCompile(lambda a, b: a * 2)
     second = SharedCompile(lambda a, b: b * 2)

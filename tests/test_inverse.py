@@ -335,6 +335,23 @@ def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once
     assert len([c for c in made if c._packed_argnums == (0,)]) == 2
 
 
+def test_a_kept_step_program_does_not_keep_a_finished_run_s_problem_alive():
+    import gc
+    import weakref
+
+    def run():
+        _, problem = _source_problem(n=7)
+        leaves = [leaf for leaf in jax.tree_util.tree_leaves(problem)
+                  if isinstance(leaf, jax.Array) and leaf.size]
+        invert(problem, refinement=fixed(3), steps=2)
+        return [weakref.ref(leaf) for leaf in leaves]
+
+    references = run()
+    gc.collect()
+    assert len(references) > 20 and not any(reference() is not None
+                                            for reference in references)
+
+
 def test_a_preconditioner_object_gets_a_step_of_its_own(monkeypatch):
     # a pytree of arrays: its hash is no key (numpy arrays refuse one)
     disc, problem = _source_problem(n=6)
