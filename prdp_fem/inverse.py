@@ -409,6 +409,7 @@ def _step_program(optimizer, gradient: str, tolerance_mode: bool,
 
 
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
+    optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
                          static_argnum=4 if gradient == "unrolled" else None,
                          packed_argnums=(0,))
@@ -486,8 +487,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")
-    optimizer = optax.with_extra_args_support(_default_optimizer() if optimizer is None
-                                              else optimizer)
+    given = _default_optimizer() if optimizer is None else optimizer
+    optimizer = optax.with_extra_args_support(given)  # a new wrapper for a plain transform
 
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
@@ -496,7 +497,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     # timed as compile time, not run time, and happens once per process
     update_control = SharedCompile(refinement.update)
     counter, validation_counter = IterationCounter(), IterationCounter()
-    step = _step_program(optimizer, gradient, refinement.tolerance_mode, preconditioner)
+    step = _step_program(given, gradient, refinement.tolerance_mode, preconditioner)
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
     validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,
