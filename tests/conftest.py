@@ -125,3 +125,18 @@ def resume_after_losing_done(scene, out: Path, run: str, runner: str, monkeypatc
     resumed = study.run_study(scene, out, resume=True)
     assert calls == [run] and resumed.ran == [run]
     return resumed
+
+
+def json_from_a_process(script: str, cache_setting: str) -> dict:
+    """Run ``script`` in a fresh Python process (this checkout importable) with
+    ``PRDP_FEM_COMPILATION_CACHE=cache_setting``; the JSON of its last printed line."""
+    import json
+    import subprocess
+    import sys
+
+    root = str(Path(__file__).resolve().parent.parent)
+    env = {**os.environ, "PRDP_FEM_COMPILATION_CACHE": cache_setting,
+           "PYTHONPATH": os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])}
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                         text=True, check=True, timeout=300)
+    return json.loads(out.stdout.strip().splitlines()[-1])

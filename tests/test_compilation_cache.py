@@ -1,15 +1,9 @@
 """The persistent compilation cache: where it goes, how it is switched off, and that a second
 process loads the executables the first one compiled (counted by JAX's own cache events)."""
 
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
+from conftest import json_from_a_process
 
 from prdp_fem.compilation_cache import cache_directory
-
-ROOT = Path(__file__).resolve().parent.parent
 
 SCRIPT = """
 import json, jax, jax.numpy as jnp, numpy as np
@@ -29,12 +23,7 @@ print(json.dumps({"directory": jax.config.jax_compilation_cache_dir,
 
 
 def _run(setting: str) -> dict:
-    env = {**os.environ, "PRDP_FEM_COMPILATION_CACHE": setting,
-           "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get(
-               "PYTHONPATH")])])}
-    out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
-                         text=True, check=True, timeout=300)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return json_from_a_process(SCRIPT, setting)
 
 
 def test_directory_from_the_environment(tmp_path):

@@ -2,23 +2,18 @@
 a later process loads what an earlier one compiled, with the same results and tallies; any
 other host callback, a bad file and a full store are handled."""
 
-import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import json_from_a_process
 from jax._src import compiler as jax_compiler
 
 from prdp_fem import executables, program_store, tally
 from prdp_fem.cg import IterationCounter
 from prdp_fem.executables import SharedCompile
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture
@@ -212,12 +207,7 @@ print(json.dumps({"compiled": compiled,
 
 
 def _inversion_in_a_process(cache: Path) -> dict:
-    env = {**os.environ, "PRDP_FEM_COMPILATION_CACHE": str(cache),
-           "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get(
-               "PYTHONPATH")])])}
-    out = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
-                         text=True, check=True, timeout=300)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return json_from_a_process(SCRIPT, str(cache))
 
 
 def test_a_second_process_loads_the_inversion_step_with_its_own_tallies(tmp_path):
