@@ -23,7 +23,15 @@ from .amg import (
     rebuild_policy,
 )
 from .bench_amg import AMGCost, amg_cost
-from .cg import ConvergedCG, IterationCounter, Solution, Status, TruncatedCG, solve
+from .cg import (
+    ConvergedCG,
+    IterationCounter,
+    Solution,
+    Status,
+    TruncatedCG,
+    solve,
+    unrolled_length,
+)
 from .comparison import ComparisonRow, compare, format_table
 from .compilation_cache import cache_directory as _cache_directory
 from .compilation_cache import enable_compilation_cache
@@ -234,5 +242,6 @@ __all__ = [
     "tensor_mesh",
     "unit_cube",
     "unit_square",
+    "unrolled_length",
     "with_noise",
 ]

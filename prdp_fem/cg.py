@@ -25,18 +25,19 @@ Gradient modes
 ``"unrolled"``
     Reverse (and forward) mode through the ``K`` iterations: the derivative of the truncated
     map itself, including the Jacobi preconditioner's dependence on the operator. ``K`` is
-    static (one compile per distinct ``K``). Reverse mode stores every iteration's
-    intermediates, ``O(K)`` n-vectors; ``checkpoint=True`` stores the state only at the starts
-    of segments of ``ceil(sqrt(K))`` iterations and recomputes one segment at a time in the
-    backward pass: ``O(sqrt(K))`` n-vectors for about one more forward sweep (1.6 GB -> 0.13 GB
-    at 65k dofs and K = 1000, ``prdp-fem bench memory``). Once CG has frozen at round-off (or
-    terminated exactly, e.g. a right-hand side in a small invariant subspace) before ``K``, the
-    map *is* the solution map, and its derivative is taken implicitly
-    (``lax.custom_linear_solve``, one extra solve): the reverse sweep through the frozen
-    iterations would give the derivative of the last Krylov iterate, which was measured 0.7 %
-    to 24 % off. Just *before* freezing, in CG's superlinear phase, the truncated map varies on
-    scales below ~1e-7 in kappa: its exact derivative can differ from finite differences taken
-    at larger steps.
+    static (one compile per distinct ``K``), or traced below a static ``scan_length`` (one
+    compile per length; :func:`unrolled_length` buckets ``K`` by powers of two). Reverse mode
+    stores every iteration's intermediates, ``O(K)`` n-vectors; ``checkpoint=True`` stores the
+    state only at the starts of segments of ``ceil(sqrt(K))`` iterations and recomputes one
+    segment at a time in the backward pass: ``O(sqrt(K))`` n-vectors for about one more forward
+    sweep (1.6 GB -> 0.13 GB at 65k dofs and K = 1000, ``prdp-fem bench memory``). Once CG has
+    frozen at round-off (or terminated exactly, e.g. a right-hand side in a small invariant
+    subspace) before ``K``, the map *is* the solution map, and its derivative is taken
+    implicitly (``lax.custom_linear_solve``, one extra solve): the reverse sweep through the
+    frozen iterations would give the derivative of the last Krylov iterate, which was measured
+    0.7 % to 24 % off. Just *before* freezing, in CG's superlinear phase, the truncated map
+    varies on scales below ~1e-7 in kappa: its exact derivative can differ from finite
+    differences taken at larger steps.
 ``"implicit"``
     The solve is a ``jax.custom_jvp`` whose tangent is ``dx = A^{-1} (db - dA x)``, the
     tangent system solved with ``adjoint_iterations`` PCG iterations through
@@ -107,7 +108,8 @@ from .products import symmetric_product
 from .tally import IterationCounter, tap
 from .validation import is_traced
 
-__all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve"]
+__all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve",
+           "unrolled_length"]
 
 GRADIENT_MODES = ("unrolled", "implicit")
 
@@ -136,8 +138,9 @@ class Solution(NamedTuple):
     initial_residual_norm
         ``||b - A x0||_2``.
     residual_history
-        ``||r_k||_2`` for ``k = 0..K`` (unrolled mode); in implicit/converged mode a buffer of
-        ``history_size + 1`` entries, padded with the final value.
+        ``||r_k||_2`` for ``k = 0..K`` (unrolled mode; with a ``scan_length``, its
+        ``scan_length + 1`` entries padded with the final value); in implicit/converged mode a
+        buffer of ``history_size + 1`` entries, padded with the final value.
     status
         A :class:`Status` code (int32): ``0`` when ``x`` can be trusted.
     """
@@ -206,6 +209,15 @@ class TruncatedCG:
         whose memory does not depend on ``K``.
     history_size
         Implicit mode: length of the residual-history buffer minus one.
+    scan_length
+        Unrolled mode: a static scan of this many steps whose first ``iterations`` run PCG
+        and the rest pass the state on unchanged. ``iterations`` may then be traced, so one
+        compiled program serves every ``K <= scan_length`` (:func:`unrolled_length` buckets
+        ``K`` by powers of two); at most ``scan_length`` iterations run
+        (``Solution.iterations`` says how many did). The values and derivatives are those of
+        the ``K``-iteration scan, bit for bit; the time and reverse mode's memory are those
+        of ``scan_length`` iterations (a passed-on step computes an iteration and drops it).
+        ``None`` (default): a scan of exactly ``iterations`` (static) steps.
     """
 
     iterations: Any
@@ -214,22 +226,36 @@ class TruncatedCG:
     adjoint_iterations: Any = None
     checkpoint: bool | int = False
     history_size: int = 0
+    scan_length: int | None = None
 
     def __post_init__(self):
         if self.gradient not in GRADIENT_MODES:
             raise SolverConfigError(
                 f"gradient={self.gradient!r}: expected one of {GRADIENT_MODES}")
         _check_preconditioner(self.preconditioner)
-        if self.gradient == "unrolled":
+        _check_count(self.scan_length, "scan_length", allow_none=True)
+        if self.scan_length is not None:
+            if self.gradient != "unrolled":
+                raise SolverConfigError(
+                    f"scan_length={self.scan_length!r} with gradient={self.gradient!r}: a scan "
+                    "length is for gradient='unrolled' (implicit mode takes a traced K as is)")
+            object.__setattr__(self, "scan_length", int(self.scan_length))
+        if self.gradient == "unrolled" and self.scan_length is None:
             if isinstance(self.iterations, jax.core.Tracer):
                 raise SolverConfigError(
                     "iterations is traced but gradient='unrolled' needs a static K (reverse "
-                    "mode through a loop needs its length); use gradient='implicit' for a "
-                    "traced K, or mark K static in jax.jit")
+                    "mode through a loop needs its length); give a static scan_length >= K "
+                    "(see unrolled_length), use gradient='implicit' for a traced K, or mark K "
+                    "static in jax.jit")
             _check_count(self.iterations, "iterations")
             object.__setattr__(self, "iterations", int(self.iterations))
         else:
             _check_count(self.iterations, "iterations")
+            if self.scan_length is not None and not isinstance(self.iterations, jax.core.Tracer) \
+                    and int(self.iterations) > self.scan_length:
+                raise SolverConfigError(
+                    f"iterations={self.iterations!r} > scan_length={self.scan_length}: "
+                    "expected K <= scan_length (see unrolled_length)")
         _check_count(self.adjoint_iterations, "adjoint_iterations", allow_none=True)
         _check_count(self.history_size, "history_size")
         object.__setattr__(self, "history_size", int(self.history_size))
@@ -313,7 +339,8 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
         b, x0 = precond.project(b), precond.project(x0)
     start = None if zero_start else x0
     if isinstance(solver, TruncatedCG) and solver.gradient == "unrolled":
-        sol = _unrolled(matrix, precond, b, start, solver.iterations, solver.checkpoint)
+        sol = _unrolled(matrix, precond, b, start, solver.iterations, solver.checkpoint,
+                        solver.scan_length)
         if counter is not None:
             sol = sol._replace(x=_adjoint_tap(sol.x, sol.iterations, counter))
     elif isinstance(solver, TruncatedCG):
@@ -599,18 +626,28 @@ def _solver_status(broken: jax.Array, not_converged: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------------------
 
 
-def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool | int) -> Solution:
+def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
+              scan_length: int | None = None) -> Solution:
     krylov = _krylov(matrix, precond)
     start = _init(krylov, b, x0, stacked=False)
 
-    def body(carry, _):
-        new, moving = _step(krylov, carry)
+    def iterate(state):
+        new, moving = _step(krylov, state)
         return new, (moving, krylov.residual_norm(new.r))
 
-    state, (moved, norms) = _scan_iterations(body, start.state, iterations,
-                                             segment_length(iterations, checkpoint))
+    if scan_length is None:
+        length = iterations
+        state, (moved, norms) = _scan_iterations(lambda carry, _: iterate(carry), start.state,
+                                                 length, segment_length(length, checkpoint))
+    else:
+        length = scan_length
+        state, (moved, norms) = _bounded_iterations(iterate, start.state, iterations, length,
+                                                    segment_length(length, checkpoint))
     history = jax.lax.stop_gradient(jnp.concatenate(
         [start.r0_norm[None], start.r0_scale * norms]))
+    if scan_length is not None:  # past K: the final norm, as the skipped steps held it
+        ran = jnp.clip(iterations, 0, length)
+        history = jnp.where(jnp.arange(length + 1) <= ran, history, history[ran])
     x = _solution(krylov, start, state.d)
     # frozen at round-off before K: the K-iteration map *is* the solution map to working
     # precision, but the reverse sweep through the frozen iterations would return the
@@ -622,6 +659,42 @@ def _unrolled(matrix, precond, b, x0, iterations: int, checkpoint: bool | int) -
     return Solution(x, jnp.sum(moved).astype(jnp.int32), history[-1],
                     jax.lax.stop_gradient(start.r0_norm), history,
                     _solver_status(state.broken, jnp.asarray(False)))
+
+
+def unrolled_length(iterations: int, smallest: int = 16) -> int:
+    """The scan length for an unrolled ``K`` (``TruncatedCG(scan_length=...)``): the
+    smallest power of two ``>= K``, at least ``smallest``.
+
+    A refinement schedule's counts share a few lengths (K = 10, 20, ..., 60: 16, 32, 64), so
+    an unrolled run compiles once per length, not once per ``K`` (a compile took 3-4 s on the
+    ``inclusion`` scene), for at most twice the ``K`` iterations' time and memory.
+
+    >>> [unrolled_length(k) for k in (0, 10, 16, 17, 60, 600)]
+    [16, 16, 16, 32, 64, 1024]
+    """
+    _check_count(iterations, "iterations")
+    return max(int(smallest), 1 << max(int(iterations) - 1, 0).bit_length())
+
+
+def _bounded_iterations(iterate, state, iterations, length: int, segment: int | None):
+    """``length`` scan steps of which the first ``iterations`` (traced) apply ``iterate``;
+    the rest compute an iteration and keep the state they were given (outputs: not moving,
+    a zero norm).
+
+    Masked rather than branched: with the step under a ``lax.cond``, reverse mode saved the
+    operator's arrays once per step (the cond's residuals are not recognised as the loop
+    invariants they are) and an iteration took 3x the time even where none was skipped.
+    """
+    def body(carry, _):
+        current, k = carry
+        runs = k < iterations
+        new, (moving, norm) = iterate(current)
+        kept = jax.tree_util.tree_map(partial(jnp.where, runs), new, current)
+        return (kept, k + 1), (moving & runs, jnp.where(runs, norm, 0.0))
+
+    (state, _), outputs = _scan_iterations(body, (state, jnp.asarray(0, jnp.int32)), length,
+                                           segment)
+    return state, outputs
 
 
 def segment_length(iterations: int, checkpoint: bool | int) -> int | None:

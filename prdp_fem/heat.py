@@ -76,7 +76,7 @@ from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile
-from .inverse import _solver
+from .inverse import _scan_length, _solver
 from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, prdp
@@ -385,12 +385,12 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
 
 def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn,
                counted: bool):
-    """One optimiser step; the counter and (K, K_adj, rtol) are arguments (K static in
-    unrolled mode), so trainings that differ only in them run one compiled program.
+    """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so trainings that
+    differ only in them run one compiled program (per scan length in unrolled mode).
     ``counted``: ``step_fn`` is :func:`heat_step` and takes the counter."""
 
-    def step(network, opt_state, problem, batch, counter, K, K_adj, rtol):
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
+    def step(network, opt_state, problem, batch, counter, scan_length, K, K_adj, rtol):
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
         stepper = partial(step_fn, counter=counter) if counted else step_fn
         (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
             network, problem, batch, solver, setup=setup, mode=mode, step=stepper)
@@ -461,7 +461,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     counted = step is heat_step and solves and mode == "wig"
     step_fn = SharedCompile(_make_step(optimizer, setup, mode, gradient,
                                        refinement.tolerance_mode, preconditioner, step, counted),
-                            static_argnum=5 if gradient == "unrolled" else None,
+                            static_argnum=5,
                             packed_argnums=(2,))
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
@@ -473,11 +473,11 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     records, run_time, primal = [], 0.0, 0
     for epoch in range(1, epochs + 1):
         if solves:
-            K = int(control.iterations) if gradient == "unrolled" else control.iterations
-            K_adj, rtol = control.adjoint_iterations, control.rtol
+            K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
         else:  # no solver: one compile, nothing to refine
-            K, K_adj, rtol = (0 if gradient == "unrolled" else jnp.asarray(0, jnp.int32),
-                              jnp.asarray(0, jnp.int32), jnp.asarray(0.0))
+            K, K_adj, rtol = (jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32),
+                              jnp.asarray(0.0))
+        scan_length = _scan_length(gradient, K)
         order = rng.permutation(n)
         losses = []
         for i in range(0, n - batch_size + 1, batch_size):
@@ -485,7 +485,8 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
             compile_before = step_fn.seconds  # compilation is timed apart from the run
             start = time.perf_counter()
             network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                step_fn(network, opt_state, problem, batch, counter, K, K_adj, rtol))
+                step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
+                        rtol))
             run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
             if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
                 raise InversionError(

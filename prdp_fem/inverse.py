@@ -29,7 +29,7 @@ import numpy as np
 import optax
 import optax.tree_utils as otu
 
-from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG
+from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, unrolled_length
 from .discretization import Discretization
 from .errors import (
     CoefficientError,
@@ -332,12 +332,23 @@ class Objective:
                 self.problem.regularization_residual)
 
 
-def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner):
+def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner,
+            scan_length: int = 0):
+    """The solver of one step; ``scan_length`` (unrolled mode, when ``> 0``): ``K`` is traced
+    below it (see :func:`_scan_length`)."""
     if tolerance_mode:
         return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
     if gradient == "unrolled":
-        return TruncatedCG(K, preconditioner, gradient="unrolled")
+        return TruncatedCG(K, preconditioner, gradient="unrolled",
+                           scan_length=scan_length or None)
     return TruncatedCG(K, preconditioner, gradient="implicit", adjoint_iterations=K_adj)
+
+
+def _scan_length(gradient: str, K) -> int:
+    """A step program's static argument: in unrolled mode the scan length for ``K``
+    (:func:`~prdp_fem.cg.unrolled_length`: one program per power of two, not one per
+    ``K``), else 0 (``K`` is traced anyway)."""
+    return unrolled_length(int(K)) if gradient == "unrolled" else 0
 
 
 def _uses_stored_value(opt_state) -> bool:
@@ -362,11 +373,11 @@ def _step_failed(opt_state) -> jax.Array:
 
 
 def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
-    """One optimiser step; the counter and (K, K_adj, rtol) are arguments (K static in
-    unrolled mode), so that runs differing only in them run one compiled program."""
+    """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so that runs
+    differing only in them run one compiled program (per scan length in unrolled mode)."""
 
-    def step(problem, counter, z, opt_state, K, K_adj, rtol):
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
+    def step(problem, counter, z, opt_state, scan_length, K, K_adj, rtol):
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
 
         value_fn = Objective(problem, solver, counter)
 
@@ -411,8 +422,7 @@ def _step_program(optimizer, gradient: str, tolerance_mode: bool,
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
-                         static_argnum=4 if gradient == "unrolled" else None,
-                         packed_argnums=(0,))
+                         static_argnum=4, packed_argnums=(0,))
 
 
 #: How many step programs (settings) the process keeps.
@@ -449,7 +459,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         :func:`~prdp_fem.prdp.fixed` for a fixed ``K``.
     gradient
         ``"implicit"`` (truncated adjoint solve; ``K`` traced, one compile) or ``"unrolled"``
-        (reverse mode through the ``K`` iterations; one compile per distinct ``K``).
+        (reverse mode through the ``K`` iterations; one compile per power of two that bounds
+        ``K``: :func:`~prdp_fem.cg.unrolled_length`).
     init
         Initial *field* (source or log kappa); default zeros (kappa = 1).
     monitor
@@ -511,7 +522,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         start = time.perf_counter()
         compile_before = sum(c.seconds for c in compiled)
         z_next, opt_state, value, misfit, error, grad_norm, failed = jax.block_until_ready(
-            step(problem, counter, z, opt_state, K, K_adj, rtol))
+            step(problem, counter, z, opt_state, _scan_length(gradient, K), K, K_adj, rtol))
         monitored = grad_norm if monitor == "gradient" else value
         if validate is not None and k % monitor.every == 0:
             monitored = jax.block_until_ready(validate(problem, validation_counter, z_next))

@@ -46,7 +46,7 @@ from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile
 from .hig import JACOBIAN_MODES
-from .inverse import _solver, _uses_stored_value
+from .inverse import _scan_length, _solver, _uses_stored_value
 from .observations import Observation
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, RefinementState, prdp
@@ -424,12 +424,12 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
     """One optimiser step on the weights of ``network`` over ``batch``; the update gets
     ``value``, ``grad`` and ``value_fn`` (a :class:`BatchObjective`) like
     :func:`prdp_fem.inverse.invert`'s, so L-BFGS, Newton-CG and HIG work as Adam does. The
-    counter and (K, K_adj, rtol) are arguments (K static in unrolled mode): trainings that
-    differ only in them run one compiled program."""
+    counter and (K, K_adj, rtol) are arguments: trainings that differ only in them run one
+    compiled program (per scan length in unrolled mode)."""
 
-    def step(layers, opt_state, network, problem, batch, counter, K, K_adj,
+    def step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
              rtol) -> _StepResult:
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner)
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
         if _uses_stored_value(opt_state):
             value, grad = optax.value_and_grad_from_state(value_fn)(layers, state=opt_state)
@@ -507,7 +507,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     counter = IterationCounter()
     step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
                                     preconditioner),
-                         static_argnum=6 if gradient == "unrolled" else None,
+                         static_argnum=6,
                          packed_argnums=(3,))
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
@@ -517,8 +517,8 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     rng = np.random.default_rng(seed)
     records, run_time, steps = [], 0.0, 0
     for epoch in range(1, epochs + 1):
-        K = int(control.iterations) if gradient == "unrolled" else control.iterations
-        K_adj, rtol = control.adjoint_iterations, control.rtol
+        K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
+        scan_length = _scan_length(gradient, K)
         order = rng.permutation(n) if batch_size < n else np.arange(n)
         batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
         losses = []
@@ -527,7 +527,8 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             compile_before = step.seconds  # compilation is timed apart from the run
             start = time.perf_counter()
             result = jax.block_until_ready(
-                step(layers, opt_state, network, problem, batch, counter, K, K_adj, rtol))
+                step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
+                     rtol))
             run_time += time.perf_counter() - start - (step.seconds - compile_before)
             if not (math.isfinite(float(result.loss))
                     and math.isfinite(float(result.grad_norm))):

@@ -391,6 +391,119 @@ def test_unrolled_with_traced_k_is_a_clear_error(small_problem):
         run(5)
 
 
+# unrolled with a scan length: K traced below a static bound, one program per bound
+
+
+def _scan_length_loss(disc, f, w, k, scan_length, checkpoint=False):
+    """w . x_K(kappa) and its solution, unrolled (static K when scan_length is None). Call it
+    outside a trace: it builds (and caches) the system."""
+    system = disc.system
+
+    def loss(kappa):
+        solver = TruncatedCG(k, gradient="unrolled", scan_length=scan_length,
+                             checkpoint=checkpoint)
+        sol = solve(system.operator(kappa), system.rhs(kappa, f), solver)
+        return w @ sol.x, sol
+
+    return loss
+
+
+@pytest.mark.parametrize("k", [0, 1, 9, 16])
+def test_scan_length_gives_the_k_iteration_map_and_its_gradient(small_problem, k):
+    disc, kappa, f = small_problem
+    kappa = jnp.asarray(kappa)
+    w = jnp.cos(jnp.arange(disc.n_free))
+    static = jax.value_and_grad(_scan_length_loss(disc, f, w, k, None), has_aux=True)
+    bounded = jax.jit(lambda kappa, k: jax.value_and_grad(
+        _scan_length_loss(disc, f, w, k, 16), has_aux=True)(kappa))
+    (value, sol), grad = static(kappa)
+    (value_b, sol_b), grad_b = bounded(kappa, k)
+    np.testing.assert_allclose(sol_b.x, sol.x, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(grad_b, grad, rtol=1e-11, atol=1e-14 * np.abs(grad).max())
+    assert float(value_b) == pytest.approx(float(value), rel=1e-13)
+    assert int(sol_b.iterations) == int(sol.iterations) == k
+    assert float(sol_b.residual_norm) == pytest.approx(float(sol.residual_norm), rel=1e-13)
+    # the history: k + 1 norms, then the final one repeated to scan_length + 1 entries
+    assert sol_b.residual_history.shape == (17,)
+    np.testing.assert_allclose(sol_b.residual_history[:k + 1], sol.residual_history,
+                               rtol=1e-13)
+    np.testing.assert_array_equal(sol_b.residual_history[k:],
+                                  sol_b.residual_history[k] * np.ones(17 - k))
+
+
+def test_scan_length_traces_once_for_every_k_below_it(small_problem):
+    disc, kappa, f = small_problem
+    w = jnp.sin(jnp.arange(disc.n_free))
+    traces = []
+
+    assert disc.system is not None  # built (and cached) outside the trace below
+
+    @jax.jit
+    def value(kappa, k):
+        traces.append(k)
+        return _scan_length_loss(disc, f, w, k, 32)(kappa)[0]
+
+    for k in (3, 10, 32):
+        assert float(value(jnp.asarray(kappa), k)) == pytest.approx(
+            float(_scan_length_loss(disc, f, w, k, None)(jnp.asarray(kappa))[0]), rel=1e-13)
+    assert len(traces) == 1
+
+
+def test_scan_length_passes_the_taylor_test(small_problem):
+    disc, kappa, f = small_problem
+    w = jnp.cos(jnp.arange(disc.n_free))
+    loss = _scan_length_loss(disc, f, w, jnp.asarray(6), 16)
+    fn = jax.jit(lambda kappa: loss(kappa)[0])
+    result = pf.taylor_test(fn, jnp.asarray(kappa), h0=1e-2)
+    assert result.passed(), result.rates
+
+
+def test_scan_length_with_checkpoints_jvp_and_vmap(small_problem):
+    """The scan-length map under checkpointed segments, forward mode and a batch."""
+    disc, kappa, f = small_problem
+    kappa = jnp.asarray(kappa)
+    w = jnp.cos(jnp.arange(disc.n_free))
+    k = jnp.asarray(11)
+    plain = jax.grad(lambda c: _scan_length_loss(disc, f, w, 11, None)(c)[0])(kappa)
+    checkpointed = jax.jit(jax.grad(
+        lambda c: _scan_length_loss(disc, f, w, k, 16, checkpoint=True)(c)[0]))(kappa)
+    np.testing.assert_allclose(checkpointed, plain, rtol=1e-11, atol=1e-14 * np.abs(plain).max())
+    direction = jnp.asarray(np.random.default_rng(3).normal(size=kappa.shape))
+    _, tangent = jax.jvp(lambda c: _scan_length_loss(disc, f, w, k, 16)(c)[0], (kappa,),
+                         (direction,))
+    assert float(tangent) == pytest.approx(float(plain @ direction), rel=1e-11)
+    system = disc.system
+    operator = system.operator(kappa)
+    sources = jnp.stack([jnp.asarray(f) * s for s in (0.5, 2.0)])
+    batched = jax.vmap(lambda src: solve(operator, system.rhs(kappa, src), TruncatedCG(
+        k, gradient="unrolled", scan_length=16)).x)(sources)
+    for i, src in enumerate(sources):
+        single = solve(operator, system.rhs(kappa, src), TruncatedCG(11, gradient="unrolled")).x
+        np.testing.assert_allclose(batched[i], single, rtol=1e-13, atol=1e-15)
+
+
+def test_a_traced_k_beyond_the_scan_length_runs_the_scan_length(small_problem):
+    disc, kappa, f = small_problem
+    system = disc.system
+    run = jax.jit(lambda k: solve(system.operator(kappa), system.rhs(kappa, f), TruncatedCG(
+        k, gradient="unrolled", scan_length=4)))
+    sol = run(9)
+    assert int(sol.iterations) == 4
+    reference = solve(system.operator(kappa), system.rhs(kappa, f), TruncatedCG(4))
+    np.testing.assert_allclose(sol.x, reference.x, rtol=1e-13)
+
+
+def test_scan_length_options_are_checked():
+    with pytest.raises(pf.SolverConfigError, match="K <= scan_length"):
+        TruncatedCG(20, gradient="unrolled", scan_length=16)
+    with pytest.raises(pf.SolverConfigError, match="a scan length is for gradient='unrolled'"):
+        TruncatedCG(5, gradient="implicit", scan_length=16)
+    with pytest.raises(pf.SolverConfigError, match="scan_length"):
+        TruncatedCG(5, gradient="unrolled", scan_length=-1)
+    assert [pf.unrolled_length(k) for k in (0, 16, 17, 100)] == [16, 16, 32, 128]
+    assert pf.unrolled_length(3, smallest=1) == 4
+
+
 # ------------------------------------------------------------------------------------------
 # vmap: a batch of right-hand sides
 # ------------------------------------------------------------------------------------------
