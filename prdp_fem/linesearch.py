@@ -55,8 +55,10 @@ minimiser of the quadratic through ``J(0)``, ``s_0`` and ``J(t)``,
     t_q = \frac{-s_0 t^2}{2 (J(t) - J(0) - s_0 t)},
 
 lies below ``t / 10`` (where optax's zoom discards it and bisects, one halving per
-evaluation), the search starts afresh at ``max(t_q, 10^{-3} t)``; all trials count against
-``max_linesearch_steps``. Everywhere else, every step, value and gradient is optax's.
+evaluation), the search starts afresh at ``max(t_q, 10^{-3} t)``; where ``J(t)`` is not
+finite (the trial left the domain, e.g. an overflowing coefficient), at ``t / 10``, again
+while it stays so. All trials count against ``max_linesearch_steps``. Everywhere else,
+every step, value and gradient is optax's.
 
 A gradient with the wrong sign: optax's search spends its 20 evaluations, this one three.
 
@@ -283,20 +285,28 @@ _READ_FIELDS = ("count", "updates", "stepsize", "value", "grad", "slope", "value
 _ZOOM_MARGIN = 0.1
 #: the most a restart shrinks the first trial: a non-quadratic rise can put t_q far too low
 _LEAST_RESTART = 1e-3
+#: a first trial with a non-finite value restarts this much shorter (and again, while the
+#: values stay non-finite): a tenth per evaluation where the zoom bisects, a half
+_OUTSIDE_SHRINK = 0.1
 
 
 def _overshoot(search):
     """Whether the search's first trial overshot beyond its zoom's reach, and the step to
     start afresh from: ``max(t_q, 1e-3 t)``, ``t_q`` the minimiser of the quadratic through
-    ``J(0)``, ``s_0`` and ``J(t)`` (see the module's docstring)."""
+    ``J(0)``, ``s_0`` and ``J(t)`` (see the module's docstring); ``t / 10`` where ``J(t)`` is
+    not finite (no quadratic to fit: the zoom would halve, ten evaluations per 1000x)."""
     t, s0 = search.stepsize, search.slope_init
     rise = search.value - search.value_init
     excess = rise - s0 * t  # the quadratic's c t^2: positive where t failed the decrease
     quadratic = -s0 * t * t / (2.0 * jnp.where(excess > 0, excess, 1.0))
-    overshot = ((search.count == 1) & search.interval_found & ~search.done & ~search.failed
-                & (search.decrease_error > 0) & (s0 < 0) & jnp.isfinite(rise) & (excess > 0)
-                & (quadratic < _ZOOM_MARGIN * t))
-    return overshot, jnp.maximum(quadratic, _LEAST_RESTART * t)
+    first = (search.count == 1) & ~search.done & ~search.failed & (s0 < 0)
+    finite = jnp.isfinite(rise)
+    far = search.interval_found & (search.decrease_error > 0) & finite & (excess > 0) & \
+        (quadratic < _ZOOM_MARGIN * t)
+    outside = ~finite & jnp.isfinite(search.value_init)  # the trial left the domain
+    restart_at = jnp.where(finite, jnp.maximum(quadratic, _LEAST_RESTART * t),
+                           _OUTSIDE_SHRINK * t)
+    return first & (far | outside), restart_at
 
 
 def _out_of_trials(state):

@@ -377,6 +377,31 @@ def test_a_first_trial_within_the_zoom_s_reach_is_not_restarted(direction_scale)
         int(otu.tree_get(kept, "num_linesearch_steps"))
 
 
+def test_a_first_trial_outside_the_domain_restarts_a_tenth_shorter_until_finite():
+    # the quadratic is NaN where |z| >= 5 (an overflowing coefficient, say); t* = 1e-3. The
+    # trials 1, 0.1 and 0.01 leave the domain, each restarting ten times shorter, and 1e-3
+    # is the minimum: four evaluations. optax's zoom halves instead (ten and more).
+    def fn(z):
+        return jnp.where(jnp.max(jnp.abs(z)) < 5.0, _half_squared_distance_to_one(z), jnp.nan)
+
+    z = jnp.array([0.2, -0.4, 0.7])
+    value, grad = jax.value_and_grad(fn)(z)
+
+    def search(changed):
+        line = pf.scale_by_zoom_linesearch(20)
+        state = line.init(z)
+        state = state._replace(value=jnp.asarray(jnp.inf if changed else value), grad=grad,
+                               info=state.info._replace(num_linesearch_steps=jnp.asarray(3)))
+        return line.update(-1000.0 * grad, state, z, value=value, grad=grad, value_fn=fn)
+
+    updates, state = search(changed=True)
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 4
+    np.testing.assert_allclose(z + updates, jnp.ones(3), rtol=1e-12)
+    assert not bool(_step_failed(state))
+    _, unchanged = search(changed=False)  # optax's search: no restart
+    assert int(otu.tree_get(unchanged, "num_linesearch_steps")) >= 10
+
+
 def test_a_search_out_of_trials_after_a_restart_ends_at_its_safe_step_as_optax_s_does():
     # along the line: slope -1000 up to a wall at t = 1.5e-3. The unit trial overshoots, the
     # restart at 1e-3 meets the decrease (not the curvature), the doubled 2e-3 hits the
