@@ -263,6 +263,33 @@ def test_the_adjoint_tally_counts_wig_solves_only_and_records_carry_the_test_err
     assert seen[0].test_error != seen[-1].test_error
 
 
+def test_unrolled_training_refines_k_within_one_compiled_step(small, monkeypatch):
+    """WIG through the unrolled solver while PRDP raises K from 1: every K up to 16 runs the
+    same program (one scan length), and the tally stays exact: K per primal solve (2 per
+    window) and, backward, K per differentiated solve (the second of each window)."""
+    from prdp_fem.executables import SharedCompile
+
+    made, original = [], SharedCompile.__init__
+
+    def recording(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    _, problem, trajectories, validation = small
+    training = heat.train(problem, network_for(problem), trajectories, validation, mode="wig",
+                          unroll=2, gradient="unrolled", optimizer=optax.adam(3e-3),
+                          refinement=prdp(K0=1, dK=1, ema_window=1, delta=2, tau_step=0.5),
+                          epochs=6, batch_size=12)
+    ks = [r.iterations for r in training.records]
+    assert len(set(ks)) > 1 and max(ks) <= 16, ks
+    [step] = [c for c in made if c._packed_argnums == (2,)]
+    assert [static for static, _ in step._cache] == [16]
+    last = training.records[-1]
+    assert last.primal_iterations == sum(k * 2 * 60 for k in ks)
+    assert last.adjoint_iterations_total == sum(k * 60 for k in ks)
+
+
 def test_the_initial_network_is_scaled_to_its_targets(small):
     """The output layer's scale is the spread of the relative one-step targets: the
     converged coarse step's error (correction, small) or the step itself (prediction)."""
