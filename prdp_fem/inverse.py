@@ -20,7 +20,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
-from functools import lru_cache, partial
+from functools import cached_property, lru_cache, partial
 from typing import Any, NamedTuple
 
 import jax
@@ -319,6 +319,14 @@ class Objective:
     def __call__(self, params: jax.Array) -> jax.Array:
         return self.problem.loss(params, self.solver, counter=self.counter)[0]
 
+    @cached_property
+    def value_and_grad(self) -> Callable[[jax.Array], tuple[jax.Array, jax.Array]]:
+        """``jax.value_and_grad(self)`` as one nested program. A step evaluates it in up to
+        three places (the stored value's check and the line search's two branches): traced
+        once, they lower to calls of one function (a step's trace and lowering took
+        0.33-0.40 s on ``plate_hole`` with three copies, 0.20-0.21 s with one)."""
+        return jax.jit(jax.value_and_grad(self))
+
     def gauss_newton_operator(self, params: jax.Array) -> Callable[[jax.Array], jax.Array]:
         return self.problem.gauss_newton_operator(params, self.solver, counter=self.counter)
 
@@ -355,6 +363,15 @@ def _uses_stored_value(opt_state) -> bool:
     return otu.tree_get(opt_state, "value") is not None
 
 
+def _stored_or_evaluated(value_fn: Objective, z, opt_state):
+    """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored,
+    unless that value is not finite (none yet, or :func:`invert` marked it stale), through
+    ``value_fn.value_and_grad``."""
+    value, grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
+    return jax.lax.cond(jnp.isfinite(value), lambda: (value, grad),
+                        lambda: value_fn.value_and_grad(z))
+
+
 def _step_failed(opt_state) -> jax.Array:
     """Whether the optimiser reports its last update as failed.
 
@@ -382,9 +399,9 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
         value_fn = Objective(problem, solver, counter)
 
         if _uses_stored_value(opt_state):
-            value, grad = optax.value_and_grad_from_state(value_fn)(z, state=opt_state)
+            value, grad = _stored_or_evaluated(value_fn, z, opt_state)
         else:
-            value, grad = jax.value_and_grad(value_fn)(z)
+            value, grad = value_fn.value_and_grad(z)
         updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
                                               value_fn=value_fn)
         z_next = optax.apply_updates(z, updates)

@@ -224,7 +224,7 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
 
     def update(updates, state, params, *, value, grad,
                value_fn: Callable[..., Any], **value_fn_kwargs):
-        value_and_grad = jax.value_and_grad(value_fn)
+        value_and_grad = _value_and_grad(value_fn, value_fn_kwargs)
         guess = jnp.asarray(1.0) if initial_guess_strategy == "one" else state.learning_rate
         if first_step == "polyak":
             guess = _polyak_first_guess(state, updates, value, grad, guess)
@@ -288,6 +288,14 @@ _LEAST_RESTART = 1e-3
 #: a first trial with a non-finite value restarts this much shorter (and again, while the
 #: values stay non-finite): a tenth per evaluation where the zoom bisects, a half
 _OUTSIDE_SHRINK = 0.1
+
+
+def _value_and_grad(value_fn, value_fn_kwargs) -> Callable:
+    """``jax.value_and_grad(value_fn)``, or the one ``value_fn`` carries as its
+    ``value_and_grad`` (:class:`prdp_fem.inverse.Objective`: one nested program for both of
+    the search's branches and the step's own evaluation, traced once)."""
+    own = getattr(value_fn, "value_and_grad", None)
+    return own if callable(own) and not value_fn_kwargs else jax.value_and_grad(value_fn)
 
 
 def _overshoot(search):

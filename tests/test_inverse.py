@@ -354,6 +354,27 @@ def test_an_unrolled_run_compiles_one_step_per_scan_length(monkeypatch):
         assert run.history[0].iterations == K
 
 
+def test_a_step_traces_its_objective_once(monkeypatch):
+    """The stored value's check and both branches of the zoom search's step evaluate
+    ``value_and_grad``: one nested program, traced once (three traces before), with the
+    same losses."""
+    from prdp_fem import inverse
+
+    _, problem = _coefficient_problem(n=6, alpha=1e-5)
+    reference = invert(problem, refinement=fixed(8), steps=3)
+    traced, original = [], inverse.InverseProblem.loss
+
+    def counting(self, *args, **kwargs):
+        traced.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(inverse.InverseProblem, "loss", counting)
+    inverse._shared_step_program.cache_clear()
+    again = invert(problem, refinement=fixed(8), steps=3)
+    assert len(traced) == 1
+    assert np.array_equal(again.history.column("loss"), reference.history.column("loss"))
+
+
 def test_a_kept_step_program_does_not_keep_a_finished_run_s_problem_alive():
     import gc
     import weakref
