@@ -577,7 +577,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     compiled_before_run = sum(c.seconds for c in compiled)  # the step may be an earlier run's
     history, run_time, evaluations, failed_steps = History(), 0.0, 0, 0
     failed_since_update = False  # a monitor read every few steps still hears of each failure
-    settings = _read_settings(_settings_vector(control))  # (K, K_adj, rtol, refinements)
+    settings = (int(control.iterations), int(control.adjoint_iterations),  # read on the host:
+                float(control.rtol), int(control.refinements))  # no program to compile
     for k in range(1, steps + 1):
         K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
         previous_K = settings[:3]
