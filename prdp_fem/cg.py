@@ -215,8 +215,9 @@ class TruncatedCG:
         compiled program serves every ``K <= scan_length`` (:func:`unrolled_length` buckets
         ``K`` by powers of two); at most ``scan_length`` iterations run
         (``Solution.iterations`` says how many did). The values and derivatives are those of
-        the ``K``-iteration scan, bit for bit; the time and reverse mode's memory are those
-        of ``scan_length`` iterations (a passed-on step computes an iteration and drops it).
+        the ``K``-iteration scan (to round-off; the built-in scenes' unrolled runs take the
+        same steps bit for bit); the time and reverse mode's memory are those of
+        ``scan_length`` iterations (a passed-on step computes an iteration and drops it).
         ``None`` (default): a scan of exactly ``iterations`` (static) steps.
     """
 

@@ -363,7 +363,7 @@ def _uses_stored_value(opt_state) -> bool:
     return otu.tree_get(opt_state, "value") is not None
 
 
-def _stored_or_evaluated(value_fn: Objective, z, opt_state):
+def _stored_or_evaluated(value_fn, z, opt_state):
     """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored,
     unless that value is not finite (none yet, or :func:`invert` marked it stale), through
     ``value_fn.value_and_grad``."""

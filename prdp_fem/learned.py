@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from functools import partial
+from functools import cached_property, partial
 from typing import Any, NamedTuple
 
 import jax
@@ -46,7 +46,7 @@ from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile
 from .hig import JACOBIAN_MODES
-from .inverse import _scan_length, _solver, _uses_stored_value
+from .inverse import _scan_length, _solver, _stored_or_evaluated, _uses_stored_value
 from .observations import Observation
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, RefinementState, prdp
@@ -304,6 +304,12 @@ class BatchObjective:
         return batch_loss(self.network._replace(layers=layers), self.problem, self.batch,
                           self.solver, self.counter)[0]
 
+    @cached_property
+    def value_and_grad(self):
+        """``jax.value_and_grad(self)`` as one nested program, traced once for all the places
+        a step evaluates it (as :attr:`prdp_fem.inverse.Objective.value_and_grad`)."""
+        return jax.jit(jax.value_and_grad(self))
+
     def _scale(self) -> jax.Array:
         return 1.0 / jnp.sqrt(jnp.asarray(self.batch.sources.shape[0], jnp.float64))
 
@@ -432,9 +438,9 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
         if _uses_stored_value(opt_state):
-            value, grad = optax.value_and_grad_from_state(value_fn)(layers, state=opt_state)
+            value, grad = _stored_or_evaluated(value_fn, layers, opt_state)
         else:
-            value, grad = jax.value_and_grad(value_fn)(layers)
+            value, grad = value_fn.value_and_grad(layers)
         updates, opt_state = optimizer.update(grad, opt_state, layers, value=value, grad=grad,
                                               value_fn=value_fn)
         return _StepResult(optax.apply_updates(layers, updates), opt_state, value,
