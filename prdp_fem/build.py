@@ -52,6 +52,7 @@ from .operator import SparseMatrix
 from .prdp import Refinement, converged, fixed, prdp
 from .reference import amg_solve, direct_solve
 from .scene import (
+    OptimizerSpec,
     Scene,
     SceneCoefficientError,
     SceneDataError,
@@ -350,10 +351,19 @@ def controller(scene: Scene) -> Refinement:
 
 def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransformation:
     """The scene's optax optimiser; ``updates``: how many updates the run makes (what a
-    ``decay = "cosine"`` learning rate decays over; default ``optimizer.steps``)."""
+    ``decay = "cosine"`` learning rate decays over; default ``optimizer.steps``).
+
+    One object per setting (pure and immutable, as optax's transformations are): a study's
+    runs with equal optimiser settings share one compiled step (see
+    ``prdp_fem.inverse._step_program`` and ``prdp_fem.heat``'s kept steps)."""
     spec = scene.optimizer
+    return _optimizer(spec, spec.steps if updates is None else int(updates))
+
+
+@functools.lru_cache(maxsize=16)
+def _optimizer(spec: OptimizerSpec, updates: int) -> optax.GradientTransformation:
     if spec.name == "lbfgs":
-        return _lbfgs(spec.memory_size, spec.first_step)
+        return lbfgs(memory_size=spec.memory_size, first_step=spec.first_step)
     if spec.name in ("newton_cg", "gauss_newton"):
         return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                          max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
@@ -363,16 +373,8 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
                    relative=spec.relative)
     learning_rate = spec.learning_rate
     if spec.decay == "cosine":
-        updates = spec.steps if updates is None else updates
         learning_rate = optax.cosine_decay_schedule(spec.learning_rate, max(updates, 1))
     return getattr(optax, spec.name)(learning_rate)
-
-
-@functools.lru_cache(maxsize=16)
-def _lbfgs(memory_size: int, first_step: str) -> optax.GradientTransformationExtraArgs:
-    """One L-BFGS object per setting (pure and immutable, as optax's transformations are):
-    a study's runs then share one compiled step (see ``prdp_fem.inverse._step_program``)."""
-    return lbfgs(memory_size=memory_size, first_step=first_step)
 
 
 def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:

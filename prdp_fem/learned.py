@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from functools import cached_property, partial
+from functools import cached_property, lru_cache, partial
 from typing import Any, NamedTuple
 
 import jax
@@ -449,6 +449,32 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
     return step
 
 
+def _step_program(optimizer, gradient: str, tolerance_mode: bool,
+                  preconditioner) -> SharedCompile:
+    """The compiled step for these settings (the optimizer object as given, gradient mode,
+    tolerance mode, preconditioner name), kept for the process (the last 8), as
+    :func:`prdp_fem.inverse.invert` keeps its own: trainings with equal settings trace and
+    lower their step once. A preconditioner object or an optimizer that cannot be hashed
+    gets a step of its own."""
+    settings = (optimizer, gradient, tolerance_mode, preconditioner)
+    try:
+        hash(settings)
+    except TypeError:
+        return _new_step_program(*settings)
+    if not isinstance(preconditioner, str):
+        return _new_step_program(*settings)
+    return _kept_step_program(*settings)
+
+
+def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
+    optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
+    return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
+                         static_argnum=6, packed_argnums=(3,))
+
+
+_kept_step_program = lru_cache(maxsize=8)(_new_step_program)
+
+
 def _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement, layers):
     if gradient not in ("implicit", "unrolled"):
         raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
@@ -507,14 +533,11 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
                             network.layers)
+    step = _step_program(optimizer, gradient, refinement.tolerance_mode, preconditioner)
     optimizer = optax.with_extra_args_support(optimizer)
     if problem.factors is None:
         problem = problem.with_residual()
     counter = IterationCounter()
-    step = SharedCompile(_make_step(optimizer, gradient, refinement.tolerance_mode,
-                                    preconditioner),
-                         static_argnum=6,
-                         packed_argnums=(3,))
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
     update_control = jax.jit(refinement.update)  # one dispatch per epoch, not dozens
@@ -567,6 +590,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
         records.append(record)
         if callback is not None:
             callback(record)
+    step.release()  # kept for later trainings: without this one's problem and data
     return Training(network, control, records)
 
 

@@ -290,6 +290,41 @@ def test_unrolled_training_refines_k_within_one_compiled_step(small, monkeypatch
     assert last.adjoint_iterations_total == sum(k * 60 for k in ks)
 
 
+def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
+    """A study's PRDP and converged runs of one mode call train with equal settings: the
+    step is traced once and the trainings are what they were alone; another optimizer
+    object is another step."""
+    from prdp_fem.executables import SharedCompile
+    from prdp_fem.prdp import converged, fixed
+
+    made, original = [], SharedCompile.__init__
+
+    def recording(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self)
+
+    heat._kept_step_program.cache_clear()
+    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    _, problem, trajectories, validation = small
+    adam = optax.adam(3e-3)
+
+    def train(optimizer, refinement):
+        return heat.train(problem, network_for(problem), trajectories, validation, mode="wig",
+                          unroll=2, optimizer=optimizer, refinement=refinement, epochs=2,
+                          batch_size=12)
+
+    first = train(adam, fixed(3))
+    tolerance = train(adam, converged(1e-10))
+    again = train(adam, fixed(3))
+    steps = [c for c in made if c._packed_argnums == (2,)]
+    assert len(steps) == 2  # fixed K and the tolerance mode are two programs, kept
+    assert [r._replace(time=0.0) for r in again.records] == \
+        [r._replace(time=0.0) for r in first.records]
+    assert tolerance.records[-1].rtol == 1e-10
+    train(optax.adam(3e-3), fixed(3))
+    assert len([c for c in made if c._packed_argnums == (2,)]) == 3
+
+
 def test_the_initial_network_is_scaled_to_its_targets(small):
     """The output layer's scale is the spread of the relative one-step targets: the
     converged coarse step's error (correction, small) or the step itself (prediction)."""

@@ -94,6 +94,35 @@ def test_training_gradient_passes_a_taylor_test(small, gradient):
     assert result.passed(), result.rates
 
 
+def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
+    """Equal settings (the same optimizer object): one step, traced once, and the same
+    records; another optimizer object is another step."""
+    from prdp_fem.executables import SharedCompile
+
+    made, original = [], SharedCompile.__init__
+
+    def recording(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self)
+
+    learned._kept_step_program.cache_clear()
+    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    _, problem, samples, network = small
+    train_set, validation_set = samples.take(np.arange(16)), samples.take(np.arange(16, 20))
+    adam = optax.adam(3e-3)
+
+    def train(optimizer):
+        return learned.train(problem, network, train_set, validation_set, optimizer=optimizer,
+                             refinement=prdp(K0=2, dK=2), epochs=2, batch_size=8)
+
+    first, again = train(adam), train(adam)
+    assert len([c for c in made if c._packed_argnums == (3,)]) == 1
+    assert [r._replace(time=0.0) for r in again.records] == \
+        [r._replace(time=0.0) for r in first.records]
+    train(optax.adam(3e-3))
+    assert len([c for c in made if c._packed_argnums == (3,)]) == 2
+
+
 def test_training_lowers_the_validation_misfit_and_prdp_refines(small):
     _, problem, samples, network = small
     train_set, validation_set = samples.take(np.arange(32)), samples.take(np.arange(32, 40))

@@ -89,6 +89,9 @@ def test_equal_lbfgs_settings_build_one_optimizer_object():
     again = build.optimizer(parse_scene({"optimizer": {"first_step": "unit"}}))
     other = build.optimizer(parse_scene({"optimizer": {"first_step": "polyak"}}))
     assert first is again and other is not first
+    adam = {"optimizer": {"name": "adam", "learning_rate": 1e-3, "decay": "cosine"}}
+    assert build.optimizer(parse_scene(adam), 50) is build.optimizer(parse_scene(adam), 50)
+    assert build.optimizer(parse_scene(adam), 60) is not build.optimizer(parse_scene(adam), 50)
 
 
 def test_stall_on_failure_reaches_the_controller():
