@@ -459,27 +459,33 @@ def test_scan_length_passes_the_taylor_test(small_problem):
 
 
 def test_scan_length_with_checkpoints_jvp_and_vmap(small_problem):
-    """The scan-length map under checkpointed segments, forward mode and a batch."""
+    """The scan-length map under checkpointed segments, forward mode and a batch (each
+    jitted: one compile apiece)."""
     disc, kappa, f = small_problem
     kappa = jnp.asarray(kappa)
     w = jnp.cos(jnp.arange(disc.n_free))
     k = jnp.asarray(11)
-    plain = jax.grad(lambda c: _scan_length_loss(disc, f, w, 11, None)(c)[0])(kappa)
-    checkpointed = jax.jit(jax.grad(
-        lambda c: _scan_length_loss(disc, f, w, k, 16, checkpoint=True)(c)[0]))(kappa)
-    np.testing.assert_allclose(checkpointed, plain, rtol=1e-11, atol=1e-14 * np.abs(plain).max())
+    static, bounded = _scan_length_loss(disc, f, w, 11, None), _scan_length_loss(disc, f, w, k, 16)
+    checkpointed = _scan_length_loss(disc, f, w, k, 16, checkpoint=True)
+    plain = jax.jit(jax.grad(lambda c: static(c)[0]))(kappa)
+    np.testing.assert_allclose(jax.jit(jax.grad(lambda c: checkpointed(c)[0]))(kappa), plain,
+                               rtol=1e-11, atol=1e-14 * np.abs(plain).max())
     direction = jnp.asarray(np.random.default_rng(3).normal(size=kappa.shape))
-    _, tangent = jax.jvp(lambda c: _scan_length_loss(disc, f, w, k, 16)(c)[0], (kappa,),
-                         (direction,))
+    _, tangent = jax.jit(lambda c, d: jax.jvp(lambda x: bounded(x)[0], (c,), (d,)))(
+        kappa, direction)
     assert float(tangent) == pytest.approx(float(plain @ direction), rel=1e-11)
     system = disc.system
     operator = system.operator(kappa)
     sources = jnp.stack([jnp.asarray(f) * s for s in (0.5, 2.0)])
-    batched = jax.vmap(lambda src: solve(operator, system.rhs(kappa, src), TruncatedCG(
-        k, gradient="unrolled", scan_length=16)).x)(sources)
+
+    def solved(src, solver):
+        return solve(operator, system.rhs(kappa, src), solver).x
+
+    batched = jax.jit(jax.vmap(lambda src: solved(src, TruncatedCG(
+        k, gradient="unrolled", scan_length=16))))(sources)
+    single = jax.jit(lambda src: solved(src, TruncatedCG(11, gradient="unrolled")))
     for i, src in enumerate(sources):
-        single = solve(operator, system.rhs(kappa, src), TruncatedCG(11, gradient="unrolled")).x
-        np.testing.assert_allclose(batched[i], single, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(batched[i], single(src), rtol=1e-13, atol=1e-15)
 
 
 def test_a_traced_k_beyond_the_scan_length_runs_the_scan_length(small_problem):
