@@ -355,7 +355,7 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
 
     One object per setting (pure and immutable, as optax's transformations are): a study's
     runs with equal optimiser settings share one compiled step (see
-    ``prdp_fem.inverse._step_program`` and ``prdp_fem.heat``'s kept steps)."""
+    ``prdp_fem.executables.kept_programs``)."""
     spec = scene.optimizer
     return _optimizer(spec, spec.steps if updates is None else int(updates))
 

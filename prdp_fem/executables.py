@@ -46,7 +46,7 @@ import numpy as np
 from .program_store import compile_lowered
 from .tally import is_tally_host_call
 
-__all__ = ["SharedCompile"]
+__all__ = ["SharedCompile", "kept_programs"]
 
 #: Executables by program; the least recently used is dropped beyond the limit.
 _EXECUTABLES: OrderedDict[tuple, Any] = OrderedDict()
@@ -256,6 +256,29 @@ class SharedCompile:
             while len(_EXECUTABLES) > _LIMIT:
                 _EXECUTABLES.popitem(last=False)
         return executable
+
+
+def kept_programs(build: Callable[..., SharedCompile],
+                  size: int = 8) -> Callable[..., SharedCompile]:
+    """``build(*settings)``, kept for the process per settings (the last ``size``).
+
+    A driver (:func:`prdp_fem.inverse.invert`, the trainings) builds a new step function on
+    every call, so equal settings traced and lowered their step again (0.4-1 s) before
+    finding the shared executable. Called with ``keep=False`` (a preconditioner object: a
+    pytree of arrays, which a key would keep alive) or with settings that cannot be hashed,
+    it builds a program of its own. ``cache_clear()`` forgets the kept ones.
+    """
+    kept = functools.lru_cache(maxsize=size)(build)
+
+    def program(*settings, keep: bool = True) -> SharedCompile:
+        try:
+            hash(settings)
+        except TypeError:  # an optimizer (or other setting) that is not a key
+            keep = False
+        return kept(*settings) if keep else build(*settings)
+
+    program.cache_clear = kept.cache_clear
+    return program
 
 
 def _program_key(lowered, leaves) -> tuple | None:

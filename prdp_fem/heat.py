@@ -62,7 +62,7 @@ import dataclasses
 import math
 import time
 from collections.abc import Callable
-from functools import lru_cache, partial
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -75,7 +75,7 @@ from . import cg
 from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
-from .executables import SharedCompile
+from .executables import SharedCompile, kept_programs
 from .inverse import _scan_length, _solver
 from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec, symmetric_matvec
@@ -402,22 +402,6 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
     return step
 
 
-def _step_program(*settings) -> SharedCompile:
-    """The compiled step for these settings (optimizer object, setup, mode, gradient,
-    tolerance mode, preconditioner, step function, counted), kept for the process (the last
-    8): a study's PRDP and converged runs of one mode trace and lower it once, not once each
-    (about 0.8 s for the heat scene's correction step). A preconditioner object or a setting
-    that cannot be hashed gets a step of its own."""
-    preconditioner = settings[5]
-    try:
-        hash(settings)
-    except TypeError:
-        return _new_step_program(*settings)
-    if not isinstance(preconditioner, str):
-        return _new_step_program(*settings)
-    return _kept_step_program(*settings)
-
-
 def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
                       step, counted) -> SharedCompile:
     return SharedCompile(_make_step(optimizer, setup, mode, gradient, tolerance_mode,
@@ -425,7 +409,11 @@ def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, precondi
                          static_argnum=5, packed_argnums=(2,))
 
 
-_kept_step_program = lru_cache(maxsize=8)(_new_step_program)
+#: The compiled step per settings (optimizer object, setup, mode, gradient, tolerance mode,
+#: preconditioner, step function, counted), kept for the process: a study's PRDP and
+#: converged runs of one mode trace and lower it once (about 0.8 s for the heat scene's
+#: correction step).
+_step_program = kept_programs(_new_step_program)
 
 
 def _check_network(network: Network, n_free: int) -> None:
@@ -486,7 +474,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
     step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode,
-                            preconditioner, step, counted)
+                            preconditioner, step, counted, keep=isinstance(preconditioner, str))
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(

@@ -39,7 +39,7 @@ from .errors import (
     ShapeError,
     SolverConfigError,
 )
-from .executables import SharedCompile
+from .executables import SharedCompile, kept_programs
 from .history import History, StepRecord
 from .linesearch import lbfgs
 from .observations import Observation
@@ -462,32 +462,17 @@ def _default_optimizer() -> optax.GradientTransformationExtraArgs:
     return lbfgs()
 
 
-def _step_program(optimizer, gradient: str, tolerance_mode: bool,
-                  preconditioner) -> SharedCompile:
-    """The compiled step for these settings, kept for the process (the last
-    :data:`_STEP_PROGRAMS`): inversions with equal settings -- the same optimizer object, a
-    study's runs, an alpha sweep's -- trace and lower their step once, not once each
-    (0.4-1 s). A preconditioner object (a pytree of arrays: no key) or an optimizer that
-    cannot be hashed gets a step of its own."""
-    settings = (optimizer, gradient, tolerance_mode, preconditioner)
-    if not isinstance(preconditioner, str):
-        return _new_step_program(*settings)
-    try:
-        hash(optimizer)
-    except Exception:  # an optimizer object that is not a key
-        return _new_step_program(*settings)
-    return _shared_step_program(*settings)
-
-
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
                          static_argnum=4, packed_argnums=(0,))
 
 
-#: How many step programs (settings) the process keeps.
-_STEP_PROGRAMS = 8
-_shared_step_program = lru_cache(maxsize=_STEP_PROGRAMS)(_new_step_program)
+#: The compiled step per settings (the optimizer object as given, gradient, tolerance mode,
+#: preconditioner name), kept for the process: inversions with equal settings -- the same
+#: optimizer object, a study's runs, an alpha sweep's -- trace and lower their step once
+#: (see :func:`~prdp_fem.executables.kept_programs`).
+_step_program = kept_programs(_new_step_program)
 
 
 def _make_validation(rtol, preconditioner):
@@ -568,7 +553,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     # timed as compile time, not run time, and happens once per process
     update_control = SharedCompile(_with_settings(refinement.update))
     counter, validation_counter = IterationCounter(), IterationCounter()
-    step = _step_program(given, gradient, refinement.tolerance_mode, preconditioner)
+    step = _step_program(given, gradient, refinement.tolerance_mode, preconditioner,
+                         keep=isinstance(preconditioner, str))
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
     validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,

@@ -32,7 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from functools import cached_property, lru_cache, partial
+from functools import cached_property, partial
 from typing import Any, NamedTuple
 
 import jax
@@ -44,7 +44,7 @@ from jax.flatten_util import ravel_pytree
 from .cg import IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
-from .executables import SharedCompile
+from .executables import SharedCompile, kept_programs
 from .hig import JACOBIAN_MODES
 from .inverse import _scan_length, _solver, _stored_or_evaluated, _uses_stored_value
 from .observations import Observation
@@ -449,30 +449,15 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
     return step
 
 
-def _step_program(optimizer, gradient: str, tolerance_mode: bool,
-                  preconditioner) -> SharedCompile:
-    """The compiled step for these settings (the optimizer object as given, gradient mode,
-    tolerance mode, preconditioner name), kept for the process (the last 8), as
-    :func:`prdp_fem.inverse.invert` keeps its own: trainings with equal settings trace and
-    lower their step once. A preconditioner object or an optimizer that cannot be hashed
-    gets a step of its own."""
-    settings = (optimizer, gradient, tolerance_mode, preconditioner)
-    try:
-        hash(settings)
-    except TypeError:
-        return _new_step_program(*settings)
-    if not isinstance(preconditioner, str):
-        return _new_step_program(*settings)
-    return _kept_step_program(*settings)
-
-
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
                          static_argnum=6, packed_argnums=(3,))
 
 
-_kept_step_program = lru_cache(maxsize=8)(_new_step_program)
+#: The compiled step per settings, kept for the process as ``invert`` keeps its own:
+#: trainings with equal settings trace and lower their step once.
+_step_program = kept_programs(_new_step_program)
 
 
 def _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement, layers):
@@ -533,7 +518,8 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
                             network.layers)
-    step = _step_program(optimizer, gradient, refinement.tolerance_mode, preconditioner)
+    step = _step_program(optimizer, gradient, refinement.tolerance_mode, preconditioner,
+                         keep=isinstance(preconditioner, str))
     optimizer = optax.with_extra_args_support(optimizer)
     if problem.factors is None:
         problem = problem.with_residual()

@@ -140,3 +140,18 @@ def json_from_a_process(script: str, cache_setting: str) -> dict:
     out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                          text=True, check=True, timeout=300)
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def shared_compiles_made(monkeypatch) -> list:
+    """The ``SharedCompile`` programs built from now on (the test's ``monkeypatch`` undoes
+    the recording)."""
+    from prdp_fem.executables import SharedCompile
+
+    made, original = [], SharedCompile.__init__
+
+    def recording(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        made.append(self)
+
+    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    return made

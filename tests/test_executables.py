@@ -132,7 +132,7 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
 
     # the step and the controller's update (and the validation misfit)
     programs = 2 if monitor == "loss" else 3
-    inverse._shared_step_program.cache_clear()  # no step kept from an earlier test
+    inverse._step_program.cache_clear()  # no step kept from an earlier test
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
     first = run(fixed(4))
     assert len(executables._EXECUTABLES) == programs
@@ -141,7 +141,7 @@ def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
     assert len(executables._EXECUTABLES) == programs + 1
     assert _tallies(first) == _tallies(second)  # prdp does not refine in 4 steps
     monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
-    inverse._shared_step_program.cache_clear()
+    inverse._step_program.cache_clear()
     alone = run(fixed(6))  # compiled for itself
     assert _tallies(third) == _tallies(alone)
     assert _tallies(third)[-1][0] > _tallies(first)[-1][0] > 0
@@ -364,7 +364,7 @@ def test_an_inversion_step_takes_its_problem_packed(source_problem, monkeypatch)
         made.append(self)
 
     monkeypatch.setattr(SharedCompile, "__init__", recording)
-    inverse._shared_step_program.cache_clear()  # build the step here
+    inverse._step_program.cache_clear()  # build the step here
     invert(source_problem, refinement=fixed(4), steps=2)
     problem_arrays = [leaf for leaf in jax.tree_util.tree_leaves(source_problem) if leaf.size]
     [step] = [compiled for compiled in made if compiled._packed_argnums == (0,)]
@@ -372,3 +372,23 @@ def test_an_inversion_step_takes_its_problem_packed(source_problem, monkeypatch)
     taken = len(jax.tree_util.tree_leaves(entry.executable.args_info))
     assert len(problem_arrays) > 40 and taken < 25
     assert isinstance(entry.run, executables._DirectCall)  # and skips JAX's per-call work
+
+
+def test_kept_programs_keep_one_program_per_hashable_setting():
+    from prdp_fem.executables import kept_programs
+
+    built = []
+
+    def build(*settings):
+        built.append(settings)
+        return SharedCompile(lambda x: x)
+
+    program = kept_programs(build, size=2)
+    first = program("adam", "implicit")
+    assert program("adam", "implicit") is first and len(built) == 1
+    assert program("adam", "implicit", keep=False) is not first  # e.g. a preconditioner object
+    assert program(["not", "hashable"], "implicit") is not program(["not", "hashable"], "implicit")
+    program("b", 1), program("c", 2)  # the oldest falls out beyond size
+    assert program("adam", "implicit") is not first
+    program.cache_clear()
+    assert len(built) == 7

@@ -10,6 +10,7 @@ import pytest
 import scipy.linalg
 import scipy.sparse.linalg as spla
 import skfem
+from conftest import shared_compiles_made
 
 import prdp_fem as pf
 from prdp_fem import heat, learned
@@ -267,15 +268,7 @@ def test_unrolled_training_refines_k_within_one_compiled_step(small, monkeypatch
     """WIG through the unrolled solver while PRDP raises K from 1: every K up to 16 runs the
     same program (one scan length), and the tally stays exact: K per primal solve (2 per
     window) and, backward, K per differentiated solve (the second of each window)."""
-    from prdp_fem.executables import SharedCompile
-
-    made, original = [], SharedCompile.__init__
-
-    def recording(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        made.append(self)
-
-    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    made = shared_compiles_made(monkeypatch)
     _, problem, trajectories, validation = small
     training = heat.train(problem, network_for(problem), trajectories, validation, mode="wig",
                           unroll=2, gradient="unrolled", optimizer=optax.adam(3e-3),
@@ -294,17 +287,11 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     """A study's PRDP and converged runs of one mode call train with equal settings: the
     step is traced once and the trainings are what they were alone; another optimizer
     object is another step."""
-    from prdp_fem.executables import SharedCompile
     from prdp_fem.prdp import converged, fixed
 
-    made, original = [], SharedCompile.__init__
 
-    def recording(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        made.append(self)
-
-    heat._kept_step_program.cache_clear()
-    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    heat._step_program.cache_clear()
+    made = shared_compiles_made(monkeypatch)
     _, problem, trajectories, validation = small
     adam = optax.adam(3e-3)
 

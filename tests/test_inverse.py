@@ -9,6 +9,7 @@ import numpy as np
 import optax
 import pytest
 import scipy.sparse.linalg as spla
+from conftest import shared_compiles_made
 
 import prdp_fem as pf
 from prdp_fem.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
@@ -299,17 +300,9 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
 def _step_programs_made(monkeypatch) -> list:
     """The step programs (SharedCompile with a packed problem) built from now on."""
     from prdp_fem import inverse
-    from prdp_fem.executables import SharedCompile
 
-    made, original = [], SharedCompile.__init__
-
-    def recording(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        made.append(self)
-
-    inverse._shared_step_program.cache_clear()
-    monkeypatch.setattr(SharedCompile, "__init__", recording)
-    return made
+    inverse._step_program.cache_clear()
+    return shared_compiles_made(monkeypatch)
 
 
 def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once(
@@ -369,7 +362,7 @@ def test_a_step_traces_its_objective_once(monkeypatch):
         return original(self, *args, **kwargs)
 
     monkeypatch.setattr(inverse.InverseProblem, "loss", counting)
-    inverse._shared_step_program.cache_clear()
+    inverse._step_program.cache_clear()
     again = invert(problem, refinement=fixed(8), steps=3)
     assert len(traced) == 1
     assert np.array_equal(again.history.column("loss"), reference.history.column("loss"))

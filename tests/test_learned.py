@@ -10,6 +10,7 @@ import numpy as np
 import optax
 import pytest
 import scipy.sparse.linalg as spla
+from conftest import shared_compiles_made
 from skfem.models.poisson import laplace
 
 import prdp_fem as pf
@@ -97,16 +98,8 @@ def test_training_gradient_passes_a_taylor_test(small, gradient):
 def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     """Equal settings (the same optimizer object): one step, traced once, and the same
     records; another optimizer object is another step."""
-    from prdp_fem.executables import SharedCompile
-
-    made, original = [], SharedCompile.__init__
-
-    def recording(self, *args, **kwargs):
-        original(self, *args, **kwargs)
-        made.append(self)
-
-    learned._kept_step_program.cache_clear()
-    monkeypatch.setattr(SharedCompile, "__init__", recording)
+    learned._step_program.cache_clear()
+    made = shared_compiles_made(monkeypatch)
     _, problem, samples, network = small
     train_set, validation_set = samples.take(np.arange(16)), samples.take(np.arange(16, 20))
     adam = optax.adam(3e-3)
