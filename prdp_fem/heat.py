@@ -76,7 +76,7 @@ from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile, kept_programs
-from .inverse import _scan_length, _solver
+from .inverse import _device_settings, _scan_length, _solver
 from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, prdp
@@ -479,13 +479,12 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
         net, prob, val, validation_solver, setup=setup, step=step)[0])
-    update_control = jax.jit(refinement.update)
     opt_state, control = optimizer.init(network), refinement.init()
     rng = np.random.default_rng(seed)
     records, run_time, primal = [], 0.0, 0
     for epoch in range(1, epochs + 1):
         if solves:
-            K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
+            K, K_adj, rtol = _device_settings(control.settings())
         else:  # no solver: one compile, nothing to refine
             K, K_adj, rtol = (jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32),
                               jnp.asarray(0.0))
@@ -508,13 +507,12 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
             losses.append(float(loss))
             primal += int(iterations)
         if epoch == 1:  # compile outside the timed region
-            jax.block_until_ready(update_control(control, validate(network, problem,
-                                                                   validation_set)))
+            jax.block_until_ready(validate(network, problem, validation_set))
         start = time.perf_counter()
         error = validate(network, problem, validation_set)
         previous = control
         if solves:
-            control = jax.block_until_ready(update_control(control, error))
+            control = refinement.update(control, float(error))
         run_time += time.perf_counter() - start
         test_error = math.nan if test_set is None else float(
             validate(network, problem, test_set))

@@ -434,25 +434,11 @@ class _StepScalars(NamedTuple):
         return cls(*np.asarray(packed).tolist())
 
 
-def _with_settings(update):
-    """``refinement.update`` returning also ``(K, K_adj, rtol, refinements)`` as one float64
-    vector, read in one transfer instead of four."""
-
-    def update_and_report(state: RefinementState, value, failed):
-        state = update(state, value, failed)
-        return state, _settings_vector(state)
-
-    return update_and_report
-
-
-def _settings_vector(state: RefinementState) -> jax.Array:
-    return jnp.stack([jnp.asarray(v, jnp.float64) for v in (
-        state.iterations, state.adjoint_iterations, state.rtol, state.refinements)])
-
-
-def _read_settings(vector) -> tuple[int, int, float, int]:
-    K, K_adj, rtol, refinements = np.asarray(vector).tolist()
-    return int(K), int(K_adj), float(rtol), int(refinements)
+def _device_settings(settings: tuple[int, int, float]) -> tuple[jax.Array, ...]:
+    """The step's ``(K, K_adj, rtol)`` arguments: transferred once per refinement, not per
+    step (the controller's state lives on the host)."""
+    K, K_adj, rtol = settings
+    return tuple(jax.device_put((np.int32(K), np.int32(K_adj), np.float64(rtol))))
 
 
 @lru_cache(maxsize=1)
@@ -548,10 +534,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
 
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
-    control = refinement.init()
-    # one dispatch per step, not dozens; a SharedCompile so that its compile (about 0.1 s) is
-    # timed as compile time, not run time, and happens once per process
-    update_control = SharedCompile(_with_settings(refinement.update))
+    control = refinement.init()  # host arrays: an update is NumPy work, no dispatch
     counter, validation_counter = IterationCounter(), IterationCounter()
     step = _step_program(given, gradient, refinement.tolerance_mode, preconditioner,
                          keep=isinstance(preconditioner, str))
@@ -559,19 +542,18 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         _check_unrolled_start(problem, z)
     validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,
                                                                       preconditioner)
-    compiled = [step, update_control] + ([] if validate is None else [validate])
+    compiled = [step] + ([] if validate is None else [validate])
     compiled_before_run = sum(c.seconds for c in compiled)  # the step may be an earlier run's
     history, run_time, evaluations, failed_steps = History(), 0.0, 0, 0
     failed_since_update = False  # a monitor read every few steps still hears of each failure
-    settings = (int(control.iterations), int(control.adjoint_iterations),  # read on the host:
-                float(control.rtol), int(control.refinements))  # no program to compile
+    settings = control.settings()
+    arguments = _device_settings(settings)
     for k in range(1, steps + 1):
-        K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
-        previous_K = settings[:3]
+        previous_K = settings
         start = time.perf_counter()
         compile_before = sum(c.seconds for c in compiled)
         z_next, opt_state, packed = step(problem, counter, z, opt_state,
-                                         _scan_length(gradient, previous_K[0]), K, K_adj, rtol)
+                                         _scan_length(gradient, settings[0]), *arguments)
         result = _StepScalars.read(packed)
         monitored = result.grad_norm if monitor == "gradient" else result.value
         if validate is not None and k % monitor.every == 0:
@@ -580,9 +562,10 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         failed_since_update |= failed
         failed_steps += failed
         if validate is None or k % monitor.every == 0:
-            control, reported = update_control(control, np.float64(monitored),
-                                               failed_since_update)
-            settings = _read_settings(reported)
+            control = refinement.update(control, monitored, failed_since_update)
+            settings = control.settings()
+            if settings != previous_K:
+                arguments = _device_settings(settings)
             failed_since_update = False
         compile_time = sum(c.seconds for c in compiled)
         run_time += time.perf_counter() - start - (compile_time - compile_before)
@@ -594,16 +577,16 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
         z = z_next
-        if settings[:3] != previous_K and _uses_stored_value(opt_state):
+        if settings != previous_K and _uses_stored_value(opt_state):
             # the stored value/gradient belong to the old solver: recompute them next step
             opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
         evaluations = counter.primal_solves
-        state_error = _state_error(problem, z, gradient, refinement.tolerance_mode, K, K_adj,
-                                   rtol, preconditioner) \
+        state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
+                                   *previous_K, preconditioner) \
             if reference_every and k % reference_every == 0 else math.nan
         record = StepRecord(
             step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
-            rtol=previous_K[2], refinements=settings[3],
+            rtol=previous_K[2], refinements=int(control.refinements),
             primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
             validation_iterations=validation_counter.primal, evaluations=evaluations,
             time=run_time, compile_time=compile_time - compiled_before_run,

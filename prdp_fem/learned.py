@@ -46,7 +46,13 @@ from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile, kept_programs
 from .hig import JACOBIAN_MODES
-from .inverse import _scan_length, _solver, _stored_or_evaluated, _uses_stored_value
+from .inverse import (
+    _device_settings,
+    _scan_length,
+    _solver,
+    _stored_or_evaluated,
+    _uses_stored_value,
+)
 from .observations import Observation
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, RefinementState, prdp
@@ -526,14 +532,13 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     counter = IterationCounter()
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
-    update_control = jax.jit(refinement.update)  # one dispatch per epoch, not dozens
     layers = network.layers
     opt_state, control = optimizer.init(layers), refinement.init()
     rng = np.random.default_rng(seed)
     records, run_time, steps = [], 0.0, 0
     for epoch in range(1, epochs + 1):
-        K, K_adj, rtol = control.iterations, control.adjoint_iterations, control.rtol
-        scan_length = _scan_length(gradient, K)
+        K, K_adj, rtol = _device_settings(control.settings())
+        scan_length = _scan_length(gradient, int(K))
         order = rng.permutation(n) if batch_size < n else np.arange(n)
         batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
         losses = []
@@ -556,14 +561,13 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             steps += 1
         network = network._replace(layers=layers)
         if epoch == 1:  # compile outside the timed region
-            jax.block_until_ready(update_control(control, validate(network, problem,
-                                                                   validation_set)[0]))
+            jax.block_until_ready(validate(network, problem, validation_set))
         start = time.perf_counter()
         misfit, error = validate(network, problem, validation_set)
         previous = control
-        control = jax.block_until_ready(update_control(control, misfit))
+        control = refinement.update(control, float(misfit))
         run_time += time.perf_counter() - start
-        if _uses_stored_value(opt_state) and _solver_changed(previous, control):
+        if _uses_stored_value(opt_state) and previous.settings() != control.settings():
             # the stored value/gradient belong to the old solver: recompute them next step
             # (same shape and dtype as stored: the step is compiled per argument type)
             stored = optax.tree_utils.tree_get(opt_state, "value")
@@ -578,12 +582,6 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             callback(record)
     step.release()  # kept for later trainings: without this one's problem and data
     return Training(network, control, records)
-
-
-def _solver_changed(previous: RefinementState, control: RefinementState) -> bool:
-    return (int(previous.iterations), int(previous.adjoint_iterations),
-            float(previous.rtol)) != (int(control.iterations), int(control.adjoint_iterations),
-                                      float(control.rtol))
 
 
 def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,

@@ -185,7 +185,7 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     start (tracked by the exact quadratic identity ``J(f + a p) = J(f) - a r.p + a^2 p.q / 2``),
     ``misfit`` and ``state_error`` are NaN, ``evaluations`` counts the gradient evaluations,
     ``refinements`` those before the step (the controller sees the residual after the record
-    and the callback: a run that stops there never compiles it).
+    and the callback).
     """
     _check_quadratic(problem)
     refinement = fixed(50) if refinement is None else refinement
@@ -195,8 +195,7 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     control = refinement.init()
     gradient, compile_time = _compile(
         _make_gradient(refinement.tolerance_mode, preconditioner, counter),
-        problem, f, *_solver_key(control))
-    update_control = None  # compiled when first needed: a run may stop before
+        problem, f, *control.settings())
     linear_part, error = homogeneous(problem), _Relative(problem)
     riesz = _Riesz(problem, riesz_rtol)
 
@@ -207,7 +206,7 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     history, run_time, cg, solver_key = History(), 0.0, None, None
     for step in range(1, iterations + 1):
         start = time.perf_counter()
-        key = _solver_key(control)
+        key = control.settings()
         if key != solver_key:  # a new inner solver: restart from the true gradient
             loss, g = evaluate(problem, f, key)
             cg = _CGState.start(-g, -riesz(g), loss, cg)
@@ -231,20 +230,11 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
         if cg.residual_norm <= rtol * cg.initial_norm:
             break
         start = time.perf_counter()
-        if update_control is None:
-            update_control, seconds = _compile(refinement.update, control, cg.residual_norm)
-            compile_time += seconds
-            start += seconds
-        control = update_control(control, cg.residual_norm)
+        control = refinement.update(control, cg.residual_norm)
         run_time += time.perf_counter() - start
     return ReducedCG(f, history, riesz.iterations,
                      math.nan if cg is None else cg.residual_norm,
                      math.nan if cg is None else cg.initial_norm)
-
-
-def _solver_key(control) -> tuple[int, int, float]:
-    """``(K, K_adj, rtol)`` of the controller's state: the inner solver of the next step."""
-    return int(control.iterations), int(control.adjoint_iterations), float(control.rtol)
 
 
 class _CGState(NamedTuple):

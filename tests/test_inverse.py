@@ -210,26 +210,6 @@ def test_invert_reaches_the_discrete_optimum_and_records_costs():
     assert h[-1].primal_iterations > h[-1].evaluations > len(h) // 2
 
 
-def test_run_time_leaves_out_the_controller_compile():
-    """The controller's update is compiled on its first call, inside the step loop: that time
-    is compile time. Here its tracing sleeps 0.5 s, ten times what the three steps take."""
-    import time
-
-    from prdp_fem.prdp import Refinement
-
-    _disc, problem = _source_problem(n=6)
-    base = fixed(3)
-
-    def slow_to_trace(state, value, failed=False):
-        time.sleep(0.5)  # runs once, while tracing
-        return base.update(state, value, failed)
-
-    history = invert(problem, refinement=Refinement(base.init, slow_to_trace),
-                     steps=3).history
-    assert history[-1].compile_time >= 0.5
-    assert history[-1].time < 0.45
-
-
 def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
     _disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
     result = invert(problem, refinement=prdp(K0=2, dK=4, restart=True, stall_on_failure=True),

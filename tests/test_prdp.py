@@ -211,6 +211,41 @@ def test_update_jits_and_scans():
     assert list(np.asarray(ks)) == _reference_sequence(list(errors))
 
 
+CONTROLLERS = {
+    "reference": prdp(),
+    "restart, failures": prdp(K0=10, dK=10, restart=True, stall_on_failure=True),
+    "latched, multiplicative, adjoint": prdp(K0=4, dK=0, factor=2.0, K_max=64, latch=True,
+                                             adjoint=Schedule(8, 4, 30)),
+    "tolerance": prdp(K0=10, rtol=1e-2, rtol_factor=0.1, rtol_min=1e-8),
+    "fixed": fixed(30, 12),
+    "converged": converged(1e-9),
+}
+
+
+@pytest.mark.parametrize("name", sorted(CONTROLLERS))
+def test_host_update_is_numpy_and_equals_the_jitted_update(name):
+    """The run loops update a host state with NumPy (no program dispatch); under ``jit`` the
+    same function computes with ``jnp``. Both make the same decisions and carry the same
+    averages (to rounding: XLA may fuse ``a e + (1 - a) s`` into one multiply-add) on curves
+    with NaN, infinities, zeros (0/0 ratios) and failed steps."""
+    controller = CONTROLLERS[name]
+    errors = [*CURVES["plateaus"][:40], float("nan"), 0.0, 0.0, float("inf"),
+              *CURVES["noisy"][:30], *CURVES["diverging"][:20]]
+    jitted = jax.jit(controller.update)
+    host = device = controller.init()
+    for t, e in enumerate(errors):
+        failed = t % 7 == 3
+        host = controller.update(host, e, failed)
+        device = jitted(device, e, failed)
+        for field, a, b in zip(host._fields, host, device, strict=True):
+            assert not isinstance(a, jax.Array), field
+            assert np.asarray(a).dtype == np.asarray(b).dtype, field
+            if np.asarray(a).dtype.kind == "f":
+                np.testing.assert_allclose(a, b, rtol=1e-14, err_msg=f"step {t}: {field}")
+            else:
+                np.testing.assert_array_equal(a, b, err_msg=f"step {t}: {field}")
+
+
 def test_state_round_trips_through_json():
     controller = prdp()
     _, state = _run(controller, CURVES["plateaus"][:25])
