@@ -116,6 +116,11 @@ class Refinement(NamedTuple):
 
     ``tolerance_mode`` tells the solve loop to read ``state.rtol`` (a converged solve capped at
     ``state.iterations``) instead of a fixed ``K``.
+
+    The run loops (:func:`~prdp_fem.inverse.invert`, the trainers, ``reduced_cg``) call
+    ``update`` eagerly on the host with the state ``init`` returned and a Python float. A
+    controller of your own written with ``jnp`` works there too, one JAX operation at a time;
+    written with the array module of its arguments, as :func:`prdp` is, it runs as NumPy.
     """
 
     init: Any
