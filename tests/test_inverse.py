@@ -210,6 +210,30 @@ def test_invert_reaches_the_discrete_optimum_and_records_costs():
     assert h[-1].primal_iterations > h[-1].evaluations > len(h) // 2
 
 
+def test_a_controller_written_with_jnp_runs_in_the_host_loop():
+    """invert updates its controller eagerly on the host state; a user's controller written
+    with jnp (device arrays from its first update on) steers the same run as the NumPy one."""
+    from prdp_fem.prdp import Refinement
+
+    _disc, problem = _source_problem(n=6)
+    base = prdp(K0=2, dK=3, tau_step=0.5, tau_stop=0.99)
+
+    def device_update(state, value, failed=False):
+        state = jax.tree.map(jnp.asarray, state)
+        return base.update(state, jnp.asarray(value), failed)  # computes with jnp
+
+    host = invert(problem, refinement=base, steps=12)
+    device = invert(problem, refinement=Refinement(base.init, device_update), steps=12)
+    assert isinstance(device.refinement.iterations, jax.Array)
+    assert isinstance(host.refinement.iterations, np.ndarray | np.generic)
+    columns = ("iterations", "refinements", "evaluations", "primal_iterations")
+    assert int(host.refinement.refinements) >= 1  # the controller did steer
+    for name in columns:
+        assert list(host.history.column(name)) == list(device.history.column(name)), name
+    np.testing.assert_allclose(device.history.column("loss"), host.history.column("loss"),
+                               rtol=1e-12)
+
+
 def test_prdp_refines_during_inversion_and_history_round_trips(tmp_path):
     _disc, problem = _coefficient_problem(n=12, noise=0.01, alpha=1e-7)
     result = invert(problem, refinement=prdp(K0=2, dK=4, restart=True, stall_on_failure=True),
