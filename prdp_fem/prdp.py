@@ -59,9 +59,9 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.typing import ArrayLike
 
 from .errors import SolverConfigError
 
@@ -93,15 +93,15 @@ class RefinementState(NamedTuple):
     """Everything a controller knows; all fields are arrays (NumPy on the host, ``jnp`` under
     ``jit``; serialisable)."""
 
-    iterations: jax.Array          # K for the next primal solves
-    adjoint_iterations: jax.Array  # K_adj for the next adjoint solves
-    rtol: jax.Array                # tolerance mode: relative residual tolerance (else 0)
-    count: jax.Array               # finite monitored values seen (t; since the last
+    iterations: ArrayLike          # K for the next primal solves
+    adjoint_iterations: ArrayLike  # K_adj for the next adjoint solves
+    rtol: ArrayLike                # tolerance mode: relative residual tolerance (else 0)
+    count: ArrayLike               # finite monitored values seen (t; since the last
     #                                refinement with restart=True)
-    ema: jax.Array                 # the last `delta` moving-average values, oldest first
-    checkpoint: jax.Array          # moving average at the last refinement (e_1 at first)
-    refinements: jax.Array         # refinements so far
-    stopped: jax.Array             # the last stall was judged "K is enough"
+    ema: ArrayLike                 # the last `delta` moving-average values, oldest first
+    checkpoint: ArrayLike          # moving average at the last refinement (e_1 at first)
+    refinements: ArrayLike         # refinements so far
+    stopped: ArrayLike             # the last stall was judged "K is enough"
 
     def settings(self) -> tuple[int, int, float]:
         """``(K, K_adj, rtol)`` as Python numbers: the solver of the next step."""
