@@ -149,6 +149,8 @@ class _Segments:
     0.5 ms step; a repeated problem now costs an identity check."""
 
     def __init__(self, n_arguments: int, packed: list[int]):
+        self.n_arguments = n_arguments
+        packed = [i for i in packed if i < n_arguments]
         bounds = sorted({0, n_arguments} | set(packed) | {i + 1 for i in packed})
         self._slices = [(start, stop, start in packed)
                         for start, stop in itertools.pairwise(bounds)]
@@ -234,7 +236,7 @@ class SharedCompile:
 
     def __call__(self, *args):
         static, dynamic = self._split(args)
-        if self._segments is None:
+        if self._segments is None or self._segments.n_arguments != len(dynamic):
             self._segments = _Segments(len(dynamic), self._packed_positions())
         leaves, treedef, types = self._segments.flatten(dynamic)
         key = (static, types)

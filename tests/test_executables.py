@@ -375,6 +375,15 @@ def test_a_packed_argument_is_flattened_once_per_object(monkeypatch):
     program.release()  # lets go of the last problem
     assert not program._segments._remembered
 
+    # another number of arguments is another structure: segmented and compiled anew
+    def varargs(k, x, frozen, *more):
+        return _reads_constants(x, frozen.constants, k) + sum(more)
+
+    flexible = SharedCompile(varargs, static_argnum=0, packed_argnums=(2,))
+    np.testing.assert_array_equal(flexible(3, x, one), _reads_constants(x, one.constants, 3))
+    np.testing.assert_array_equal(flexible(3, x, one, y, y),
+                                  _reads_constants(x, one.constants, 3) + 2 * y)
+
     in_place = SharedCompile(lambda k, x, constants: _reads_constants(x, constants, k),
                              static_argnum=0, packed_argnums=(2,))
     changing = _constants()
