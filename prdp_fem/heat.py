@@ -483,12 +483,10 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     rng = np.random.default_rng(seed)
     records, run_time, primal = [], 0.0, 0
     for epoch in range(1, epochs + 1):
-        if solves:
-            K, K_adj, rtol = _device_settings(control.settings())
-        else:  # no solver: one compile, nothing to refine
-            K, K_adj, rtol = (jnp.asarray(0, jnp.int32), jnp.asarray(0, jnp.int32),
-                              jnp.asarray(0.0))
-        scan_length = _scan_length(gradient, K)
+        # no solver: one compile, nothing to refine
+        settings = control.settings() if solves else (0, 0, 0.0)
+        K, K_adj, rtol = _device_settings(settings)
+        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
         order = rng.permutation(n)
         losses = []
         for i in range(0, n - batch_size + 1, batch_size):

@@ -537,8 +537,9 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     rng = np.random.default_rng(seed)
     records, run_time, steps = [], 0.0, 0
     for epoch in range(1, epochs + 1):
-        K, K_adj, rtol = _device_settings(control.settings())
-        scan_length = _scan_length(gradient, int(K))
+        settings = control.settings()
+        K, K_adj, rtol = _device_settings(settings)
+        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
         order = rng.permutation(n) if batch_size < n else np.arange(n)
         batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
         losses = []
