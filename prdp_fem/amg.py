@@ -75,11 +75,13 @@ import scipy.linalg
 import scipy.sparse as sp
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
+from jax.typing import ArrayLike
 from pyamg.relaxation import relaxation
 from pyamg.relaxation.smoothing import change_smoothers, rho_D_inv_A
 
 from .errors import DataError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, prepare
+from .prdp import _array_module  # NumPy for host values, jnp for JAX arrays
 from .validation import is_traced
 
 __all__ = [
@@ -89,6 +91,7 @@ __all__ = [
     "PyamgCycle",
     "RebuildPolicy",
     "RebuildState",
+    "RebuiltAMG",
     "amg_hierarchy",
     "amg_preconditioner",
     "rebuild_policy",
@@ -526,6 +529,14 @@ def amg_preconditioner(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind:
         Jacobi damping ``omega / rho(D^-1 A)``, smoothing sweeps before and after, the size
         below which a level is solved directly, pyamg's strength-of-connection option.
     """
+    implementation, smoother = _resolved(implementation, smoother)
+    ml = amg_hierarchy(matrix, kind=kind, smoother=smoother, omega=omega, sweeps=sweeps,
+                       max_coarse=max_coarse, strength=strength)
+    return _cycle_of_checked(ml, implementation)
+
+
+def _resolved(implementation: str | None, smoother: str | None) -> tuple[str, str]:
+    """``(implementation, smoother)`` with the defaults filled in, checked together."""
     implementation = DEFAULT_IMPLEMENTATION if implementation is None else implementation
     if implementation not in IMPLEMENTATIONS:
         raise SolverConfigError(f"implementation={implementation!r}: expected one of "
@@ -537,9 +548,7 @@ def amg_preconditioner(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind:
     if implementation == "jax" and smoother != "jacobi":
         raise SolverConfigError(f"smoother={smoother!r}: implementation='jax' implements "
                                 "'jacobi' only (a parallel smoother)")
-    ml = amg_hierarchy(matrix, kind=kind, smoother=smoother, omega=omega, sweeps=sweeps,
-                       max_coarse=max_coarse, strength=strength)
-    return _cycle_of_checked(ml, implementation)
+    return implementation, smoother
 
 
 def _cycle_of_checked(ml: pyamg.MultilevelSolver, implementation: str) -> AMGCycle | PyamgCycle:
@@ -557,15 +566,15 @@ def _cycle_of_checked(ml: pyamg.MultilevelSolver, implementation: str) -> AMGCyc
 class RebuildState(NamedTuple):
     """Steps since the last build and the values the hierarchy was built from."""
 
-    steps_since_build: jax.Array
-    reference_values: jax.Array
+    steps_since_build: ArrayLike
+    reference_values: ArrayLike
 
 
 class RebuildPolicy(NamedTuple):
     """``init(values) -> state`` at a build; ``update(state, values) -> (rebuild, state)``."""
 
-    init: Callable[[jax.Array], RebuildState]
-    update: Callable[[RebuildState, jax.Array], tuple[jax.Array, RebuildState]]
+    init: Callable[[ArrayLike], RebuildState]
+    update: Callable[[RebuildState, ArrayLike], tuple[ArrayLike, RebuildState]]
 
 
 def rebuild_policy(*, every: int | None = None, factor: float | None = None) -> RebuildPolicy:
@@ -574,8 +583,10 @@ def rebuild_policy(*, every: int | None = None, factor: float | None = None) -> 
     ``v / v_ref`` outside ``[1/factor, factor]`` (a sign change or NaN counts as moved).
 
     ``update`` returns ``rebuild`` (a bool array) and the state to keep: reset to the current
-    values when ``rebuild`` (the caller then rebuilds), else one step older. Pure and
-    jit-compatible; the rebuild itself happens on the host.
+    values when ``rebuild`` (the caller then rebuilds), else one step older. Pure; it computes
+    with NumPy on host values (no dispatch: :func:`prdp_fem.inverse.invert` calls it every
+    step) and with ``jnp`` on JAX arrays and under ``jit``. The rebuild itself happens on the
+    host.
 
     >>> import jax.numpy as jnp
     >>> policy = rebuild_policy(every=3, factor=2.0)
@@ -598,27 +609,77 @@ def rebuild_policy(*, every: int | None = None, factor: float | None = None) -> 
         raise SolverConfigError(f"factor={factor!r}: expected a finite number > 1")
 
     def init(values) -> RebuildState:
-        return RebuildState(jnp.zeros((), jnp.int32), jnp.asarray(values))
+        xp = _array_module((), values)
+        return RebuildState(xp.zeros((), np.int32), xp.asarray(values))
 
-    def update(state: RebuildState, values) -> tuple[jax.Array, RebuildState]:
-        values = jnp.asarray(values)
-        steps = state.steps_since_build + 1
-        rebuild = jnp.asarray(False)
-        if every is not None:
-            rebuild = rebuild | (steps >= every)
-        if factor is not None:
-            rebuild = rebuild | _moved(values, state.reference_values, factor)
-        kept = RebuildState(steps, state.reference_values)
-        fresh = RebuildState(jnp.zeros_like(steps), values)
-        return rebuild, jax.tree_util.tree_map(partial(jnp.where, rebuild), fresh, kept)
+    def update(state: RebuildState, values) -> tuple[ArrayLike, RebuildState]:
+        xp = _array_module(state, values)
+        with np.errstate(divide="ignore", invalid="ignore"):  # NaN values count as moved
+            values = xp.asarray(values)
+            steps = state.steps_since_build + 1
+            rebuild = xp.asarray(False)
+            if every is not None:
+                rebuild = rebuild | (steps >= every)
+            if factor is not None:
+                rebuild = rebuild | _moved(xp, values, state.reference_values, factor)
+            kept = RebuildState(steps, state.reference_values)
+            fresh = RebuildState(xp.zeros_like(steps), values)
+            return rebuild, RebuildState(*(xp.where(rebuild, new, old)
+                                           for new, old in zip(fresh, kept, strict=True)))
 
     return RebuildPolicy(init, update)
 
 
-def _moved(values: jax.Array, reference: jax.Array, factor: float) -> jax.Array:
+def _moved(xp, values: ArrayLike, reference: ArrayLike, factor: float) -> ArrayLike:
     """Some ``values / reference`` outside ``[1/factor, factor]`` (0/0 counts as unmoved)."""
     nonzero = reference != 0
-    ratio = jnp.where(nonzero, values / jnp.where(nonzero, reference, 1.0),
-                      jnp.where(values == 0, 1.0, jnp.inf))
+    ratio = xp.where(nonzero, values / xp.where(nonzero, reference, 1.0),
+                     xp.where(values == 0, 1.0, np.inf))
     within = (ratio >= 1.0 / factor) & (ratio <= factor)  # False for NaN and sign changes
-    return ~jnp.all(within)
+    return ~xp.all(within)
+
+
+# --------------------------------------------------------------------------------------
+# a preconditioner that an inversion rebuilds
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class RebuiltAMG:
+    """An AMG preconditioner that :func:`prdp_fem.inverse.invert` builds from the operator
+    at the current coefficient, and builds again whenever ``policy`` says so.
+
+    ``invert(problem, preconditioner=RebuiltAMG(rebuild_policy(every=10)))`` builds
+    :func:`amg_preconditioner` of ``A(kappa(z_0))`` before the first step (not timed, as a
+    hierarchy passed in is built before the run), then after every step asks
+    ``policy.update(state, kappa(z_k))``; on a rebuild it builds the hierarchy of
+    ``A(kappa(z_k))`` (timed as run time: pyamg's setup is part of the method's cost) and
+    the steps from there on use it. A new hierarchy has new shapes, so its step program is
+    traced and compiled anew (a few seconds, counted as compile time). ``StepRecord.rebuilds``
+    counts the rebuilds. The other arguments are :func:`amg_preconditioner`'s, checked here.
+
+    A source inversion never changes ``kappa``: only ``every`` rebuilds it, to no use.
+    """
+
+    policy: RebuildPolicy
+    kind: str = "sa"
+    implementation: str | None = None
+    smoother: str | None = None
+    omega: float = 4.0 / 3.0
+    sweeps: int = 1
+    max_coarse: int = 10
+    strength: Any = None
+
+    def __post_init__(self):
+        if not isinstance(self.policy, RebuildPolicy):
+            raise SolverConfigError(f"policy={self.policy!r}: expected a RebuildPolicy from "
+                                    "prdp_fem.rebuild_policy(every=..., factor=...)")
+        _, smoother = _resolved(self.implementation, self.smoother)
+        _check_options(self.kind, smoother, self.omega, self.sweeps, self.max_coarse)
+
+    def build(self, matrix: SparseMatrix | sp.spmatrix | sp.sparray) -> AMGCycle | PyamgCycle:
+        """:func:`amg_preconditioner` of ``matrix`` with these options."""
+        return amg_preconditioner(matrix, kind=self.kind, implementation=self.implementation,
+                                  smoother=self.smoother, omega=self.omega,
+                                  sweeps=self.sweeps, max_coarse=self.max_coarse,
+                                  strength=self.strength)

@@ -187,10 +187,12 @@ class _Segments:
 def _packed_groups(treedef, leaves: list, positions: list[int]) -> list[list[int]]:
     """The leaves that travel packed: the non-empty ``jax.Array`` s of the arguments at
     ``positions`` up to :data:`_PACK_LIMIT` elements, grouped by dtype (groups of two or
-    more: one array gains nothing)."""
-    starts = np.cumsum([0] + [child.num_leaves for child in treedef.children()])
+    more: one array gains nothing). A position past the call's arguments (a trailing
+    argument left out) packs nothing."""
+    children = treedef.children()
+    starts = np.cumsum([0] + [child.num_leaves for child in children])
     groups: dict[np.dtype, list[int]] = {}
-    for position in positions:
+    for position in (p for p in positions if p < len(children)):
         for i in range(int(starts[position]), int(starts[position + 1])):
             leaf = leaves[i]
             if isinstance(leaf, jax.Array) and 0 < leaf.size <= _PACK_LIMIT:

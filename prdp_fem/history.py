@@ -32,7 +32,8 @@ class StepRecord(NamedTuple):
     and ``adjoint_iterations`` are cumulative CG iterations that actually ran, line-search trials
     included; ``validation_iterations`` those of converged validation solves. ``failed_steps``
     counts the steps so far whose optimiser reported a failure (a line search that ended
-    without meeting its conditions: a sign that the solves are too truncated).
+    without meeting its conditions: a sign that the solves are too truncated); ``rebuilds`` the
+    preconditioner hierarchies built again so far (:class:`~prdp_fem.amg.RebuiltAMG`).
     """
 
     step: int
@@ -51,6 +52,7 @@ class StepRecord(NamedTuple):
     parameter_error: float
     state_error: float
     failed_steps: int = 0  # defaulted: records written before it existed still load
+    rebuilds: int = 0  # preconditioner rebuilds so far (prdp_fem.amg.RebuiltAMG)
 
     @property
     def total_iterations(self) -> int:

@@ -29,6 +29,7 @@ import numpy as np
 import optax
 import optax.tree_utils as otu
 
+from .amg import AMGCycle, RebuiltAMG
 from .cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, unrolled_length
 from .discretization import Discretization
 from .errors import (
@@ -391,10 +392,14 @@ def _step_failed(opt_state) -> jax.Array:
 
 def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
     """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so that runs
-    differing only in them run one compiled program (per scan length in unrolled mode)."""
+    differing only in them run one compiled program (per scan length in unrolled mode).
 
-    def step(problem, counter, z, opt_state, scan_length, K, K_adj, rtol):
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
+    ``preconditioner`` is closed over, except :class:`~prdp_fem.amg.AMGCycle` (pass the class):
+    the cycle is then the step's last argument (see :func:`_preconditioner_key`)."""
+
+    def step(problem, counter, z, opt_state, scan_length, K, K_adj, rtol, cycle=None):
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+                         preconditioner if cycle is None else cycle, scan_length)
 
         value_fn = Objective(problem, solver, counter)
 
@@ -451,7 +456,7 @@ def _default_optimizer() -> optax.GradientTransformationExtraArgs:
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
-                         static_argnum=4, packed_argnums=(0,))
+                         static_argnum=4, packed_argnums=(0, 8))
 
 
 #: The compiled step per settings (the optimizer object as given, gradient, tolerance mode,
@@ -462,10 +467,23 @@ _step_program = kept_programs(_new_step_program)
 
 
 def _make_validation(rtol, preconditioner):
-    def misfit(problem, counter, z):
-        return problem.loss(z, ConvergedCG(rtol=rtol, preconditioner=preconditioner),
-                            counter=counter)[1].misfit
-    return SharedCompile(misfit, packed_argnums=(0,))
+    def misfit(problem, counter, z, cycle=None):
+        solver = ConvergedCG(rtol=rtol, preconditioner=preconditioner if cycle is None else cycle)
+        return problem.loss(z, solver, counter=counter)[1].misfit
+    return SharedCompile(misfit, packed_argnums=(0, 3))
+
+
+def _preconditioner_key(preconditioner):
+    """What a step program is built for: a name, the class :class:`~prdp_fem.amg.AMGCycle`
+    for any such cycle (its arrays are then an argument of the program: hierarchies of
+    equal shapes, such as an AMG rebuilt at another kappa or the runs of a sweep, share one
+    compiled step), or the object itself (closed over: pyamg's callback cycle, a callable)."""
+    return AMGCycle if isinstance(preconditioner, AMGCycle) else preconditioner
+
+
+def _cycle_argument(preconditioner) -> tuple:
+    """The programs' trailing argument: an :class:`~prdp_fem.amg.AMGCycle`, else none."""
+    return (preconditioner,) if isinstance(preconditioner, AMGCycle) else ()
 
 
 def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
@@ -494,6 +512,11 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         ``K``: :func:`~prdp_fem.cg.unrolled_length`).
     init
         Initial *field* (source or log kappa); default zeros (kappa = 1).
+    preconditioner
+        The CG preconditioner: ``"jacobi"``, ``"identity"``, an object such as
+        :func:`~prdp_fem.amg.amg_preconditioner`'s (fixed for the run), or a
+        :class:`~prdp_fem.amg.RebuiltAMG`, whose hierarchy is built at ``kappa(z_0)`` and built
+        again at the current ``kappa`` when its policy says so (``StepRecord.rebuilds``).
     monitor
         What the controller watches: ``"loss"`` (the objective each step), ``"gradient"``
         (the norm of the computed gradient: no floor, unlike a misfit with noise or
@@ -521,7 +544,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             f"monitor={monitor!r}: expected 'loss', 'gradient' or a Validation")
     if callback is not None and not callable(callback):
         raise SolverConfigError(f"callback={callback!r}: expected a callable or None")
-    TruncatedCG(0, preconditioner)  # checks the preconditioner now, not inside the first step
+    rebuilt = preconditioner if isinstance(preconditioner, RebuiltAMG) else None
+    if rebuilt is None:
+        TruncatedCG(0, preconditioner)  # checks it now, not inside the first step
     refinement = prdp() if refinement is None else refinement
     if not isinstance(refinement, Refinement):
         raise SolverConfigError(f"refinement={refinement!r}: expected a controller from "
@@ -536,15 +561,16 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     opt_state = optimizer.init(z)
     control = refinement.init()  # host arrays: an update is NumPy work, no dispatch
     counter, validation_counter = IterationCounter(), IterationCounter()
-    step = _step_program(given, gradient, refinement.tolerance_mode, preconditioner,
-                         keep=isinstance(preconditioner, str))
+    if rebuilt is not None:  # built before the run, as a hierarchy passed in would be
+        preconditioner = rebuilt.build(_operator(problem, z))
+        rebuild_state = rebuilt.policy.init(_coefficient(problem, z))
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
-    validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol,
-                                                                      preconditioner)
+    step, validate = _programs(given, gradient, refinement.tolerance_mode, preconditioner,
+                               monitor)
     compiled = [step] + ([] if validate is None else [validate])
     compiled_before_run = sum(c.seconds for c in compiled)  # the step may be an earlier run's
-    history, run_time, evaluations, failed_steps = History(), 0.0, 0, 0
+    history, run_time, evaluations, failed_steps, rebuilds = History(), 0.0, 0, 0, 0
     failed_since_update = False  # a monitor read every few steps still hears of each failure
     settings = control.settings()
     arguments = _device_settings(settings)
@@ -553,11 +579,13 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         start = time.perf_counter()
         compile_before = sum(c.seconds for c in compiled)
         z_next, opt_state, packed = step(problem, counter, z, opt_state,
-                                         _scan_length(gradient, settings[0]), *arguments)
+                                         _scan_length(gradient, settings[0]), *arguments,
+                                         *_cycle_argument(preconditioner))
         result = _StepScalars.read(packed)
         monitored = result.grad_norm if monitor == "gradient" else result.value
         if validate is not None and k % monitor.every == 0:
-            monitored = float(validate(problem, validation_counter, z_next))
+            monitored = float(validate(problem, validation_counter, z_next,
+                                       *_cycle_argument(preconditioner)))
         failed = bool(result.failed)
         failed_since_update |= failed
         failed_steps += failed
@@ -576,6 +604,19 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"gradient norm {result.grad_norm!r}, "
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
+        if rebuilt is not None:
+            rebuild_start = time.perf_counter()
+            rebuild, rebuild_state = rebuilt.policy.update(rebuild_state,
+                                                           _coefficient(problem, z_next))
+            if bool(rebuild):
+                preconditioner = rebuilt.build(_operator(problem, z_next))
+                step, validate = _programs(given, gradient, refinement.tolerance_mode,
+                                           preconditioner, monitor)
+                # a hierarchy of the same shapes runs the kept step: count each program once
+                compiled += [p for p in (step, validate)
+                             if p is not None and all(p is not c for c in compiled)]
+                rebuilds += 1
+            run_time += time.perf_counter() - rebuild_start
         z = z_next
         if settings != previous_K and _uses_stored_value(opt_state):
             # the stored value/gradient belong to the old solver: recompute them next step
@@ -591,13 +632,34 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             validation_iterations=validation_counter.primal, evaluations=evaluations,
             time=run_time, compile_time=compile_time - compiled_before_run,
             loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,
-            state_error=state_error, failed_steps=failed_steps)
+            state_error=state_error, failed_steps=failed_steps, rebuilds=rebuilds)
         history = history.append(record)
         if callback is not None and callback(record, z):
             break
     for program in compiled:  # kept for later runs: without this run's problem
         program.release()
     return Inversion(z, problem.field(z), control, opt_state, history)
+
+
+def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
+    """The step program and the validation program (``None`` unless ``monitor`` is a
+    :class:`Validation`) for ``preconditioner``."""
+    key = _preconditioner_key(preconditioner)
+    # a closed-over object is a pytree of arrays or a host cycle: no key to keep it under
+    step = _step_program(optimizer, gradient, tolerance_mode, key,
+                         keep=isinstance(key, str) or key is AMGCycle)
+    validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol, key)
+    return step, validate
+
+
+def _coefficient(problem: InverseProblem, z: jax.Array) -> np.ndarray:
+    """``kappa(z)`` on the host: what a :class:`~prdp_fem.amg.RebuiltAMG` policy watches
+    (its update is then NumPy work, no dispatch)."""
+    return np.asarray(problem.parameterization.coefficients(z, problem.known)[0])
+
+
+def _operator(problem: InverseProblem, z: jax.Array) -> SparseMatrix:
+    return problem.system.operator(jnp.asarray(_coefficient(problem, z)))
 
 
 def _check_unrolled_start(problem: InverseProblem, z: jax.Array) -> None:

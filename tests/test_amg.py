@@ -10,12 +10,14 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 import scipy.sparse as sp
 
 import prdp_fem as pf
 from prdp_fem.amg import AMGCycle, PyamgCycle, amg_hierarchy, amg_preconditioner, rebuild_policy
 from prdp_fem.cli import main
+from prdp_fem.prdp import fixed
 
 IMPLEMENTATIONS = ["jax", "callback"]
 SMOOTHER = {"jax": "jacobi", "callback": "gauss_seidel"}  # the cycle each implementation runs
@@ -373,6 +375,63 @@ def test_rebuild_when_values_move_by_more_than_the_factor():
 def test_bad_rebuild_policies(options, message):
     with pytest.raises(pf.SolverConfigError, match=message):
         rebuild_policy(**options)
+
+
+def _coefficient_inversion(n=6):
+    """A log-kappa inversion from a full noiseless field (the preconditioner's operator moves
+    with every step)."""
+    disc = pf.discretize(pf.unit_square(n), element="P1", kappa_space="P0", dirichlet=0.0)
+    m_true = disc.interpolate_kappa(lambda x: 0.5 * np.sin(np.pi * x[0]) * x[1])
+    f = np.ones(disc.n_dofs)
+    kappa = np.exp(m_true)
+    u = disc.expand(pf.direct_solve(disc.stiffness_matrix(kappa), disc.rhs(kappa, f)).x)
+    observation = pf.full_field(disc, u_true=u)
+    return pf.inverse_problem(disc, observation, unknown="log_kappa", alpha=1e-6, known=f,
+                              truth=m_true)
+
+
+def test_invert_rebuilds_the_hierarchy_at_the_current_kappa_when_the_policy_says_so(
+        monkeypatch):
+    problem = _coefficient_inversion()
+    built = []  # the matrices the hierarchies were built from
+    build = pf.RebuiltAMG.build
+    monkeypatch.setattr(pf.RebuiltAMG, "build",
+                        lambda self, matrix: built.append(matrix.to_scipy()) or
+                        build(self, matrix))
+    params = []
+    run = pf.invert(problem, refinement=fixed(4), steps=5, optimizer=optax.sgd(10.0),
+                    preconditioner=pf.RebuiltAMG(rebuild_policy(every=2)),
+                    callback=lambda record, z: params.append(np.asarray(z)))
+    assert [record.rebuilds for record in run.history] == [0, 1, 1, 2, 2]
+    # built before the first step, then after steps 2 and 4 from the kappa they produced
+    starts = [np.zeros(problem.n_parameters), params[1], params[3]]
+    assert len(built) == 3
+    for matrix, z in zip(built, starts, strict=True):
+        kappa = problem.parameterization.coefficients(jnp.asarray(z), problem.known)[0]
+        expected = problem.system.operator(kappa).to_scipy()
+        assert abs(matrix - expected).max() == 0.0
+    assert len({float(abs(m).sum()) for m in built}) == 3  # kappa moved between the builds
+    # a policy that never fires runs exactly as the hierarchy built at the start, passed in
+    never = pf.invert(problem, refinement=fixed(4), steps=3, optimizer=optax.sgd(10.0),
+                      preconditioner=pf.RebuiltAMG(rebuild_policy(every=100)))
+    fixed_amg = pf.invert(problem, refinement=fixed(4), steps=3, optimizer=optax.sgd(10.0),
+                          preconditioner=amg_preconditioner(
+                              problem.system.operator(jnp.ones(problem.n_parameters))))
+    np.testing.assert_array_equal(never.history.column("loss"),
+                                  fixed_amg.history.column("loss"))
+    assert [record.rebuilds for record in never.history] == [0, 0, 0]
+
+
+@pytest.mark.parametrize(("arguments", "message"), [
+    ({"policy": "every 10"}, r"policy='every 10': expected a RebuildPolicy"),
+    ({"kind": "ml"}, r"kind='ml': expected one of"),
+    ({"implementation": "jax", "smoother": "gauss_seidel"}, r"implements 'jacobi' only"),
+    ({"sweeps": 0}, r"sweeps=0: expected an integer >= 1"),
+])
+def test_a_rebuilt_amg_checks_its_options_at_construction(arguments, message):
+    arguments = {"policy": rebuild_policy(every=5), **arguments}
+    with pytest.raises(pf.SolverConfigError, match=message):
+        pf.RebuiltAMG(**arguments)
 
 
 # ------------------------------------------------------------------------------------------
