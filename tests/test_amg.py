@@ -366,6 +366,22 @@ def test_rebuild_when_values_move_by_more_than_the_factor():
     np.testing.assert_array_equal(older.reference_values, [3.0, -4.0, 0.0])
 
 
+def test_the_host_update_is_numpy_and_decides_as_the_jitted_one():
+    policy = rebuild_policy(every=4, factor=2.0)
+    host, device = policy.init(np.array([1.0, -4.0, 0.0])), policy.init(jnp.array([1.0, -4.0,
+                                                                                 0.0]))
+    assert all(isinstance(leaf, np.ndarray) for leaf in host)
+    update = jax.jit(policy.update)
+    for values in ([1.9, -4.0, 0.0], [2.1, -4.0, 0.0], [2.1, -4.0, 0.0], [np.nan, 1.0, 0.0],
+                   [0.0, 0.0, 0.0], [0.0, 0.0, 1e-3], [1.0, 1.0, 1.0], [1.0, 1.0, 1.0],
+                   [1.0, 1.0, 1.0], [1.0, 1.0, 1.0]):
+        rebuild, host = policy.update(host, np.array(values))
+        expected, device = update(device, jnp.array(values))
+        assert isinstance(rebuild, np.ndarray | np.bool_) and bool(rebuild) == bool(expected)
+        for mine, theirs in zip(host, device, strict=True):
+            np.testing.assert_array_equal(mine, np.asarray(theirs))
+
+
 @pytest.mark.parametrize(("options", "message"), [
     ({}, r"expected at least one rebuild criterion"),
     ({"every": 0}, r"every=0: expected an integer >= 1"),
