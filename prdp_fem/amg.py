@@ -647,7 +647,8 @@ def _moved(xp, values: ArrayLike, reference: ArrayLike, factor: float) -> ArrayL
 @dataclasses.dataclass(frozen=True)
 class RebuiltAMG:
     """An AMG preconditioner that :func:`prdp_fem.inverse.invert` builds from the operator
-    at the current coefficient, and builds again whenever ``policy`` says so.
+    at the current coefficient, and builds again whenever ``policy`` says so (``None``: built
+    at the start and kept).
 
     ``invert(problem, preconditioner=RebuiltAMG(rebuild_policy(every=10)))`` builds
     :func:`amg_preconditioner` of ``A(kappa(z_0))`` before the first step (not timed, as a
@@ -661,7 +662,7 @@ class RebuiltAMG:
     A source inversion never changes ``kappa``: only ``every`` rebuilds it, to no use.
     """
 
-    policy: RebuildPolicy
+    policy: RebuildPolicy | None = None
     kind: str = "sa"
     implementation: str | None = None
     smoother: str | None = None
@@ -671,9 +672,9 @@ class RebuiltAMG:
     strength: Any = None
 
     def __post_init__(self):
-        if not isinstance(self.policy, RebuildPolicy):
-            raise SolverConfigError(f"policy={self.policy!r}: expected a RebuildPolicy from "
-                                    "prdp_fem.rebuild_policy(every=..., factor=...)")
+        if self.policy is not None and not isinstance(self.policy, RebuildPolicy):
+            raise SolverConfigError(f"policy={self.policy!r}: expected None or a RebuildPolicy "
+                                    "from prdp_fem.rebuild_policy(every=..., factor=...)")
         _, smoother = _resolved(self.implementation, self.smoother)
         _check_options(self.kind, smoother, self.omega, self.sweeps, self.max_coarse)
 

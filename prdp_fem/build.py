@@ -29,6 +29,7 @@ import optax
 import skfem
 
 from . import generators, heat
+from .amg import AMGCycle, PyamgCycle, RebuiltAMG, amg_preconditioner, rebuild_policy
 from .cg import ConvergedCG, Solution, TruncatedCG, solve
 from .discretization import Discretization, discretize
 from .errors import DiscretizationError, SceneError, SensorError, ShapeError
@@ -148,8 +149,9 @@ def forward_solve(scene: Scene, *, reference: bool = False,
     A = disc.stiffness_matrix(kappa)
     b = disc.rhs(kappa) + load
     spec = scene.solver
-    solver = TruncatedCG(spec.iterations[0], spec.preconditioner, gradient="implicit") \
-        if spec.iterations else ConvergedCG(rtol=spec.rtol, preconditioner=spec.preconditioner)
+    preconditioner = solver_preconditioner(scene, A)
+    solver = TruncatedCG(spec.iterations[0], preconditioner, gradient="implicit") \
+        if spec.iterations else ConvergedCG(rtol=spec.rtol, preconditioner=preconditioner)
     run = jax.jit(lambda A, b: solve(A, b, solver))
     A_jax, b_jax = SparseMatrix.from_scipy(A), jnp.asarray(b)
     jax.block_until_ready(run(A_jax, b_jax))  # compile
@@ -377,6 +379,30 @@ def _optimizer(spec: OptimizerSpec, updates: int) -> optax.GradientTransformatio
     return getattr(optax, spec.name)(learning_rate)
 
 
+def solver_preconditioner(scene: Scene, matrix) -> str | AMGCycle | PyamgCycle:
+    """The preconditioner of a solve with ``matrix`` (SciPy, or a
+    :class:`~prdp_fem.operator.SparseMatrix`): the scene's name, or for ``"amg"`` the
+    hierarchy built from ``matrix`` now."""
+    spec = scene.solver
+    if spec.preconditioner != "amg":
+        return spec.preconditioner
+    return amg_preconditioner(matrix, kind=spec.amg_kind,
+                              implementation=spec.amg_implementation)
+
+
+def inversion_preconditioner(scene: Scene) -> str | RebuiltAMG:
+    """An inversion's preconditioner: the scene's name, or for ``"amg"`` a
+    :class:`~prdp_fem.amg.RebuiltAMG` (built at the initial coefficient, rebuilt as
+    ``rebuild_every`` / ``rebuild_factor`` say; kept when neither is set)."""
+    spec = scene.solver
+    if spec.preconditioner != "amg":
+        return spec.preconditioner
+    every, factor = spec.rebuild_every or None, spec.rebuild_factor or None  # 0: never
+    policy = rebuild_policy(every=every, factor=factor) \
+        if every is not None or factor is not None else None
+    return RebuiltAMG(policy, kind=spec.amg_kind, implementation=spec.amg_implementation)
+
+
 def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:
     """Keyword arguments of :func:`~prdp_fem.inverse.invert` for this scene."""
     spec = scene.refinement
@@ -385,5 +411,5 @@ def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:
         monitor = Validation(spec.validation_every, spec.validation_rtol)
     return dict(optimizer=optimizer(scene), refinement=controller(scene),
                 gradient=scene.solver.gradient, steps=scene.optimizer.steps,
-                init=initial_field(scene, disc), preconditioner=scene.solver.preconditioner,
+                init=initial_field(scene, disc), preconditioner=inversion_preconditioner(scene),
                 monitor=monitor)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -85,9 +85,12 @@ def build_scene(name: str | None = None, *, n: int = 64, element: str = "P1",
 
 
 def forward_convergence(scene: Scene, iterations: Sequence[int], *,
-                        preconditioner: str = "jacobi",
+                        preconditioner: Any = "jacobi",
                         on_record: Callable[[ForwardRecord], None] | None = None) -> ForwardStudy:
-    """Solve ``scene`` with K PCG iterations for each K; errors against pyamg."""
+    """Solve ``scene`` with K PCG iterations for each K; errors against pyamg.
+
+    ``preconditioner``: a name or an object such as :func:`~prdp_fem.amg.amg_preconditioner`'s.
+    """
     bad = [k for k in iterations if isinstance(k, bool) or not isinstance(k, int | np.integer)
            or k < 0]
     if bad:

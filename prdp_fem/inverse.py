@@ -561,9 +561,11 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     opt_state = optimizer.init(z)
     control = refinement.init()  # host arrays: an update is NumPy work, no dispatch
     counter, validation_counter = IterationCounter(), IterationCounter()
+    rebuild_state = None
     if rebuilt is not None:  # built before the run, as a hierarchy passed in would be
         preconditioner = rebuilt.build(_operator(problem, z))
-        rebuild_state = rebuilt.policy.init(_coefficient(problem, z))
+        rebuild_state = None if rebuilt.policy is None else \
+            rebuilt.policy.init(_coefficient(problem, z))
     if gradient == "unrolled":
         _check_unrolled_start(problem, z)
     step, validate = _programs(given, gradient, refinement.tolerance_mode, preconditioner,
@@ -604,7 +606,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"gradient norm {result.grad_norm!r}, "
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
-        if rebuilt is not None:
+        if rebuild_state is not None:
             rebuild_start = time.perf_counter()
             rebuild, rebuild_state = rebuilt.policy.update(rebuild_state,
                                                            _coefficient(problem, z_next))

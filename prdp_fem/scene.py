@@ -263,12 +263,20 @@ class InverseSpec:
 @dataclasses.dataclass(frozen=True)
 class SolverSpec:
     """The CG solve. ``iterations``: the K list of forward studies and ``prdp-fem solve``'s
-    truncation (its first entry; none: solve to ``rtol``)."""
+    truncation (its first entry; none: solve to ``rtol``). ``preconditioner = "amg"``: a
+    pyamg hierarchy (``amg_kind``, ``amg_implementation``) built from the run's operator; an
+    inversion builds it at its initial coefficient and rebuilds it every ``rebuild_every``
+    steps or once kappa moved by more than ``rebuild_factor`` (:class:`prdp_fem.RebuiltAMG`;
+    0: never, the default, so that a run can switch off what its scene sets)."""
 
     preconditioner: str = "jacobi"
     gradient: str = "implicit"
     iterations: tuple[int, ...] = ()
     rtol: float = 1e-10
+    amg_kind: str = "sa"
+    amg_implementation: str = "jax"
+    rebuild_every: int = 0
+    rebuild_factor: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -542,14 +550,27 @@ def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
     return spec
 
 
+_AMG_KEYS = ("amg_kind", "amg_implementation", "rebuild_every", "rebuild_factor")
+
+
 def _solver(t: _Table) -> SolverSpec:
     spec = SolverSpec(
-        t.choice("preconditioner", "jacobi", ("jacobi", "identity")),
+        t.choice("preconditioner", "jacobi", ("jacobi", "identity", "amg")),
         t.choice("gradient", "implicit", ("implicit", "unrolled")),
         tuple(t.get("iterations", [], lambda v: isinstance(v, list) and all(
             _is_int(k) and k >= 0 for k in v), "a list of integers >= 0")),
-        t.number("rtol", 1e-10, low=0.0, high=0.5, open_low=True))
+        t.number("rtol", 1e-10, low=0.0, high=0.5, open_low=True),
+        t.choice("amg_kind", "sa", ("sa", "rs")),
+        t.choice("amg_implementation", "jax", ("jax", "callback")),
+        t.integer("rebuild_every", 0),
+        float(t.get("rebuild_factor", 0.0, lambda v: _is_number(v) and (v == 0 or v > 1),
+                    "0 (never) or a finite number > 1")))
     t.finish()
+    if spec.preconditioner != "amg":
+        for key in _AMG_KEYS:
+            if key in t.data:
+                raise t.fail(key, "no value unless solver.preconditioner = 'amg' (it is "
+                             f"{spec.preconditioner!r})")
     return spec
 
 
@@ -798,6 +819,11 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         heat=_heat(_Table(sections["heat"], "heat", source)) if heat else None)
     if learned:
         _check_learned_optimizer(scene)
+    if kind in ("learned", "heat") and scene.solver.preconditioner == "amg":
+        raise SceneSolverConfigError(
+            f"{source}: solver.preconditioner = 'amg' with study.kind = {kind!r}: expected "
+            "'jacobi' or 'identity' (an AMG hierarchy is built for one operator: forward "
+            "solves and inversions)")
     if heat and scene.optimizer.name not in ("adam", "sgd"):
         raise SceneSolverConfigError(
             f"{source}: optimizer.name = {scene.optimizer.name!r} with study.kind = 'heat': "

@@ -53,6 +53,7 @@ from .build import (
     field_function,
     heat_train_options,
     invert_options,
+    solver_preconditioner,
     train_options,
 )
 from .cg import ConvergedCG, solve
@@ -307,8 +308,8 @@ def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setup
                     "dofs": disc.n_free, **r._asdict()})
         progress.step()
 
-    forward_convergence(scene, iterations, preconditioner=variant.solver.preconditioner,
-                        on_record=record)
+    preconditioner = solver_preconditioner(variant, disc.stiffness_matrix(scene.kappa))
+    forward_convergence(scene, iterations, preconditioner=preconditioner, on_record=record)
 
 
 def _timed(fn: Callable, *args):
@@ -328,7 +329,7 @@ def _run_level(name, config, attempt, log, progress, out: Path, scene: Scene) ->
     A = disc.stiffness_matrix(kappa)
     b = disc.rhs(kappa) + disc.load_vector(
         field_function(scene, "pde.source", scene.pde.source, dim))
-    solver = ConvergedCG(rtol=scene.solver.rtol, preconditioner=scene.solver.preconditioner)
+    solver = ConvergedCG(rtol=scene.solver.rtol, preconditioner=solver_preconditioner(scene, A))
     run = jax.jit(lambda A, b: solve(A, b, solver))
     A_jax, b_jax = SparseMatrix.from_scipy(A), jnp.asarray(b)
     _, compile_time = _timed(run, A_jax, b_jax)

@@ -439,7 +439,7 @@ def test_invert_rebuilds_the_hierarchy_at_the_current_kappa_when_the_policy_says
 
 
 @pytest.mark.parametrize(("arguments", "message"), [
-    ({"policy": "every 10"}, r"policy='every 10': expected a RebuildPolicy"),
+    ({"policy": "every 10"}, r"policy='every 10': expected None or a RebuildPolicy"),
     ({"kind": "ml"}, r"kind='ml': expected one of"),
     ({"implementation": "jax", "smoother": "gauss_seidel"}, r"implements 'jacobi' only"),
     ({"sweeps": 0}, r"sweeps=0: expected an integer >= 1"),

@@ -564,7 +564,7 @@ def test_scene_sensors_that_do_not_fit_the_mesh(tmp_path, text, message):
     ("[solver]\niterations = [10, -1]", r"solver\.iterations = \[10, -1\]: expected a list of "
      "integers >= 0"),
     ("[solver]\npreconditioner = 'ilu'", r"solver\.preconditioner = 'ilu': expected one of "
-     r"\['jacobi', 'identity'\]"),
+     r"\['jacobi', 'identity', 'amg'\]"),
     ("[solver]\ngradient = 'adjoint'", r"solver\.gradient = 'adjoint': expected one of"),
     ("[refinement]\nkind = 'fixed'\nK = -1", r"refinement\.K = -1: expected an integer >= 0"),
     ("[refinement]\nK0 = -3", r"refinement\.K0 = -3: expected an integer >= 1"),

@@ -158,6 +158,16 @@ def test_fingerprint_follows_settings_not_names():
     ("[study]\nkind = 'inverse'", "needs an [inverse] section"),
     ("[study]\nlevels = [8, 4]", "study.levels = [8, 4]: expected an increasing list"),
     ("[[study.runs]]\nname = 'a'\nsolver = {gradient = 'magic'}", "solver.gradient = 'magic'"),
+    ("[solver]\nrebuild_every = 5", "solver.rebuild_every = 5: expected no value unless "
+     "solver.preconditioner = 'amg' (it is 'jacobi')"),
+    ("[solver]\npreconditioner = 'amg'\nrebuild_every = -1",
+     "solver.rebuild_every = -1: expected an integer >= 0"),
+    ("[solver]\npreconditioner = 'amg'\nrebuild_factor = 1",
+     "solver.rebuild_factor = 1: expected 0 (never) or a finite number > 1"),
+    ("[solver]\npreconditioner = 'amg'\namg_kind = 'ml'", "solver.amg_kind = 'ml': expected one "
+     "of ['sa', 'rs']"),
+    ("[inverse]\nunknown = 'source'\n[learned]\n[solver]\npreconditioner = 'amg'",
+     "solver.preconditioner = 'amg' with study.kind = 'learned'"),
     ("[[study.runs]]\nname = 'a'\n[[study.runs]]\nname = 'a'", "must be unique"),
     ("[[study.runs]]\nname = 'a'\ncolour = 1", "unknown key 'study.runs[0].colour'"),
     ("[study]\nreference = 'nope'\n[[study.runs]]\nname = 'a'", "expected one of the run names"),
@@ -274,6 +284,31 @@ def test_inverse_study_with_jacobi_builds_no_amg(no_amg, tmp_path):
         "refinement": {"kind": "fixed", "K": 4}, "optimizer": {"steps": 3}})
     result = run_study(scene, tmp_path / "s")
     assert [row["run"] for row in result.summary] == ["converged", "scene"]
+
+
+def test_an_amg_scene_solves_forward_and_rebuilds_during_an_inversion(tmp_path):
+    from prdp_fem.study import ResultsLog, run_study
+
+    table = {"mesh": {"n": 8},
+             "inverse": {"unknown": "log_kappa", "truth": "0.5*sin(pi*x)*y", "alpha": 1e-6},
+             "solver": {"preconditioner": "amg", "rebuild_every": 2},
+             "refinement": {"kind": "fixed", "K": 4}, "optimizer": {"steps": 5}}
+    # a forward solve with the hierarchy of its operator: converged, it is Jacobi's solution
+    amg, jacobi = (build.forward_solve(parse_scene({**table, "mesh": {"n": 24},
+                                                    "solver": solver}))
+                   for solver in ({"preconditioner": "amg", "rtol": 1e-12}, {"rtol": 1e-12}))
+    np.testing.assert_allclose(amg.u, jacobi.u, rtol=1e-9, atol=1e-12)
+    assert int(amg.solution.iterations) < int(jacobi.solution.iterations)
+    # the study's runs (the scene and its converged reference) rebuild every 2 steps; a run
+    # that sets no rebuild keeps the hierarchy it starts with
+    scene = parse_scene({**table, "study": {"runs": [
+        {"name": "converged", "refinement": {"kind": "converged"}},
+        {"name": "kept", "solver": {"rebuild_every": 0}}]}})
+    run_study(scene, tmp_path / "s")
+    steps = [r for r in ResultsLog(tmp_path / "s" / "results.jsonl").records()
+             if r["type"] == "step"]
+    assert [r["rebuilds"] for r in steps if r["run"] == "converged"] == [0, 1, 1, 2, 2]
+    assert [r["rebuilds"] for r in steps if r["run"] == "kept"] == [0] * 5
 
 
 def test_mesh_scene_is_the_default_problem_on_a_file():
