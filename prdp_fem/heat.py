@@ -72,11 +72,12 @@ import optax
 import scipy.sparse.linalg as spla
 
 from . import cg
+from .amg import AMGCycle
 from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile, kept_programs
-from .inverse import _device_settings, _scan_length, _solver
+from .inverse import _cycle_argument, _device_settings, _preconditioner_key, _scan_length, _solver
 from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, prdp
@@ -389,8 +390,10 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
     differ only in them run one compiled program (per scan length in unrolled mode).
     ``counted``: ``step_fn`` is :func:`heat_step` and takes the counter."""
 
-    def step(network, opt_state, problem, batch, counter, scan_length, K, K_adj, rtol):
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
+    def step(network, opt_state, problem, batch, counter, scan_length, K, K_adj, rtol,
+             cycle=None):  # cycle: see inverse._preconditioner_key
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+                         preconditioner if cycle is None else cycle, scan_length)
         stepper = partial(step_fn, counter=counter) if counted else step_fn
         (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
             network, problem, batch, solver, setup=setup, mode=mode, step=stepper)
@@ -406,7 +409,7 @@ def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, precondi
                       step, counted) -> SharedCompile:
     return SharedCompile(_make_step(optimizer, setup, mode, gradient, tolerance_mode,
                                     preconditioner, step, counted),
-                         static_argnum=5, packed_argnums=(2,))
+                         static_argnum=5, packed_argnums=(2, 9))
 
 
 #: The compiled step per settings (optimizer object, setup, mode, gradient, tolerance mode,
@@ -473,8 +476,9 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     counter = IterationCounter()
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
-    step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode,
-                            preconditioner, step, counted, keep=isinstance(preconditioner, str))
+    key = _preconditioner_key(preconditioner)
+    step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
+                            step, counted, keep=isinstance(key, str) or key is AMGCycle)
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
@@ -495,7 +499,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
             start = time.perf_counter()
             network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
                 step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
-                        rtol))
+                        rtol, *_cycle_argument(preconditioner)))
             run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
             if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
                 raise InversionError(

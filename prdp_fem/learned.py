@@ -41,13 +41,16 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
+from .amg import AMGCycle
 from .cg import IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile, kept_programs
 from .hig import JACOBIAN_MODES
 from .inverse import (
+    _cycle_argument,
     _device_settings,
+    _preconditioner_key,
     _scan_length,
     _solver,
     _stored_or_evaluated,
@@ -440,8 +443,9 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
     compiled program (per scan length in unrolled mode)."""
 
     def step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
-             rtol) -> _StepResult:
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol, preconditioner, scan_length)
+             rtol, cycle=None) -> _StepResult:  # cycle: see inverse._preconditioner_key
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+                         preconditioner if cycle is None else cycle, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
         if _uses_stored_value(opt_state):
             value, grad = _stored_or_evaluated(value_fn, layers, opt_state)
@@ -458,7 +462,7 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
-                         static_argnum=6, packed_argnums=(3,))
+                         static_argnum=6, packed_argnums=(3, 10))
 
 
 #: The compiled step per settings, kept for the process as ``invert`` keeps its own:
@@ -524,8 +528,9 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
                             network.layers)
-    step = _step_program(optimizer, gradient, refinement.tolerance_mode, preconditioner,
-                         keep=isinstance(preconditioner, str))
+    key = _preconditioner_key(preconditioner)
+    step = _step_program(optimizer, gradient, refinement.tolerance_mode, key,
+                         keep=isinstance(key, str) or key is AMGCycle)
     optimizer = optax.with_extra_args_support(optimizer)
     if problem.factors is None:
         problem = problem.with_residual()
@@ -549,7 +554,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             start = time.perf_counter()
             result = jax.block_until_ready(
                 step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
-                     rtol))
+                     rtol, *_cycle_argument(preconditioner)))
             run_time += time.perf_counter() - start - (step.seconds - compile_before)
             if not (math.isfinite(float(result.loss))
                     and math.isfinite(float(result.grad_norm))):

@@ -109,11 +109,30 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
                              refinement=prdp(K0=2, dK=2), epochs=2, batch_size=8)
 
     first, again = train(adam), train(adam)
-    assert len([c for c in made if c._packed_argnums == (3,)]) == 1
+    assert len([c for c in made if c._packed_argnums == (3, 10)]) == 1
     assert [r._replace(time=0.0) for r in again.records] == \
         [r._replace(time=0.0) for r in first.records]
     train(optax.adam(3e-3))
-    assert len([c for c in made if c._packed_argnums == (3,)]) == 2
+    assert len([c for c in made if c._packed_argnums == (3, 10)]) == 2
+
+
+def test_trainings_with_amg_cycles_of_equal_shapes_share_one_step(small, monkeypatch):
+    """The JAX AMG cycle is an argument of the step: the hierarchy of 2 A (M / 2, the same
+    PCG iterates) runs the step compiled for A's."""
+    learned._step_program.cache_clear()
+    made = shared_compiles_made(monkeypatch)
+    _, problem, samples, network = small
+    train_set, validation_set = samples.take(np.arange(16)), samples.take(np.arange(16, 20))
+    operator = problem.system.operator(problem.kappa)
+    adam = optax.adam(3e-3)
+    runs = [learned.train(problem, network, train_set, validation_set, optimizer=adam,
+                          refinement=prdp(K0=2, dK=2), epochs=2, batch_size=8,
+                          preconditioner=pf.amg_preconditioner(matrix))
+            for matrix in (operator, operator.with_values(2.0 * operator.values))]
+    [step] = [c for c in made if c._packed_argnums == (3, 10)]
+    assert len(step._cache) == 1
+    np.testing.assert_allclose([r.train_loss for r in runs[1].records],
+                               [r.train_loss for r in runs[0].records], rtol=1e-10)
 
 
 def test_training_lowers_the_validation_misfit_and_prdp_refines(small):
