@@ -340,7 +340,9 @@ def test_an_unrolled_run_compiles_one_step_per_scan_length(monkeypatch):
     (32); every run's losses are those of the static K-iteration objective."""
     _, problem = _coefficient_problem(n=8, alpha=1e-5)
     made = _step_programs_made(monkeypatch)
-    runs = {K: invert(problem, refinement=fixed(K), gradient="unrolled", steps=2)
+    sgd = optax.sgd(1e-3)  # the scan lengths are the step's, whatever its optimiser
+    runs = {K: invert(problem, optimizer=sgd, refinement=fixed(K), gradient="unrolled",
+                      steps=2)
             for K in (10, 16, 20)}
     [step] = [c for c in made if c._packed_argnums == (0, 8)]
     assert sorted(static for static, _ in step._cache) == [16, 32]
@@ -397,7 +399,8 @@ def test_amg_cycles_of_equal_shapes_share_one_step_and_a_callback_cycle_gets_its
     cycles = [pf.amg_preconditioner(operator), pf.amg_preconditioner(operator.with_values(
         2.0 * operator.values))]
     made = _step_programs_made(monkeypatch)
-    runs = [invert(problem, refinement=fixed(3), steps=2, preconditioner=cycle)
+    sgd = optax.sgd(1e-3)  # a small step program: the test is about how many compile
+    runs = [invert(problem, optimizer=sgd, refinement=fixed(3), steps=2, preconditioner=cycle)
             for cycle in cycles]
     steps = [c for c in made if c._packed_argnums == (0, 8)]
     assert len(steps) == 1 and len(steps[0]._cache) == 1  # the cycle is an argument
@@ -409,7 +412,7 @@ def test_amg_cycles_of_equal_shapes_share_one_step_and_a_callback_cycle_gets_its
     # pyamg's own cycle is a host callback: closed over, a step of its own per object
     callback = pf.amg_preconditioner(operator, implementation="callback")
     for _ in range(2):
-        invert(problem, refinement=fixed(3), steps=2, preconditioner=callback)
+        invert(problem, optimizer=sgd, refinement=fixed(3), steps=2, preconditioner=callback)
     assert len([c for c in made if c._packed_argnums == (0, 8)]) == 3
 
 
