@@ -653,11 +653,14 @@ class RebuiltAMG:
     ``invert(problem, preconditioner=RebuiltAMG(rebuild_policy(every=10)))`` builds
     :func:`amg_preconditioner` of ``A(kappa(z_0))`` before the first step (not timed, as a
     hierarchy passed in is built before the run), then after every step asks
-    ``policy.update(state, kappa(z_k))``; on a rebuild it builds the hierarchy of
-    ``A(kappa(z_k))`` (timed as run time: pyamg's setup is part of the method's cost) and
-    the steps from there on use it. A new hierarchy has new shapes, so its step program is
-    traced and compiled anew (a few seconds, counted as compile time). ``StepRecord.rebuilds``
-    counts the rebuilds. The other arguments are :func:`amg_preconditioner`'s, checked here.
+    ``policy.update(state, kappa(z_k))``. When it says rebuild, the next step (if any) starts
+    by building the hierarchy of ``A(kappa(z_k))`` (timed as run time: pyamg's setup is part
+    of the method's cost), and the optimiser's stored value is recomputed with it (with
+    truncated solves: a converged ``J`` does not depend on the preconditioner). The JAX
+    cycle is an argument of the step program, so a hierarchy of the same shapes runs the
+    step already compiled; other shapes, or the ``"callback"`` cycle (closed over), compile
+    a new one. ``StepRecord.rebuilds`` counts the rebuilds, from the step that first uses
+    each. The other arguments are :func:`amg_preconditioner`'s, checked here.
 
     A source inversion never changes ``kappa``: only ``every`` rebuilds it, to no use.
     """

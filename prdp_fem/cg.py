@@ -177,6 +177,10 @@ def _check_preconditioner(spec: Any) -> None:
             f"preconditioner={spec!r}: the AMG hierarchy cannot be built inside solve (its "
             "matrix may be traced); expected a preconditioner built once, outside jit: "
             "preconditioner=prdp_fem.amg_preconditioner(A)")
+    if hasattr(spec, "build") and hasattr(spec, "policy"):  # prdp_fem.amg.RebuiltAMG
+        raise SolverConfigError(
+            f"preconditioner={spec!r}: a RebuiltAMG is built from the operator by invert() "
+            "only; expected here a preconditioner built once: prdp_fem.amg_preconditioner(A)")
     raise SolverConfigError(
         f"preconditioner={spec!r}: expected one of {PRECONDITIONERS} or a callable pytree of "
         "arrays (e.g. a registered dataclass with __call__; a plain function is not a pytree)")

@@ -33,7 +33,8 @@ class StepRecord(NamedTuple):
     included; ``validation_iterations`` those of converged validation solves. ``failed_steps``
     counts the steps so far whose optimiser reported a failure (a line search that ended
     without meeting its conditions: a sign that the solves are too truncated); ``rebuilds`` the
-    preconditioner hierarchies built again so far (:class:`~prdp_fem.amg.RebuiltAMG`).
+    preconditioner hierarchies built again so far, counted from the step that first uses each
+    (:class:`~prdp_fem.amg.RebuiltAMG`).
     """
 
     step: int

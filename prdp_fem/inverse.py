@@ -473,6 +473,10 @@ def _make_validation(rtol, preconditioner):
     return SharedCompile(misfit, packed_argnums=(0, 3))
 
 
+#: The validation program per (rtol, preconditioner key), kept as the step is.
+_validation_program = kept_programs(_make_validation)
+
+
 def _preconditioner_key(preconditioner):
     """What a step program is built for: a name, the class :class:`~prdp_fem.amg.AMGCycle`
     for any such cycle (its arrays are then an argument of the program: hierarchies of
@@ -570,77 +574,108 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         _check_unrolled_start(problem, z)
     step, validate = _programs(given, gradient, refinement.tolerance_mode, preconditioner,
                                monitor)
-    compiled = [step] + ([] if validate is None else [validate])
-    compiled_before_run = sum(c.seconds for c in compiled)  # the step may be an earlier run's
+    compiled = _Compiled([step, validate])
+    compiled_before_run = compiled.seconds()  # the step may be an earlier run's
     history, run_time, evaluations, failed_steps, rebuilds = History(), 0.0, 0, 0, 0
     failed_since_update = False  # a monitor read every few steps still hears of each failure
+    rebuild_due = False  # decided after a step, done before the next (none after the last)
     settings = control.settings()
     arguments = _device_settings(settings)
-    for k in range(1, steps + 1):
-        previous_K = settings
-        start = time.perf_counter()
-        compile_before = sum(c.seconds for c in compiled)
-        z_next, opt_state, packed = step(problem, counter, z, opt_state,
-                                         _scan_length(gradient, settings[0]), *arguments,
-                                         *_cycle_argument(preconditioner))
-        result = _StepScalars.read(packed)
-        monitored = result.grad_norm if monitor == "gradient" else result.value
-        if validate is not None and k % monitor.every == 0:
-            monitored = float(validate(problem, validation_counter, z_next,
-                                       *_cycle_argument(preconditioner)))
-        failed = bool(result.failed)
-        failed_since_update |= failed
-        failed_steps += failed
-        if validate is None or k % monitor.every == 0:
-            control = refinement.update(control, monitored, failed_since_update)
-            settings = control.settings()
-            if settings != previous_K:
-                arguments = _device_settings(settings)
-            failed_since_update = False
-        compile_time = sum(c.seconds for c in compiled)
-        run_time += time.perf_counter() - start - (compile_time - compile_before)
-        if not (math.isfinite(result.value) and math.isfinite(result.grad_norm)
-                and result.finite_params):
-            raise InversionError(
-                f"step {k}: non-finite loss, gradient or parameters (loss {result.value!r}, "
-                f"gradient norm {result.grad_norm!r}, "
-                f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
-                "smaller step, more CG iterations or another gradient mode")
-        if rebuild_state is not None:
-            rebuild_start = time.perf_counter()
-            rebuild, rebuild_state = rebuilt.policy.update(rebuild_state,
-                                                           _coefficient(problem, z_next))
-            if bool(rebuild):
-                preconditioner = rebuilt.build(_operator(problem, z_next))
+    try:
+        for k in range(1, steps + 1):
+            previous_K = settings
+            start = time.perf_counter()
+            if rebuild_due:  # pyamg's setup is the method's cost: run time
+                preconditioner = rebuilt.build(_operator(problem, z))
                 step, validate = _programs(given, gradient, refinement.tolerance_mode,
                                            preconditioner, monitor)
-                # a hierarchy of the same shapes runs the kept step: count each program once
-                compiled += [p for p in (step, validate)
-                             if p is not None and all(p is not c for c in compiled)]
-                rebuilds += 1
-            run_time += time.perf_counter() - rebuild_start
-        z = z_next
-        if settings != previous_K and _uses_stored_value(opt_state):
-            # the stored value/gradient belong to the old solver: recompute them next step
-            opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
-        evaluations = counter.primal_solves
-        state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
-                                   *previous_K, preconditioner) \
-            if reference_every and k % reference_every == 0 else math.nan
-        record = StepRecord(
-            step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
-            rtol=previous_K[2], refinements=int(control.refinements),
-            primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
-            validation_iterations=validation_counter.primal, evaluations=evaluations,
-            time=run_time, compile_time=compile_time - compiled_before_run,
-            loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,
-            state_error=state_error, failed_steps=failed_steps, rebuilds=rebuilds)
-        history = history.append(record)
-        if callback is not None and callback(record, z):
-            break
-    for program in compiled:  # kept for later runs: without this run's problem
-        program.release()
+                compiled.use([step, validate])  # the same kept programs for an AMGCycle
+                rebuilds, rebuild_due = rebuilds + 1, False
+                # a truncated J depends on the preconditioner: the stored value belongs to
+                # the old one (a converged J does not, beyond the tolerance)
+                if _uses_stored_value(opt_state) and not refinement.tolerance_mode:
+                    opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+            compile_before = compiled.seconds()
+            z_next, opt_state, packed = step(problem, counter, z, opt_state,
+                                             _scan_length(gradient, settings[0]), *arguments,
+                                             *_cycle_argument(preconditioner))
+            result = _StepScalars.read(packed)
+            monitored = result.grad_norm if monitor == "gradient" else result.value
+            if validate is not None and k % monitor.every == 0:
+                monitored = float(validate(problem, validation_counter, z_next,
+                                           *_cycle_argument(preconditioner)))
+            failed = bool(result.failed)
+            failed_since_update |= failed
+            failed_steps += failed
+            if validate is None or k % monitor.every == 0:
+                control = refinement.update(control, monitored, failed_since_update)
+                settings = control.settings()
+                if settings != previous_K:
+                    arguments = _device_settings(settings)
+                failed_since_update = False
+            if rebuild_state is not None:
+                rebuild_due, rebuild_state = _rebuild_due(rebuilt, rebuild_state,
+                                                          _coefficient(problem, z_next))
+            compile_time = compiled.seconds()
+            run_time += time.perf_counter() - start - (compile_time - compile_before)
+            if not (math.isfinite(result.value) and math.isfinite(result.grad_norm)
+                    and result.finite_params):
+                raise InversionError(
+                    f"step {k}: non-finite loss, gradient or parameters (loss {result.value!r}, "
+                    f"gradient norm {result.grad_norm!r}, "
+                    f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
+                    "smaller step, more CG iterations or another gradient mode")
+            z = z_next
+            if settings != previous_K and _uses_stored_value(opt_state):
+                # the stored value/gradient belong to the old solver: recompute them next step
+                opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+            evaluations = counter.primal_solves
+            state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
+                                       *previous_K, preconditioner) \
+                if reference_every and k % reference_every == 0 else math.nan
+            record = StepRecord(
+                step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
+                rtol=previous_K[2], refinements=int(control.refinements),
+                primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
+                validation_iterations=validation_counter.primal, evaluations=evaluations,
+                time=run_time, compile_time=compile_time - compiled_before_run,
+                loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,
+                state_error=state_error, failed_steps=failed_steps, rebuilds=rebuilds)
+            history = history.append(record)
+            if callback is not None and callback(record, z):
+                break
+    finally:
+        compiled.release()  # kept for later runs: without this run's problem
     return Inversion(z, problem.field(z), control, opt_state, history)
+
+
+def _rebuild_due(rebuilt: RebuiltAMG, state, kappa: np.ndarray) -> tuple[bool, Any]:
+    """Whether the policy asks for a new hierarchy at ``kappa``, and its next state."""
+    rebuild, state = rebuilt.policy.update(state, kappa)
+    return bool(rebuild), state
+
+
+class _Compiled:
+    """The programs a run calls, and the compile seconds of the ones it stopped calling (a
+    preconditioner object closed over gets new programs at a rebuild)."""
+
+    def __init__(self, programs: list):
+        self._programs, self._retired = [p for p in programs if p is not None], 0.0
+
+    def seconds(self) -> float:
+        return self._retired + sum(p.seconds for p in self._programs)
+
+    def use(self, programs: list) -> None:
+        current = [p for p in programs if p is not None]
+        for old in self._programs:
+            if all(old is not p for p in current):
+                self._retired += old.seconds
+                old.release()
+        self._programs = current
+
+    def release(self) -> None:
+        for program in self._programs:
+            program.release()
 
 
 def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
@@ -648,9 +683,10 @@ def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
     :class:`Validation`) for ``preconditioner``."""
     key = _preconditioner_key(preconditioner)
     # a closed-over object is a pytree of arrays or a host cycle: no key to keep it under
-    step = _step_program(optimizer, gradient, tolerance_mode, key,
-                         keep=isinstance(key, str) or key is AMGCycle)
-    validate = None if isinstance(monitor, str) else _make_validation(monitor.rtol, key)
+    keep = isinstance(key, str) or key is AMGCycle
+    step = _step_program(optimizer, gradient, tolerance_mode, key, keep=keep)
+    validate = None if isinstance(monitor, str) else \
+        _validation_program(monitor.rtol, key, keep=keep)
     return step, validate
 
 

@@ -856,6 +856,9 @@ def _variant(scene: Scene, overrides: dict, name: str) -> Scene:
             table["refinement"] = copy.deepcopy(values)
         else:
             merged = dict(table.get(section, {}))
+            if section == "solver" and values.get("preconditioner", "amg") != "amg":
+                # a run leaving the scene's AMG leaves its AMG settings too
+                merged = {k: v for k, v in merged.items() if k not in _AMG_KEYS}
             merged.update(values)
             table[section] = merged
     table["name"] = name

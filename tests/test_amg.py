@@ -415,11 +415,12 @@ def test_invert_rebuilds_the_hierarchy_at_the_current_kappa_when_the_policy_says
                         lambda self, matrix: built.append(matrix.to_scipy()) or
                         build(self, matrix))
     params = []
-    run = pf.invert(problem, refinement=fixed(4), steps=5, optimizer=optax.sgd(10.0),
+    run = pf.invert(problem, refinement=fixed(4), steps=6, optimizer=optax.sgd(10.0),
                     preconditioner=pf.RebuiltAMG(rebuild_policy(every=2)),
                     callback=lambda record, z: params.append(np.asarray(z)))
-    assert [record.rebuilds for record in run.history] == [0, 1, 1, 2, 2]
-    # built before the first step, then after steps 2 and 4 from the kappa they produced
+    # the policy fires after steps 2, 4 and 6; steps 3 and 5 start with a new hierarchy, and
+    # none is built after the last step
+    assert [record.rebuilds for record in run.history] == [0, 0, 1, 1, 2, 2]
     starts = [np.zeros(problem.n_parameters), params[1], params[3]]
     assert len(built) == 3
     for matrix, z in zip(built, starts, strict=True):
@@ -436,6 +437,40 @@ def test_invert_rebuilds_the_hierarchy_at_the_current_kappa_when_the_policy_says
     np.testing.assert_array_equal(never.history.column("loss"),
                                   fixed_amg.history.column("loss"))
     assert [record.rebuilds for record in never.history] == [0, 0, 0]
+
+
+def test_after_a_rebuild_l_bfgs_evaluates_with_the_new_hierarchy():
+    """A truncated J depends on the preconditioner: the value L-BFGS stored with the old
+    hierarchy is recomputed, so the step after a rebuild reports J(z) at the new one."""
+    problem = _coefficient_inversion()
+    params = []
+    run = pf.invert(problem, refinement=fixed(3), steps=3,
+                    preconditioner=pf.RebuiltAMG(rebuild_policy(every=2)),
+                    callback=lambda record, z: params.append(np.asarray(z)))
+    assert [record.rebuilds for record in run.history] == [0, 0, 1]
+    z = jnp.asarray(params[1])
+    kappa = problem.parameterization.coefficients(z, problem.known)[0]
+    new = amg_preconditioner(problem.system.operator(kappa))
+    old = amg_preconditioner(problem.system.operator(jnp.ones(problem.n_parameters)))
+    at_new, at_old = (float(problem.loss(z, pf.TruncatedCG(3, cycle))[0]) for cycle in (new, old))
+    assert abs(at_new - at_old) > 1e-6 * abs(at_new)  # the test can tell them apart
+    assert run.history[2].loss == pytest.approx(at_new, rel=1e-10)
+
+
+def test_a_validation_monitor_with_rebuilds_compiles_its_programs_once(monkeypatch):
+    from conftest import shared_compiles_made
+
+    from prdp_fem import inverse
+
+    inverse._step_program.cache_clear()
+    inverse._validation_program.cache_clear()
+    made = shared_compiles_made(monkeypatch)
+    problem = _coefficient_inversion()
+    run = pf.invert(problem, refinement=fixed(4), steps=5, optimizer=optax.sgd(10.0),
+                    preconditioner=pf.RebuiltAMG(rebuild_policy(every=1)),
+                    monitor=pf.Validation(every=1))
+    assert [record.rebuilds for record in run.history] == [0, 1, 2, 3, 4]
+    assert len(made) == 2 and all(len(program._cache) == 1 for program in made)
 
 
 @pytest.mark.parametrize(("arguments", "message"), [

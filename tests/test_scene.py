@@ -307,8 +307,16 @@ def test_an_amg_scene_solves_forward_and_rebuilds_during_an_inversion(tmp_path):
     run_study(scene, tmp_path / "s")
     steps = [r for r in ResultsLog(tmp_path / "s" / "results.jsonl").records()
              if r["type"] == "step"]
-    assert [r["rebuilds"] for r in steps if r["run"] == "rebuilt"] == [0, 1, 1, 2, 2]
+    assert [r["rebuilds"] for r in steps if r["run"] == "rebuilt"] == [0, 0, 1, 1, 2]
     assert [r["rebuilds"] for r in steps if r["run"] == "kept"] == [0] * 5
+    # a run that leaves the AMG leaves its settings (setting them with Jacobi is refused)
+    jacobi = parse_scene({**table, "study": {"runs": [
+        {"name": "jacobi", "solver": {"preconditioner": "jacobi"}}]}})
+    solver = dict(jacobi.runs())["jacobi"].solver
+    assert (solver.preconditioner, solver.rebuild_every) == ("jacobi", 0)
+    with pytest.raises(SceneError, match=r"solver\.rebuild_every = 3: expected no value unless"):
+        parse_scene({**table, "study": {"runs": [
+            {"name": "j", "solver": {"preconditioner": "jacobi", "rebuild_every": 3}}]}})
 
 
 def test_mesh_scene_is_the_default_problem_on_a_file():
