@@ -56,7 +56,13 @@ from .cg import IterationCounter, TruncatedCG
 from .errors import SolverConfigError
 from .history import History, StepRecord
 from .host_cg import dot, jacobi_pcg
-from .inverse import InverseProblem, _initial_params, _solver
+from .inverse import (
+    InverseProblem,
+    _cycle_argument,
+    _initial_params,
+    _preconditioner_key,
+    _solver,
+)
 from .prdp import Refinement, fixed
 
 __all__ = ["ReducedCG", "homogeneous", "reduced_cg"]
@@ -106,10 +112,13 @@ def _check_quadratic(problem: InverseProblem) -> None:
 
 
 def _make_gradient(tolerance_mode: bool, preconditioner: Any, counter: IterationCounter):
-    """``(problem, f, K, K_adj, rtol) -> (J(f), grad J(f))`` through the inner solves."""
+    """``(problem, f, K, K_adj, rtol[, cycle]) -> (J(f), grad J(f))`` through the inner
+    solves; a JAX AMG cycle comes as the last argument (an argument ran 30 % faster than the
+    same arrays closed over as constants: :func:`prdp_fem.inverse._preconditioner_key`)."""
 
-    def gradient(problem, f, K, K_adj, rtol):
-        solver = _solver("implicit", tolerance_mode, K, K_adj, rtol, preconditioner)
+    def gradient(problem, f, K, K_adj, rtol, cycle=None):
+        solver = _solver("implicit", tolerance_mode, K, K_adj, rtol,
+                         preconditioner if cycle is None else cycle)
         return jax.value_and_grad(lambda z: problem.loss(z, solver, counter=counter)[0])(f)
 
     return gradient
@@ -193,14 +202,15 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     counter = IterationCounter()
     f = np.asarray(_initial_params(problem, init))
     control = refinement.init()
+    cycle = _cycle_argument(preconditioner)
     gradient, compile_time = _compile(
-        _make_gradient(refinement.tolerance_mode, preconditioner, counter),
-        problem, f, *control.settings())
+        _make_gradient(refinement.tolerance_mode, _preconditioner_key(preconditioner), counter),
+        problem, f, *control.settings(), *cycle)
     linear_part, error = homogeneous(problem), _Relative(problem)
     riesz = _Riesz(problem, riesz_rtol)
 
     def evaluate(which: InverseProblem, point: np.ndarray, key) -> tuple[float, np.ndarray]:
-        value, grad = jax.block_until_ready(gradient(which, point, *key))
+        value, grad = jax.block_until_ready(gradient(which, point, *key, *cycle))
         return float(value), np.asarray(grad)
 
     history, run_time, cg, solver_key = History(), 0.0, None, None

@@ -7,6 +7,7 @@ runs and the saving figures against the study's own summary.
 import csv
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -80,6 +81,21 @@ def test_reduced_cg_converges_to_the_kkt_optimum(mother16):
     # Riesz-preconditioned: cond = (alpha + mu_1) / alpha ~ 2600, far fewer steps than the
     # 289 unknowns (the data excite few modes)
     assert result.history[-1].step <= 60
+
+
+def test_reduced_cg_with_an_amg_cycle_reaches_the_same_optimum(mother16):
+    """The JAX AMG cycle is an argument of the compiled gradient (not a constant in it)."""
+    problem, optimum, _ = mother16
+    cycle = pf.amg_preconditioner(problem.system.operator(jnp.asarray(problem.known)))
+    result = reduced_cg(problem, refinement=converged(1e-12), iterations=200, rtol=1e-10,
+                        preconditioner=cycle)
+    assert np.linalg.norm(result.field - optimum) <= 1e-7 * np.linalg.norm(optimum)
+    jacobi = reduced_cg(problem, refinement=converged(1e-12), iterations=3)
+    with_amg = reduced_cg(problem, refinement=converged(1e-12), iterations=3,
+                          preconditioner=cycle)
+    # converged inner solves: the same outer iterates, with fewer inner iterations
+    np.testing.assert_allclose(with_amg.field, jacobi.field, rtol=1e-8, atol=1e-12)
+    assert with_amg.history[-1].primal_iterations < jacobi.history[-1].primal_iterations
 
 
 def test_mother_solve_reaches_the_discretisation_error_in_one_step(mother16):
