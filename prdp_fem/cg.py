@@ -177,7 +177,9 @@ def _check_preconditioner(spec: Any) -> None:
             f"preconditioner={spec!r}: the AMG hierarchy cannot be built inside solve (its "
             "matrix may be traced); expected a preconditioner built once, outside jit: "
             "preconditioner=prdp_fem.amg_preconditioner(A)")
-    if hasattr(spec, "build") and hasattr(spec, "policy"):  # prdp_fem.amg.RebuiltAMG
+    from .amg import RebuiltAMG  # here: amg builds on the solvers' modules
+
+    if isinstance(spec, RebuiltAMG):
         raise SolverConfigError(
             f"preconditioner={spec!r}: a RebuiltAMG is built from the operator by invert() "
             "only; expected here a preconditioner built once: prdp_fem.amg_preconditioner(A)")

@@ -72,12 +72,18 @@ import optax
 import scipy.sparse.linalg as spla
 
 from . import cg
-from .amg import AMGCycle
 from .cg import ConvergedCG, IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile, kept_programs
-from .inverse import _cycle_argument, _device_settings, _preconditioner_key, _scan_length, _solver
+from .inverse import (
+    _cycle_argument,
+    _device_settings,
+    _keeps,
+    _preconditioner_key,
+    _scan_length,
+    _solver,
+)
 from .learned import Network, Training, mlp_apply, mlp_init
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, prdp
@@ -478,7 +484,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     counted = step is heat_step and solves and mode == "wig"
     key = _preconditioner_key(preconditioner)
     step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
-                            step, counted, keep=isinstance(key, str) or key is AMGCycle)
+                            step, counted, keep=_keeps(key))
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(

@@ -485,6 +485,19 @@ def _preconditioner_key(preconditioner):
     return AMGCycle if isinstance(preconditioner, AMGCycle) else preconditioner
 
 
+def _keeps(key) -> bool:
+    """Whether a program built for ``key`` (:func:`_preconditioner_key`) is kept for the
+    process: a name or the class; a closed-over object is a pytree of arrays or a host
+    cycle, no key to keep it under."""
+    return isinstance(key, str) or key is AMGCycle
+
+
+def _with_stale_value(opt_state):
+    """``opt_state`` with its stored value marked stale (``inf``): the next step evaluates
+    ``J`` and its gradient afresh, with that step's solver."""
+    return otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+
+
 def _cycle_argument(preconditioner) -> tuple:
     """The programs' trailing argument: an :class:`~prdp_fem.amg.AMGCycle`, else none."""
     return (preconditioner,) if isinstance(preconditioner, AMGCycle) else ()
@@ -594,7 +607,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 # a truncated J depends on the preconditioner: the stored value belongs to
                 # the old one (a converged J does not, beyond the tolerance)
                 if _uses_stored_value(opt_state) and not refinement.tolerance_mode:
-                    opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+                    opt_state = _with_stale_value(opt_state)
             compile_before = compiled.seconds()
             z_next, opt_state, packed = step(problem, counter, z, opt_state,
                                              _scan_length(gradient, settings[0]), *arguments,
@@ -628,7 +641,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             z = z_next
             if settings != previous_K and _uses_stored_value(opt_state):
                 # the stored value/gradient belong to the old solver: recompute them next step
-                opt_state = otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+                opt_state = _with_stale_value(opt_state)
             evaluations = counter.primal_solves
             state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
                                        *previous_K, preconditioner) \
@@ -682,11 +695,9 @@ def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
     """The step program and the validation program (``None`` unless ``monitor`` is a
     :class:`Validation`) for ``preconditioner``."""
     key = _preconditioner_key(preconditioner)
-    # a closed-over object is a pytree of arrays or a host cycle: no key to keep it under
-    keep = isinstance(key, str) or key is AMGCycle
-    step = _step_program(optimizer, gradient, tolerance_mode, key, keep=keep)
+    step = _step_program(optimizer, gradient, tolerance_mode, key, keep=_keeps(key))
     validate = None if isinstance(monitor, str) else \
-        _validation_program(monitor.rtol, key, keep=keep)
+        _validation_program(monitor.rtol, key, keep=_keeps(key))
     return step, validate
 
 

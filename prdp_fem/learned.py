@@ -41,7 +41,6 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-from .amg import AMGCycle
 from .cg import IterationCounter
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
@@ -50,6 +49,7 @@ from .hig import JACOBIAN_MODES
 from .inverse import (
     _cycle_argument,
     _device_settings,
+    _keeps,
     _preconditioner_key,
     _scan_length,
     _solver,
@@ -530,7 +530,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
                             network.layers)
     key = _preconditioner_key(preconditioner)
     step = _step_program(optimizer, gradient, refinement.tolerance_mode, key,
-                         keep=isinstance(key, str) or key is AMGCycle)
+                         keep=_keeps(key))
     optimizer = optax.with_extra_args_support(optimizer)
     if problem.factors is None:
         problem = problem.with_residual()
