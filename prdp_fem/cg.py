@@ -423,13 +423,13 @@ def _unit_nullspace(nullspace: jax.Array, b: jax.Array) -> jax.Array:
                                 f"{b.shape[0]} spanning the operator's nullspace")
     if not is_traced(v) and not (np.isfinite(np.asarray(v)).all() and np.any(np.asarray(v))):
         raise SolverConfigError("nullspace: expected a finite, non-zero vector")
-    return v / _norm(v)
+    return v / _robust_norm(v)
 
 
 def _incompatible(direction: jax.Array, b: jax.Array) -> jax.Array:
     """``|v.b| > sqrt(eps) ||b||``: ``b`` is not in the range of ``A`` (to round-off)."""
     along = jnp.abs(jnp.vdot(direction, b))
-    return jax.lax.stop_gradient(along > jnp.sqrt(jnp.finfo(b.dtype).eps) * _norm(b))
+    return jax.lax.stop_gradient(along > jnp.sqrt(jnp.finfo(b.dtype).eps) * _robust_norm(b))
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["inner", "direction"], meta_fields=[])
@@ -557,7 +557,10 @@ def _init(krylov: _Krylov, b, x0, *, stacked: bool) -> _Start:
         r0 = krylov.scaled(b) - krylov.product(y0)
     if isinstance(krylov.precond, _Projected):  # round-off or a cotangent may leave a v part
         r0 = krylov.precond.project(r0)
-    r0_scale = _norm(r0)
+    # held constant in derivatives: d(r0) is homogeneous of degree 1 in r0 (a Krylov method
+    # with a linear preconditioner), so s d(r0 / s) has the exact derivative for a constant s,
+    # and the reverse sweep never forms r0 / s^2 (which under- or overflows with s)
+    r0_scale = jax.lax.stop_gradient(_robust_norm(r0))
     r0_scale = jnp.where(r0_scale > 0, r0_scale, 1.0)
     r = r0 / r0_scale
     z = krylov.precondition(r)
@@ -580,6 +583,16 @@ def _norm(v: jax.Array) -> jax.Array:
     sq = jnp.vdot(v, v)
     positive = sq > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+def _robust_norm(v: jax.Array) -> jax.Array:
+    """``||v||_2`` without under- or overflow in ``v.v``: ``m ||v / m||`` with ``m =
+    max |v_i|``. Entries below about 1e-154 square to subnormals or zero (a right-hand side
+    of 1e-161 had ``b.b = 0`` and froze CG at ``x = 0``), entries above 1e154 to inf. ``m`` is
+    held constant in derivatives: the norm is homogeneous, so ``d||v|| = v.dv / ||v||`` is
+    exact without it."""
+    m = jax.lax.stop_gradient(jnp.max(jnp.abs(v), initial=0.0))
+    return m * _norm(v / jnp.where(m > 0, m, 1.0))
 
 
 def _active(state: _CGState) -> jax.Array:
@@ -804,7 +817,10 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
     norm is taken once at the end -- a reduction pass less per iteration.
     """
     start = _init(krylov, b, x0, stacked=b.shape[-1] > _STACKED_FROM)
-    target = jnp.maximum(tolerances[0] * _norm(b), tolerances[1]) / start.r0_scale
+    # in the unit-residual system: ||b|| / r0_scale first, since rtol ||b|| itself flushes to 0
+    # below about 1e-298 (XLA's CPU code flushes subnormals) and stops nothing
+    target = jnp.maximum(tolerances[0] * (_robust_norm(b) / start.r0_scale),
+                         tolerances[1] / start.r0_scale)
     positions = jnp.arange(history_size + 1)
 
     def cond(carry):

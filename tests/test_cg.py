@@ -533,25 +533,43 @@ def test_vmap_over_sources_matches_loop(small_problem, mode):
 # ------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("mode", ["unrolled", "implicit"])
-def test_tiny_rhs_scales_exactly_with_finite_gradients(small_problem, mode):
-    """CG is scale-invariant: b * 1e-150 gives x * 1e-150, and gradients stay finite."""
+#: right-hand side scales, powers of two (so that b * s is exact): squares normal (about 1e-150,
+#: 1e150), subnormal or zero (1e-170, 1e-301: b.b froze CG at x = 0) and infinite (1e200,
+#: 1e300: the tolerance became NaN and the loop stopped at once, reporting success)
+RHS_SCALES = tuple(2.0 ** e for e in (-500, -565, -1000, 500, 665, 997))
+
+
+@pytest.mark.parametrize("solver", [
+    TruncatedCG(20, gradient="unrolled"),  # below convergence: a smooth map of b
+    TruncatedCG(20, gradient="implicit"),
+    TruncatedCG(2000, gradient="unrolled"),  # frozen at round-off: the implicit solution map
+    ConvergedCG(rtol=1e-10),
+    TruncatedCG(20, preconditioner="identity", gradient="implicit"),
+], ids=["unrolled", "implicit", "unrolled-far", "converged", "identity"])
+def test_rhs_of_any_scale_scales_x_and_keeps_the_gradient(small_problem, solver):
+    """CG is homogeneous in b: b * s gives x * s, with the same status and iterations, and
+    the gradient of x / s is that of the unscaled solve, for s from 1e-300 to 1e300."""
     disc, kappa, f = small_problem
     system = disc.system
-    solver = TruncatedCG(20, gradient=mode)  # below convergence: a smooth map of b
     b = system.rhs(jnp.asarray(kappa), jnp.asarray(f))
     op = system.operator(jnp.asarray(kappa))
-    x = solve(op, b, solver).x
-    tiny = solve(op, 1e-150 * b, solver).x
-    np.testing.assert_allclose(tiny * 1e150, x, rtol=1e-10)
+    weights = jnp.asarray(np.random.default_rng(0).standard_normal(b.shape))
 
-    def loss(values):
-        return 1e150 * jnp.sum(solve(op.with_values(values), 1e-150 * b, solver).x)
+    def loss(values, b, scale):
+        return jnp.vdot(weights, solve(op.with_values(values), b * scale, solver).x) / scale
 
-    g = jax.grad(loss)(op.values)
-    reference = jax.grad(lambda v: jnp.sum(solve(op.with_values(v), b, solver).x))(op.values)
-    assert np.all(np.isfinite(g))
-    np.testing.assert_allclose(g, reference, rtol=1e-8, atol=1e-12 * abs(reference).max())
+    sol = solve(op, b, solver)
+    reference = jax.grad(loss)(op.values, b, 1.0)
+    for scale in RHS_SCALES:
+        scaled = solve(op, b * scale, solver)
+        np.testing.assert_allclose(scaled.x / scale, sol.x, rtol=1e-10,
+                                   err_msg=f"x at scale {scale:g}")
+        assert (int(scaled.status), int(scaled.iterations)) == \
+            (int(sol.status), int(sol.iterations)), scale
+        g = jax.grad(loss)(op.values, b, scale)
+        np.testing.assert_allclose(g, reference, rtol=1e-8,
+                                   atol=1e-12 * abs(reference).max(),
+                                   err_msg=f"gradient at scale {scale:g}")
 
 
 def test_preconditioner_and_counts_are_validated():

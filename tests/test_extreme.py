@@ -97,6 +97,19 @@ def test_pure_neumann_matches_the_bordered_direct_solve(mode):
     assert abs(np.sum(sol.x)) < 1e-10 * abs(reference).max()  # the mean-free solution
 
 
+@pytest.mark.parametrize("scale", [1e-170, 1e200])
+def test_pure_neumann_data_of_extreme_scale_is_compatible(scale):
+    """The compatibility test compares v.b with ||b||: at 1e-170 b.b underflowed to 0, and
+    every balanced b was refused as incompatible; at 1e200 it overflowed."""
+    disc, kappa, f = neumann_problem()
+    A, b = disc.stiffness_matrix(kappa), disc.rhs(kappa, f)
+    reference = pf.direct_solve(A, b, nullspace=disc.nullspace).x
+    sol = solve(pf.SparseMatrix.from_scipy(A), b * scale, ConvergedCG(rtol=1e-12),
+                nullspace=disc.nullspace)
+    assert int(sol.status) == Status.SUCCESS
+    np.testing.assert_allclose(sol.x / scale, reference, atol=1e-10 * abs(reference).max())
+
+
 def test_pure_neumann_converges_to_the_manufactured_solution():
     """u = cos(pi x) cos(pi y) / (2 pi^2) solves -lap u = cos cos with du/dn = 0: rate 2."""
     errors = []
