@@ -824,6 +824,12 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: solver.preconditioner = 'amg' with study.kind = {kind!r}: expected "
             "'jacobi' or 'identity' (an AMG hierarchy is built for one operator: forward "
             "solves and inversions)")
+    rebuilds = scene.solver.rebuild_every or scene.solver.rebuild_factor
+    if kind in ("forward", "h") and rebuilds:
+        raise SceneSolverConfigError(
+            f"{source}: solver.rebuild_every / rebuild_factor with study.kind = {kind!r}: "
+            "expected 0 or no value (a hierarchy is rebuilt between the optimiser steps of "
+            "an inversion; a forward solve builds it once for its operator)")
     if heat and scene.optimizer.name not in ("adam", "sgd"):
         raise SceneSolverConfigError(
             f"{source}: optimizer.name = {scene.optimizer.name!r} with study.kind = 'heat': "
