@@ -311,7 +311,9 @@ class EllMatrix:
 
             y = jax.lax.fori_loop(0, width // _UNROLLED_SLOTS, add_chunk, y)
         if self.overflow_rows.shape[0]:
-            y = y.at[self.overflow_rows].add(self.overflow_values * x[self.overflow_columns])
+            y = y.at[self.overflow_rows].add(  # rows are never negative: see _gather
+                self.overflow_values * _gather(x, self.overflow_columns),
+                wrap_negative_indices=False)
         return y
 
     def scaled(self, scale: jax.Array) -> EllMatrix:
@@ -325,8 +327,19 @@ class EllMatrix:
 
 def _add_slots(y: jax.Array, values: jax.Array, columns: jax.Array, x: jax.Array) -> jax.Array:
     for k in range(values.shape[0]):
-        y = y + values[k] * x[columns[k]]
+        y = y + values[k] * _gather(x, columns[k])
     return y
+
+
+def _gather(x: jax.Array, index: jax.Array) -> jax.Array:
+    """``x[index]`` for a layout's indices, which are never negative.
+
+    ``x[index]`` also wraps negative indices: a ``select`` on the index array. Inside a
+    while loop the select is loop-invariant, so XLA hoists it out as a kernel of its own,
+    one per ELL slot: 145 extra kernels for an AMG V-cycle in CG's loop, which compiled 2.3x
+    slower than the cycle alone. Out-of-range indices still clamp (gather's semantics).
+    """
+    return jnp.asarray(x).at[index].get(wrap_negative_indices=False)
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["rows", "cols", "values"],
@@ -341,7 +354,7 @@ class CooMatrix:
     n_rows: int
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        return jax.ops.segment_sum(self.values * x[self.cols], self.rows,
+        return jax.ops.segment_sum(self.values * _gather(x, self.cols), self.rows,
                                    num_segments=self.n_rows, indices_are_sorted=True)
 
     def scaled(self, scale: jax.Array) -> CooMatrix:
