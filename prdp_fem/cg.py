@@ -586,13 +586,24 @@ def _norm(v: jax.Array) -> jax.Array:
 
 
 def _robust_norm(v: jax.Array) -> jax.Array:
-    """``||v||_2`` without under- or overflow in ``v.v``: ``m ||v / m||`` with ``m =
-    max |v_i|``. Entries below about 1e-154 square to subnormals or zero (a right-hand side
-    of 1e-161 had ``b.b = 0`` and froze CG at ``x = 0``), entries above 1e154 to inf. ``m`` is
-    held constant in derivatives: the norm is homogeneous, so ``d||v|| = v.dv / ||v||`` is
-    exact without it."""
-    m = jax.lax.stop_gradient(jnp.max(jnp.abs(v), initial=0.0))
-    return m * _norm(v / jnp.where(m > 0, m, 1.0))
+    """``||v||_2`` without under- or overflow in ``v.v``: ``p ||v / p||`` with ``p`` the power
+    of two just above ``max |v_i|``.
+
+    Entries below about 1e-154 square to subnormals or zero (a right-hand side of 1e-161 had
+    ``b.b = 0`` and froze CG at ``x = 0``), entries above 1e154 to inf. Scaling by a power of
+    two is exact, so wherever ``v.v`` neither under- nor overflows the result is ``||v||`` bit
+    for bit (a norm rounded differently changed CG's iterates in the last bits, and a fragile
+    run took another path). ``p`` is held constant in derivatives: the norm is homogeneous,
+    so ``d||v|| = v.dv / ||v||`` is exact without it.
+    """
+    return _power_of_two_above(v) * _norm(v / _power_of_two_above(v))
+
+
+def _power_of_two_above(v: jax.Array) -> jax.Array:
+    """``2^e > max |v_i|`` (1 for a zero ``v``, or where ``2^e`` would flush to zero)."""
+    _, exponent = jnp.frexp(jax.lax.stop_gradient(jnp.max(jnp.abs(v), initial=0.0)))
+    scale = jnp.ldexp(jnp.ones((), v.dtype), exponent)
+    return jnp.where(scale > 0, scale, 1.0)
 
 
 def _active(state: _CGState) -> jax.Array:
@@ -817,10 +828,12 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
     norm is taken once at the end -- a reduction pass less per iteration.
     """
     start = _init(krylov, b, x0, stacked=b.shape[-1] > _STACKED_FROM)
-    # in the unit-residual system: ||b|| / r0_scale first, since rtol ||b|| itself flushes to 0
-    # below about 1e-298 (XLA's CPU code flushes subnormals) and stops nothing
-    target = jnp.maximum(tolerances[0] * (_robust_norm(b) / start.r0_scale),
-                         tolerances[1] / start.r0_scale)
+    # rtol ||b|| / r0_scale on both scaled by a power of two: the same bits as unscaled, but
+    # rtol ||b|| no longer flushes to 0 below about 1e-298 (XLA's CPU code flushes
+    # subnormals), where it stopped nothing
+    unit = _power_of_two_above(b)
+    target = jnp.maximum(tolerances[0] * (_robust_norm(b) / unit), tolerances[1] / unit) \
+        / (start.r0_scale / unit)
     positions = jnp.arange(history_size + 1)
 
     def cond(carry):

@@ -58,7 +58,7 @@ from .products import paired_product, symmetric_product
 
 __all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
            "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "matvec", "prepare",
-           "rmatvec", "symmetric_matvec"]
+           "prepare_on_host", "rmatvec", "symmetric_matvec"]
 
 # the product kernels prepare() can build (see the module docstring)
 KERNELS = ("ell", "coo", "csr")
@@ -466,7 +466,7 @@ class FixedMatrix:
         """Lay out ``matrix`` and its transpose (on the host)."""
         csr = sp.csr_matrix(matrix)
         # prepared in NumPy: as eager JAX ops they compiled each gather and concatenation
-        forward, transpose = (_host_kernel(SparseMatrix.from_scipy(m, layout=True))
+        forward, transpose = (prepare_on_host(SparseMatrix.from_scipy(m, layout=True))
                               for m in (csr, csr.T))
         return cls(forward, transpose, tuple(int(s) for s in csr.shape))
 
@@ -476,9 +476,9 @@ class FixedMatrix:
         return _kernel_entries(self.forward, self.shape)
 
 
-def _host_kernel(matrix: SparseMatrix):
-    """:func:`prepare` run in NumPy on the host (no JAX op to compile), then put on the
-    device."""
+def prepare_on_host(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
+    """:func:`prepare` run in NumPy on the host, then put on the device: for a matrix that
+    stays constant (no JAX op to compile or dispatch per gather; concrete values only)."""
     kernel = prepare(jax.tree_util.tree_map(np.asarray, matrix))
     return jax.tree_util.tree_map(jax.device_put, kernel)
 

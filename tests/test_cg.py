@@ -539,6 +539,22 @@ def test_vmap_over_sources_matches_loop(small_problem, mode):
 RHS_SCALES = tuple(2.0 ** e for e in (-500, -565, -1000, 500, 665, 997))
 
 
+def test_the_scaled_norm_is_the_plain_norm_bit_for_bit_where_that_one_is_finite():
+    """CG normalises its residual by ``p ||v / p||`` (``p`` a power of two): where ``v.v``
+    neither under- nor overflows this is ``||v||`` to the last bit, so no iterate moves (a
+    norm rounded otherwise sent a fragile inversion down another path); beyond, it is
+    finite and accurate where the plain norm gives 0 or inf."""
+    from prdp_fem.cg import _norm, _robust_norm
+
+    v = jnp.asarray(np.random.default_rng(0).standard_normal(1000))
+    for scale in (1e-140, 1e-3, 1.0, 7.3e4, 1e140):
+        assert float(_robust_norm(v * scale)) == float(_norm(v * scale)), scale
+    reference = float(_norm(v))
+    for scale in (2.0 ** -600, 2.0 ** 600):
+        plain, robust = float(_norm(v * scale)), float(_robust_norm(v * scale))
+        assert plain in (0.0, np.inf) and robust == pytest.approx(reference * scale, rel=1e-15)
+
+
 @pytest.mark.parametrize("solver", [
     TruncatedCG(20, gradient="unrolled"),  # below convergence: a smooth map of b
     TruncatedCG(20, gradient="implicit"),
