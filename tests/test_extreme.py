@@ -110,6 +110,20 @@ def test_pure_neumann_data_of_extreme_scale_is_compatible(scale):
     np.testing.assert_allclose(sol.x / scale, reference, atol=1e-10 * abs(reference).max())
 
 
+def test_l2_projection_of_data_of_extreme_scale_scales_exactly():
+    """The projection's host CG (mass matrix) runs on data scaled by a power of two: at
+    2^-600 (1e-181) r.r underflowed to 0 and the projection returned 0; at 2^600, inf."""
+    disc = square(8)
+
+    def field(x):
+        return np.sin(np.pi * x[0]) * np.cos(x[1]) + 0.3
+
+    reference = disc.project(field)
+    for scale in (2.0 ** -600, 2.0 ** 600):
+        np.testing.assert_array_equal(disc.project(lambda x, s=scale: s * field(x)) / scale,
+                                      reference)
+
+
 def test_pure_neumann_converges_to_the_manufactured_solution():
     """u = cos(pi x) cos(pi y) / (2 pi^2) solves -lap u = cos cos with du/dn = 0: rate 2."""
     errors = []
