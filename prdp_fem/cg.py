@@ -411,9 +411,9 @@ def _final_status(sol: Solution, incompatible: jax.Array, inputs_finite: jax.Arr
 
 
 def _all_finite(*arrays: jax.Array) -> jax.Array:
-    # a sum is finite iff every term is (barring overflow, which is a failure too)
+    # every entry, not the sum: a sum of finite data of 1e306 overflows
     return jax.lax.stop_gradient(
-        jnp.all(jnp.asarray([jnp.isfinite(jnp.sum(a)) for a in arrays])))
+        jnp.all(jnp.asarray([jnp.all(jnp.isfinite(a)) for a in arrays])))
 
 
 def _unit_nullspace(nullspace: jax.Array, b: jax.Array) -> jax.Array:
@@ -557,9 +557,10 @@ def _init(krylov: _Krylov, b, x0, *, stacked: bool) -> _Start:
         r0 = krylov.scaled(b) - krylov.product(y0)
     if isinstance(krylov.precond, _Projected):  # round-off or a cotangent may leave a v part
         r0 = krylov.precond.project(r0)
-    # held constant in derivatives: d(r0) is homogeneous of degree 1 in r0 (a Krylov method
-    # with a linear preconditioner), so s d(r0 / s) has the exact derivative for a constant s,
-    # and the reverse sweep never forms r0 / s^2 (which under- or overflows with s)
+    # held constant in derivatives: the K-step map r0 -> d is homogeneous of degree 1 (a
+    # Krylov method with a linear preconditioner, and scale-free freeze and breakdown tests),
+    # so s d(r0 / s) has the exact derivatives for a constant s, and the reverse sweep never
+    # forms r0 / s^2 (which under- or overflows with s)
     r0_scale = jax.lax.stop_gradient(_robust_norm(r0))
     r0_scale = jnp.where(r0_scale > 0, r0_scale, 1.0)
     r = r0 / r0_scale
@@ -586,24 +587,31 @@ def _norm(v: jax.Array) -> jax.Array:
 
 
 def _robust_norm(v: jax.Array) -> jax.Array:
-    """``||v||_2`` without under- or overflow in ``v.v``: ``p ||v / p||`` with ``p`` the power
-    of two just above ``max |v_i|``.
+    """``||v||_2`` without under- or overflow in ``v.v``: ``2^e ||2^-e v||`` with ``2^e`` just
+    above ``max |v_i|``.
 
     Entries below about 1e-154 square to subnormals or zero (a right-hand side of 1e-161 had
     ``b.b = 0`` and froze CG at ``x = 0``), entries above 1e154 to inf. Scaling by a power of
     two is exact, so wherever ``v.v`` neither under- nor overflows the result is ``||v||`` bit
     for bit (a norm rounded differently changed CG's iterates in the last bits, and a fragile
-    run took another path). ``p`` is held constant in derivatives: the norm is homogeneous,
-    so ``d||v|| = v.dv / ||v||`` is exact without it.
+    run took another path). The scale is held constant in derivatives: the norm is
+    homogeneous, so ``d||v|| = v.dv / ||v||`` is exact without it.
     """
-    return _power_of_two_above(v) * _norm(v / _power_of_two_above(v))
+    exponent = _scale_exponent(v)
+    return _norm(v * _power_of_two(-exponent, v.dtype)) * _power_of_two(exponent, v.dtype)
 
 
-def _power_of_two_above(v: jax.Array) -> jax.Array:
-    """``2^e > max |v_i|`` (1 for a zero ``v``, or where ``2^e`` would flush to zero)."""
+def _scale_exponent(v: jax.Array) -> jax.Array:
+    """``e`` with ``2^(e-1) <= max |v_i| < 2^e`` (0 for a zero ``v``), clipped so that both
+    ``2^e`` and ``2^-e`` are normal numbers (XLA's CPU code flushes subnormals to zero)."""
     _, exponent = jnp.frexp(jax.lax.stop_gradient(jnp.max(jnp.abs(v), initial=0.0)))
-    scale = jnp.ldexp(jnp.ones((), v.dtype), exponent)
-    return jnp.where(scale > 0, scale, 1.0)
+    finfo = jnp.finfo(v.dtype)
+    return jnp.clip(exponent, finfo.minexp, finfo.maxexp - 2)
+
+
+def _power_of_two(exponent: jax.Array, dtype) -> jax.Array:
+    """``2^exponent``, exactly (built from its bits: XLA does not fold it into a division)."""
+    return jnp.ldexp(jnp.ones((), dtype), exponent)
 
 
 def _active(state: _CGState) -> jax.Array:
@@ -828,12 +836,14 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
     norm is taken once at the end -- a reduction pass less per iteration.
     """
     start = _init(krylov, b, x0, stacked=b.shape[-1] > _STACKED_FROM)
-    # rtol ||b|| / r0_scale on both scaled by a power of two: the same bits as unscaled, but
-    # rtol ||b|| no longer flushes to 0 below about 1e-298 (XLA's CPU code flushes
-    # subnormals), where it stopped nothing
-    unit = _power_of_two_above(b)
-    target = jnp.maximum(tolerances[0] * (_robust_norm(b) / unit), tolerances[1] / unit) \
-        / (start.r0_scale / unit)
+    # max(rtol ||b||, atol) / r0_scale with numerator and denominator scaled by 2^-e: the same
+    # bits as unscaled, but rtol ||b|| cannot flush to 0 (below about 1e-298; XLA's CPU code
+    # flushes subnormals), where it stopped nothing. The scalings are ldexp, from the bits:
+    # written as divisions, XLA reassociated them back into rtol ||b|| under jit.
+    exponent = _scale_exponent(b)
+    b_norm = _norm(b * _power_of_two(-exponent, b.dtype))  # ||b|| 2^-e
+    target = jnp.maximum(tolerances[0] * b_norm, jnp.ldexp(tolerances[1], -exponent)) \
+        / jnp.ldexp(start.r0_scale, -exponent)
     positions = jnp.arange(history_size + 1)
 
     def cond(carry):
@@ -848,8 +858,9 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
             hist = jnp.where(positions > k, norm, hist)  # pads the tail with the latest value
         return k + moving.astype(k.dtype), new, norm, hist, moving
 
-    unit = start.r0_norm / start.r0_scale
-    init = (jnp.zeros((), jnp.int32), start.state, unit, jnp.full(history_size + 1, unit),
+    unit_norm = start.r0_norm / start.r0_scale
+    init = (jnp.zeros((), jnp.int32), start.state, unit_norm,
+            jnp.full(history_size + 1, unit_norm),
             jnp.asarray(True))
     k, state, norm, history, _ = jax.lax.while_loop(cond, body, init)
     if not track_norm:

@@ -47,13 +47,13 @@ def jacobi_pcg(matrix: sp.csr_matrix, b: np.ndarray, rtol: float,
                max_iterations: int = 1000) -> HostSolution | None:
     """``x`` with ``||b - A x|| <= rtol ||b||`` (recursive residual), or None if not met.
 
-    CG runs on ``b / 2^e`` with ``2^e`` just above ``max |b_i|``: exact, so the iterates are
+    CG runs on ``b / 2^e`` with ``2^e <= max |b_i| < 2^(e+1)``: exact, so the iterates are
     those of ``b`` scaled, bit for bit, while ``r.r`` can neither underflow (data of 1e-170
     gave ``r.r = 0``, which met the test at once and returned ``x = 0``) nor overflow.
     """
     b = np.asarray(b, dtype=float)
     _, exponent = np.frexp(np.max(np.abs(b), initial=0.0))
-    scale = np.ldexp(1.0, exponent)
+    scale = np.ldexp(1.0, int(np.clip(exponent - 1, -1022, 1023)))  # a normal number
     solution = _jacobi_pcg(matrix, b / scale, rtol, max_iterations)
     return None if solution is None else solution._replace(x=solution.x * scale)
 

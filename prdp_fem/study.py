@@ -608,7 +608,7 @@ def _h_summary(by_run: dict[str, list[dict]]) -> list[dict]:
                   key=lambda r: (r["element"], r["level"]))
     out, previous = [], None
     for r in rows:
-        setup = r.get("cg_setup_time", 0.0)  # records written before it was measured
+        setup = r.get("cg_setup_time", math.nan)  # not measured in records written before
         rate = math.nan
         if previous is not None and previous["element"] == r["element"]:
             rate = math.log(previous["l2_error"] / r["l2_error"]) / math.log(

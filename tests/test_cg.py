@@ -540,19 +540,21 @@ RHS_SCALES = tuple(2.0 ** e for e in (-500, -565, -1000, 500, 665, 997))
 
 
 def test_the_scaled_norm_is_the_plain_norm_bit_for_bit_where_that_one_is_finite():
-    """CG normalises its residual by ``p ||v / p||`` (``p`` a power of two): where ``v.v``
-    neither under- nor overflows this is ``||v||`` to the last bit, so no iterate moves (a
-    norm rounded otherwise sent a fragile inversion down another path); beyond, it is
-    finite and accurate where the plain norm gives 0 or inf."""
+    """CG normalises its residual by ``2^e ||2^-e v||``: where ``v.v`` neither under- nor
+    overflows this is ``||v||`` to the last bit, so no iterate moves (a norm rounded otherwise
+    sent a fragile inversion down another path); beyond, it is finite and accurate where the
+    plain norm gives 0 or inf, up to the largest float64, eagerly and under jit."""
     from prdp_fem.cg import _norm, _robust_norm
 
     v = jnp.asarray(np.random.default_rng(0).standard_normal(1000))
-    for scale in (1e-140, 1e-3, 1.0, 7.3e4, 1e140):
-        assert float(_robust_norm(v * scale)) == float(_norm(v * scale)), scale
-    reference = float(_norm(v))
-    for scale in (2.0 ** -600, 2.0 ** 600):
-        plain, robust = float(_norm(v * scale)), float(_robust_norm(v * scale))
-        assert plain in (0.0, np.inf) and robust == pytest.approx(reference * scale, rel=1e-15)
+    for norm in (_robust_norm, jax.jit(_robust_norm)):
+        for scale in (1e-140, 1e-3, 1.0, 7.3e4, 1e140):
+            assert float(norm(v * scale)) == float(_norm(v * scale)), scale
+        reference = float(_norm(v))
+        for scale in (2.0 ** -600, 2.0 ** 600, 2.0 ** 1022):  # max |v| 2^1023.8
+            plain, robust = float(_norm(v * scale)), float(norm(v * scale))
+            assert plain in (0.0, np.inf)
+            assert robust == pytest.approx(reference * scale, rel=1e-15)
 
 
 @pytest.mark.parametrize("solver", [
@@ -576,16 +578,29 @@ def test_rhs_of_any_scale_scales_x_and_keeps_the_gradient(small_problem, solver)
 
     sol = solve(op, b, solver)
     reference = jax.grad(loss)(op.values, b, 1.0)
+    jitted = jax.jit(lambda op, b: solve(op, b, solver))  # XLA may reassociate: check it too
     for scale in RHS_SCALES:
-        scaled = solve(op, b * scale, solver)
-        np.testing.assert_allclose(scaled.x / scale, sol.x, rtol=1e-10,
-                                   err_msg=f"x at scale {scale:g}")
-        assert (int(scaled.status), int(scaled.iterations)) == \
-            (int(sol.status), int(sol.iterations)), scale
+        for scaled in (solve(op, b * scale, solver), jitted(op, b * scale)):
+            np.testing.assert_allclose(scaled.x / scale, sol.x, rtol=1e-10,
+                                       err_msg=f"x at scale {scale:g}")
+            assert (int(scaled.status), int(scaled.iterations)) == \
+                (int(sol.status), int(sol.iterations)), scale
         g = jax.grad(loss)(op.values, b, scale)
         np.testing.assert_allclose(g, reference, rtol=1e-8,
                                    atol=1e-12 * abs(reference).max(),
                                    err_msg=f"gradient at scale {scale:g}")
+
+
+def test_a_tolerance_not_met_is_reported_at_any_scale(small_problem):
+    """At 1e-300 rtol ||b|| flushed to 0 under jit: the loop ran to stagnation and a solve
+    cut short by max_iterations reported success."""
+    disc, kappa, f = small_problem
+    system = disc.system
+    b = system.rhs(jnp.asarray(kappa), jnp.asarray(f))
+    op = system.operator(jnp.asarray(kappa))
+    short = jax.jit(lambda b: solve(op, b, ConvergedCG(rtol=1e-10, max_iterations=10)))
+    for scale in (1.0, 2.0 ** -997, 2.0 ** 997):
+        assert int(short(b * scale).status) == pf.Status.NOT_CONVERGED, scale
 
 
 def test_preconditioner_and_counts_are_validated():
