@@ -28,7 +28,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["HostSolution", "dot", "jacobi_pcg"]
+__all__ = ["HostSolution", "dot", "jacobi_pcg", "power_of_two_scale"]
 
 
 class HostSolution(NamedTuple):
@@ -52,10 +52,17 @@ def jacobi_pcg(matrix: sp.csr_matrix, b: np.ndarray, rtol: float,
     gave ``r.r = 0``, which met the test at once and returned ``x = 0``) nor overflow.
     """
     b = np.asarray(b, dtype=float)
-    _, exponent = np.frexp(np.max(np.abs(b), initial=0.0))
-    scale = np.ldexp(1.0, int(np.clip(exponent - 1, -1022, 1023)))  # a normal number
+    scale = power_of_two_scale(b)
     solution = _jacobi_pcg(matrix, b / scale, rtol, max_iterations)
     return None if solution is None else solution._replace(x=solution.x * scale)
+
+
+def power_of_two_scale(v: np.ndarray) -> float:
+    """``2^e <= max |v_i| < 2^(e+1)`` (1 for a zero ``v``), kept a normal number: dividing by
+    it is exact, and brings the largest entry to ``[1, 2)`` where ``v.v`` cannot under- or
+    overflow."""
+    _, exponent = np.frexp(np.max(np.abs(v), initial=0.0))
+    return float(np.ldexp(1.0, int(np.clip(exponent - 1, -1022, 1023)))) if exponent else 1.0
 
 
 def _jacobi_pcg(matrix: sp.csr_matrix, b: np.ndarray, rtol: float,

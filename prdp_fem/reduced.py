@@ -55,7 +55,7 @@ import scipy.sparse.linalg as spla
 from .cg import IterationCounter, TruncatedCG
 from .errors import SolverConfigError
 from .history import History, StepRecord
-from .host_cg import dot, jacobi_pcg
+from .host_cg import dot, jacobi_pcg, power_of_two_scale
 from .inverse import (
     InverseProblem,
     _cycle_argument,
@@ -248,28 +248,36 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
 
 
 class _CGState(NamedTuple):
-    """The outer CG's vectors (host arrays) and the tracked objective value."""
+    """The outer CG's vectors divided by ``scale``, a power of two (exact): ``r.z`` and
+    ``p.q`` of data of 1e-163 underflowed to 0 (the run stopped at ``f = 0`` as if ``H`` were
+    not positive) and of 1e163 overflowed. ``H`` and ``M^{-1}`` are linear, so ``H p`` of the
+    scaled ``p`` is scaled alike; the step length is scale-free."""
 
-    r: np.ndarray        # -grad J (recursive)
+    r: np.ndarray        # -grad J / scale (recursive)
     z: np.ndarray        # M^{-1} r
-    p: np.ndarray        # search direction
-    rz: float
+    p: np.ndarray        # search direction / scale
+    rz: float            # r.z of the scaled vectors
     loss: float          # J at the current iterate
     initial_norm: float  # sqrt(r_0.z_0) of the first start
+    scale: float
 
     @property
     def residual_norm(self) -> float:
         """``sqrt(r.z) = ||grad J||_{M^{-1}}``."""
-        return math.sqrt(max(self.rz, 0.0))
+        return self.scale * math.sqrt(max(self.rz, 0.0))
 
     @classmethod
     def start(cls, r: np.ndarray, z: np.ndarray, loss: float, previous) -> _CGState:
+        scale = power_of_two_scale(r)
+        r, z = r / scale, z / scale
         rz = dot(r, z)
-        initial = math.sqrt(max(rz, 0.0)) if previous is None else previous.initial_norm
-        return cls(r, z, z.copy(), rz, loss, initial)
+        initial = scale * math.sqrt(max(rz, 0.0)) if previous is None \
+            else previous.initial_norm
+        return cls(r, z, z.copy(), rz, loss, initial, scale)
 
     def step(self, f: np.ndarray, q: np.ndarray, riesz_q: np.ndarray):
-        """``f + a p`` and the next state, or ``(None, f)`` if ``p.q <= 0``.
+        """``f + a p`` and the next state, or ``(None, f)`` if ``p.q <= 0``; ``q = H p`` of
+        the stored (scaled) ``p``.
 
         ``J(f + a p) = J(f) - a r.p + a^2 p.q / 2`` tracks the objective; ``z = M^{-1} r`` is
         updated with ``M^{-1} q`` (``M^{-1}`` is linear): one Riesz map per step.
@@ -278,11 +286,12 @@ class _CGState(NamedTuple):
         if not pq > 0:
             return None, f
         a = self.rz / pq
-        loss = self.loss - a * dot(self.r, self.p) + 0.5 * a * a * pq
+        decrease = (a * dot(self.r, self.p) - 0.5 * a * a * pq) * self.scale
+        loss = self.loss - decrease * self.scale
         r, z = self.r - a * q, self.z - a * riesz_q
         rz = dot(r, z)
         p = z + (rz / self.rz) * self.p
-        return _CGState(r, z, p, rz, loss, self.initial_norm), f + a * self.p
+        return self._replace(r=r, z=z, p=p, rz=rz, loss=loss), f + (a * self.scale) * self.p
 
 
 def _check_options(refinement, iterations, rtol, riesz_rtol, preconditioner) -> None:

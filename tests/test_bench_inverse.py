@@ -5,6 +5,7 @@ runs and the saving figures against the study's own summary.
 """
 
 import csv
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -81,6 +82,24 @@ def test_reduced_cg_converges_to_the_kkt_optimum(mother16):
     # Riesz-preconditioned: cond = (alpha + mu_1) / alpha ~ 2600, far fewer steps than the
     # 289 unknowns (the data excite few modes)
     assert result.history[-1].step <= 60
+
+
+def test_reduced_cg_scales_with_its_data_to_the_extremes(mother16):
+    """The optimum is linear in the data: data times 2^-540 (1e-163) or 2^540 give the field
+    times the same factor, in the same steps. The outer CG's r.z underflowed to 0 at 1e-163
+    (the run stopped at f = 0 after no step) and overflowed at 1e163 (NaN)."""
+    problem = mother16[0]
+    reference = reduced_cg(problem, refinement=converged(1e-12), iterations=8)
+    for scale in (2.0 ** -540, 2.0 ** 540):
+        observation = dataclasses.replace(problem.observation,
+                                          data=problem.observation.data * scale)
+        scaled = reduced_cg(dataclasses.replace(problem, observation=observation),
+                            refinement=converged(1e-12), iterations=8)
+        assert len(scaled.history) == len(reference.history) == 8
+        np.testing.assert_allclose(np.asarray(scaled.field) / scale, reference.field,
+                                   rtol=1e-12, atol=1e-14 * abs(reference.field).max())
+        assert scaled.residual_norm / scale == pytest.approx(reference.residual_norm,
+                                                             rel=1e-10)
 
 
 def test_reduced_cg_with_an_amg_cycle_reaches_the_same_optimum(mother16):
