@@ -54,6 +54,7 @@ import numpy as np
 import scipy.sparse as sp
 from jax.experimental import sparse as jsparse
 
+from .errors import ShapeError
 from .products import paired_product, symmetric_product
 
 __all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
@@ -230,8 +231,15 @@ class SparseMatrix:
 
     @classmethod
     def from_coo(cls, rows, cols, values, shape: tuple[int, int]) -> SparseMatrix:
-        """From COO arrays in any order (sorted by row here; the constructor assumes it)."""
+        """From COO arrays in any order (sorted by row here; the constructor assumes it).
+
+        Indices must lie in ``shape``: the products gather without wrapping negative ones.
+        """
         rows, cols = np.asarray(rows), np.asarray(cols)
+        for name, index, size in (("rows", rows, shape[0]), ("cols", cols, shape[1])):
+            if index.size and not (0 <= index.min() and index.max() < size):
+                raise ShapeError(f"from_coo: {name} range from {index.min()} to {index.max()}; "
+                                 f"expected indices from 0 to {size - 1} (shape {tuple(shape)})")
         order = np.lexsort((cols, rows))
         return cls(jnp.asarray(rows[order], dtype=jnp.int32),
                    jnp.asarray(cols[order], dtype=jnp.int32),
@@ -266,8 +274,12 @@ class SparseMatrix:
 
     @classmethod
     def from_bcoo(cls, matrix: jsparse.BCOO) -> SparseMatrix:
+        """From BCOO; entries at out-of-range indices are BCOO's padding and are dropped
+        (``todense`` ignores them too)."""
         indices = np.asarray(matrix.indices)
-        return cls.from_coo(indices[:, 0], indices[:, 1], matrix.data, matrix.shape)
+        kept = (indices[:, 0] < matrix.shape[0]) & (indices[:, 1] < matrix.shape[1])
+        return cls.from_coo(indices[kept, 0], indices[kept, 1], np.asarray(matrix.data)[kept],
+                            matrix.shape)
 
     def todense(self) -> jax.Array:
         return jnp.zeros(self.shape, self.values.dtype).at[self.rows, self.cols].add(self.values)

@@ -91,6 +91,26 @@ def test_vmap_over_vectors(random_spd):
     np.testing.assert_allclose(Y, (random_spd @ X.T).T, rtol=1e-13)
 
 
+@pytest.mark.parametrize("rows, cols", [([0, -1], [0, 1]), ([0, 1], [0, 3])])
+def test_from_coo_refuses_indices_outside_the_shape(rows, cols):
+    with pytest.raises(pf.ShapeError, match=r"from_coo: (rows|cols) range from .* expected "
+                       r"indices from 0 to 2 \(shape \(3, 3\)\)"):
+        pf.SparseMatrix.from_coo(rows, cols, [1.0, 2.0], (3, 3))
+
+
+def test_from_bcoo_drops_the_padding_of_a_bcoo(random_spd):
+    """BCOO pads with out-of-range indices (here (40, 40)) and zero data; they are dropped,
+    not refused."""
+    from jax.experimental import sparse as jsparse
+
+    padded = jsparse.BCOO.fromdense(jnp.asarray(random_spd.toarray()), nse=random_spd.nnz + 7)
+    assert int(np.asarray(padded.indices).max()) == 40
+    A = pf.SparseMatrix.from_bcoo(padded)
+    x = np.random.default_rng(0).normal(size=40)
+    np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
+    assert A.values.shape[0] == random_spd.nnz
+
+
 def test_from_coo_sorts_and_sums(random_spd):
     coo = random_spd.tocoo()
     order = np.random.default_rng(5).permutation(coo.nnz)
