@@ -91,6 +91,25 @@ def _one_search(optimizer, fn, z):
     return value, grad, updates, state
 
 
+def test_a_search_step_holds_the_evaluation_once_not_once_per_branch():
+    """optax's step evaluates inside both branches of a ``cond``; ours has the evaluation
+    (a CG solve and its adjoint in an inversion) once in the program, which XLA compiles
+    once instead of twice. Counted by tracing: optax's own search traces it twice."""
+    traced = collections.Counter()
+
+    def counted(z):
+        traced["value_fn"] += 1
+        return _rosenbrock(z)
+
+    z = jnp.array([-3.0, 4.0, -2.0, 3.0])
+    value, grad = jax.value_and_grad(_rosenbrock)(z)
+    for name, optimizer in (("ours", pf.lbfgs()), ("optax", optax.lbfgs())):
+        traced.clear()
+        jax.make_jaxpr(lambda z, state, opt=optimizer: opt.update(
+            grad, state, z, value=value, grad=grad, value_fn=counted))(z, optimizer.init(z))
+        assert traced["value_fn"] == (1 if name == "ours" else 2), name
+
+
 def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():
     z = jnp.array([0.2, -0.4, 0.7])
     value, grad, updates, state = _one_search(pf.lbfgs(), _wrong_sign, z)
