@@ -80,7 +80,7 @@ from pyamg.relaxation import relaxation
 from pyamg.relaxation.smoothing import change_smoothers, rho_D_inv_A
 
 from .errors import DataError, ShapeError, SolverConfigError
-from .operator import SparseMatrix, prepare_on_host
+from .operator import SparseMatrix, prepared_from_scipy
 from .prdp import _array_module  # NumPy for host values, jnp for JAX arrays
 from .validation import is_traced
 
@@ -390,7 +390,7 @@ def _sparse(matrix):
     """
     csr = sp.csr_matrix(matrix, dtype=float)
     csr.eliminate_zeros()
-    return prepare_on_host(SparseMatrix.from_scipy(csr, layout=True))
+    return prepared_from_scipy(csr)
 
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:
