@@ -307,8 +307,15 @@ def _step_with_one_evaluation(step_search, search, value_and_grad, fn_kwargs):
     ``J = -inf`` and ``g = 0``, which meets both Wolfe conditions, so that the search neither
     fails nor falls back to its safe step and the result's ``stepsize`` is the trial ``t``;
     ``value_and_grad`` runs there, once; then with that value and gradient, the same
-    arithmetic on the same state, so the same ``t``. The stand-in's ``t`` could differ only
-    where ``J(0) = -inf`` or the slope at ``0`` is NaN, where no search makes sense.
+    arithmetic on the same state, so the same ``t``. For float64 parameters these are
+    optax's trial steps exactly (its values to round-off: the objective is compiled in
+    another place of the program). Float32 parameters are evaluated at a float32 point,
+    where optax's zoom forms ``z + t d`` with a float64 ``t``.
+
+    The stand-in cannot meet the conditions where ``J(0)`` is NaN or ``-inf`` or the slope
+    ``s_0`` (or ``t s_0``) is not finite; a search then stops at its last trial or at its safe
+    step, so the evaluation may land there instead of at ``t``. Such a search is lost anyway
+    (and :func:`prdp_fem.inverse.invert` stops on a non-finite value or gradient).
 
     Why: XLA inlines every call of the evaluation, a CG solve and its adjoint solve (an AMG
     cycle inside each), and compiles each of its kernels separately. One copy instead of
@@ -316,18 +323,20 @@ def _step_with_one_evaluation(step_search, search, value_and_grad, fn_kwargs):
     the step logic written out twice instead of the loop lost on Jacobi (see the
     performance log).
     """
-    stand_in = (jnp.full((), -jnp.inf, jnp.result_type(search.value_init)),
-                jax.tree_util.tree_map(jnp.zeros_like, search.params))
+    # jitted here so that its trace for the stand-in's shapes (the value and gradient
+    # exactly as the evaluation returns them: no cast) is the one the loop calls
+    evaluate = jax.jit(lambda point: value_and_grad(point, **fn_kwargs))
+    value_shape, grad_shapes = jax.eval_shape(evaluate, search.params)
+    stand_in = (jnp.full(value_shape.shape, -jnp.inf, value_shape.dtype),
+                jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype),
+                                       grad_shapes))
 
     def run(carry):
         trip, values, _ = carry
         stepped = step_search(search, value_and_grad_fn=lambda *_, **__: values,
                               fn_kwargs=fn_kwargs)
         trial = optax.tree.add_scale(search.params, stepped.stepsize, search.updates)
-        values = jax.lax.cond(
-            trip == 0,
-            lambda: optax.tree.cast_like(value_and_grad(trial, **fn_kwargs), stand_in),
-            lambda: values)
+        values = jax.lax.cond(trip == 0, lambda: evaluate(trial), lambda: values)
         return trip + 1, values, stepped
 
     _, _, stepped = jax.lax.while_loop(lambda c: c[0] < 2, run,

@@ -115,6 +115,9 @@ def _host_ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
     """:func:`ell_layout` with NumPy ``int32`` arrays, for a caller that puts the layout (or
     the kernel it prepares) on the device in one call."""
     rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    if np.any(rows[1:] < rows[:-1]):  # slots and first diagonal entries count along rows
+        raise ShapeError("ell_layout: rows are not sorted; expected a row-sorted pattern "
+                         "(SparseMatrix.from_coo and from_scipy sort it)")
     nnz = rows.size
     positions = np.arange(nnz)
     square = n_cols is None or n_cols == n

@@ -91,23 +91,30 @@ def _one_search(optimizer, fn, z):
     return value, grad, updates, state
 
 
-def test_a_search_step_holds_the_evaluation_once_not_once_per_branch():
+def test_a_search_step_holds_the_evaluation_once_and_runs_it_once_per_trial():
     """optax's step evaluates inside both branches of a ``cond``; ours has the evaluation
     (a CG solve and its adjoint in an inversion) once in the program, which XLA compiles
-    once instead of twice. Counted by tracing: optax's own search traces it twice."""
-    traced = collections.Counter()
+    once instead of twice, and runs it once per trial. Counted by tracing (optax's own
+    search traces it twice) and by a host call at run time (one per trial)."""
+    traced, ran = collections.Counter(), collections.Counter()
 
     def counted(z):
         traced["value_fn"] += 1
-        return _rosenbrock(z)
+        jax.debug.callback(lambda: ran.update(["value_fn"]))
+        return _badly_scaled(z)  # its unit first trial doubles 20 times
 
     z = jnp.array([-3.0, 4.0, -2.0, 3.0])
-    value, grad = jax.value_and_grad(_rosenbrock)(z)
+    value, grad = jax.value_and_grad(_badly_scaled)(z)
     for name, optimizer in (("ours", pf.lbfgs()), ("optax", optax.lbfgs())):
         traced.clear()
-        jax.make_jaxpr(lambda z, state, opt=optimizer: opt.update(
+        ran.clear()
+        _, state = jax.jit(lambda z, state, opt=optimizer: opt.update(
             grad, state, z, value=value, grad=grad, value_fn=counted))(z, optimizer.init(z))
+        jax.effects_barrier()
+        trials = int(otu.tree_get(state, "num_linesearch_steps"))
+        assert trials == 20, name
         assert traced["value_fn"] == (1 if name == "ours" else 2), name
+        assert ran["value_fn"] == trials, name
 
 
 def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():

@@ -48,6 +48,15 @@ def test_diagonal_from_the_layout_adds_repeated_entries_and_missing_ones_are_zer
     np.testing.assert_array_equal(grad, np.where(on_diagonal, weights[np.asarray(A.rows)], 0))
 
 
+def test_a_layout_of_unsorted_rows_is_refused():
+    """The layout counts slots and first diagonal entries along sorted rows; a pattern in
+    another order (the constructor's contract) would drop entries silently."""
+    A = pf.SparseMatrix(jnp.array([1, 0, 1]), jnp.array([1, 0, 1]), jnp.array([1.0, 2.0, 4.0]),
+                        (2, 2))
+    with pytest.raises(pf.ShapeError, match="rows are not sorted"):
+        A.with_layout()
+
+
 def test_conversions_round_trip(random_spd):
     A = pf.SparseMatrix.from_scipy(random_spd)
     assert abs(A.to_scipy() - random_spd).max() == 0
