@@ -49,6 +49,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .comparison import settled
+from .compilation_cache import ENVIRONMENT_VARIABLE as CACHE_VARIABLE
 from .discretization import discretize
 from .errors import SceneError, SolverConfigError
 from .generators import unit_square
@@ -254,10 +255,12 @@ class MotherBench(NamedTuple):
 
 
 def _child_environment() -> dict[str, str]:
-    """This package first on the path; no persistent compilation cache (a cold start)."""
+    """This package first on the path; no persistent compilation cache (a cold start: the
+    package's own cache, on by default, is switched off too, not only JAX's)."""
     package_root = str(Path(__file__).resolve().parent.parent)
     path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
-    return {key: value for key, value in {**os.environ, "PYTHONPATH": path}.items()
+    environment = {**os.environ, "PYTHONPATH": path, CACHE_VARIABLE: "0"}
+    return {key: value for key, value in environment.items()
             if key != "JAX_COMPILATION_CACHE_DIR"}
 
 

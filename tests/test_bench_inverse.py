@@ -193,6 +193,18 @@ def test_mother_whole_process_times_a_fresh_process():
     assert bench.peer is None and bench.goal_met is None and np.isnan(bench.ratio)
 
 
+def test_mother_processes_start_cold_without_either_compilation_cache(monkeypatch):
+    """The whole-process figure includes JIT compilation: a child process must not load
+    programs from the package's persistent cache (on by default) nor from JAX's."""
+    from prdp_fem.bench_inverse import _child_environment
+    from prdp_fem.compilation_cache import cache_directory
+    monkeypatch.setenv("PRDP_FEM_COMPILATION_CACHE", "/some/cache")
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/some/jax/cache")
+    environment = _child_environment()
+    assert cache_directory(environment) is None
+    assert "JAX_COMPILATION_CACHE_DIR" not in environment
+
+
 def test_peer_figures_and_goals_are_the_benchmark_table():
     assert PEER[256].error == 2.2e-4 and PEER[256].seconds == 6.5 and PEER[256].goal_ratio == 0.5
     assert PEER[512].error == 7.5e-5 and PEER[512].seconds == 55 and PEER[512].goal_ratio == 0.33
