@@ -265,7 +265,7 @@ class SparseMatrix:
         Everything is read on the host, so this also works while JAX traces a function.
         ``jax.device_put`` copies the arrays, where ``jnp.asarray`` compiled a conversion per
         shape and dtype (28 compiles, 0.25 s, to build one small linear system)."""
-        return jax.device_put(_host_matrix(matrix, layout))
+        return jax.device_put(_numpy_matrix(matrix, layout))
 
     def to_scipy(self) -> sp.csr_matrix:
         return sp.csr_matrix(
@@ -503,10 +503,10 @@ def prepared_from_scipy(matrix: sp.spmatrix | sp.sparray) -> EllMatrix | CooMatr
     out and prepared in NumPy, then put on the device in one call. ``prepare_on_host(
     SparseMatrix.from_scipy(matrix, layout=True))`` without the round trip through the
     device: 17 transfers per matrix, a third of the JAX side of an AMG rebuild."""
-    return jax.device_put(prepare(_host_matrix(matrix, layout=True)))
+    return jax.device_put(prepare(_numpy_matrix(matrix, layout=True)))
 
 
-def _host_matrix(matrix: sp.spmatrix | sp.sparray, layout: bool | None) -> SparseMatrix:
+def _numpy_matrix(matrix: sp.spmatrix | sp.sparray, layout: bool | None) -> SparseMatrix:
     """:meth:`SparseMatrix.from_scipy` with NumPy leaves (see there)."""
     csr = sp.csr_matrix(matrix)
     csr.sum_duplicates()
