@@ -391,6 +391,52 @@ def test_unrolled_with_traced_k_is_a_clear_error(small_problem):
         run(5)
 
 
+@pytest.fixture
+def backend_compiles(monkeypatch):
+    """The XLA compilations from here on (the persistent cache off, so none is loaded)."""
+    from jax._src import compiler
+
+    compiled = []
+    original = compiler.backend_compile_and_load
+
+    def counting(backend, module, *args):
+        compiled.append(str(module.operation.attributes["sym_name"]))
+        return original(backend, module, *args)
+
+    monkeypatch.setattr(compiler, "backend_compile_and_load", counting)
+    previous = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    yield compiled
+    jax.config.update("jax_enable_compilation_cache", previous)
+
+
+# an eager solve is one program per shape and solver form; a count or tolerance is its argument
+@pytest.mark.parametrize("first, second, programs", [
+    (TruncatedCG(4, gradient="implicit"),  # a NumPy count and K_adj given: the same program
+     TruncatedCG(np.int32(9), gradient="implicit", adjoint_iterations=2), 1),
+    (ConvergedCG(rtol=1e-6), ConvergedCG(rtol=1e-10, max_iterations=500), 1),
+    (TruncatedCG(3, scan_length=16), TruncatedCG(11, scan_length=16), 1),
+    (TruncatedCG(3), TruncatedCG(5), 2),  # unrolled: the scan's length is K
+], ids=["implicit", "converged", "scan_length", "unrolled"])
+def test_an_eager_solve_compiles_one_program_and_reuses_it_for_new_numbers(
+        backend_compiles, first, second, programs):
+    # a shape of its own: 13 x 13 P1 has 144 free dofs
+    disc = pf.discretize(pf.unit_square(13), element="P1", kappa_space="P1")
+    kappa = disc.interpolate_kappa(lambda x: 1.0 + x[0] * x[1])
+    A = disc.system.operator(jnp.asarray(kappa))
+    b = np.asarray(disc.rhs(kappa, disc.interpolate(lambda x: np.sin(3 * x[0]))))
+    backend_compiles.clear()
+    eager = [solve(A, b, solver) for solver in (first, second)]
+    # op by op an eager solve compiled some 35 small programs on a new shape
+    assert len(backend_compiles) == programs, backend_compiles
+    # each equals its solve traced anew (so the second did not run the first's numbers)
+    assert int(eager[0].iterations) != int(eager[1].iterations)
+    for solver, sol in zip((first, second), eager, strict=True):
+        traced = jax.jit(lambda A, b, solver=solver: solve(A, b, solver))(A, b)
+        np.testing.assert_allclose(sol.x, traced.x, rtol=1e-13, atol=0)
+        assert int(sol.iterations) == int(traced.iterations)
+
+
 # unrolled with a scan length: K traced below a static bound, one program per bound
 
 
