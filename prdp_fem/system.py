@@ -30,7 +30,7 @@ import jax.numpy as jnp
 from . import cg
 from .errors import CoefficientError
 from .operator import EllLayout, FixedMatrix, SparseMatrix
-from .validation import finite_vector
+from .validation import finite_vector, is_traced
 
 __all__ = ["LinearSystem"]
 
@@ -99,14 +99,27 @@ class LinearSystem:
         """:func:`~prdp_fem.cg.solve` of ``A(kappa) u = b(kappa, f)``, nullspace included.
 
         Called eagerly, a non-finite ``kappa`` raises :class:`~prdp_fem.errors.CoefficientError`
-        (even where it would not reach the free dofs).
+        (even where it would not reach the free dofs), and the assembly and the solve run as
+        two compiled programs, kept per shape.
         """
         kappa = finite_vector(kappa, "kappa", self.n_kappa, error=CoefficientError)
-        return cg.solve(self.operator(kappa), self.rhs(kappa, f), solver, x0,
-                        nullspace=self.nullspace, counter=counter)
+        if is_traced(self, kappa, f):
+            matrix, b = self.operator(kappa), self.rhs(kappa, f)
+        else:  # one program, not one per operation (cg.solve does the same for the solve)
+            matrix, b = _assembled(self, kappa, f)
+        return cg.solve(matrix, b, solver, x0, nullspace=self.nullspace, counter=counter)
 
     def expand(self, u_free: jax.Array) -> jax.Array:
         """Full nodal vector: free values plus the Dirichlet data."""
         full = jnp.zeros(self.n_dofs, dtype=u_free.dtype)
         full = full.at[self.dirichlet_dofs].set(self.dirichlet_values.astype(u_free.dtype))
         return full.at[self.free_dofs].set(u_free)
+
+
+@jax.jit
+def _assembled(system: LinearSystem, kappa: jax.Array, f: jax.Array | None
+               ) -> tuple[SparseMatrix, jax.Array]:
+    """``(A(kappa), b(kappa, f))`` of an eager :meth:`LinearSystem.solve`, as one program: op
+    by op they compiled 17 small ones on a new shape (0.3 s on 2 CPU cores)."""
+    return system.operator(kappa), system.rhs(kappa, f)
+

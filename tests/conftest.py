@@ -155,3 +155,23 @@ def shared_compiles_made(monkeypatch) -> list:
 
     monkeypatch.setattr(SharedCompile, "__init__", recording)
     return made
+
+
+@pytest.fixture
+def backend_compiles(monkeypatch):
+    """The XLA compilations from here on (the persistent cache off, so none is loaded)."""
+    import jax
+    from jax._src import compiler
+
+    compiled = []
+    original = compiler.backend_compile_and_load
+
+    def counting(backend, module, *args):
+        compiled.append(str(module.operation.attributes["sym_name"]))
+        return original(backend, module, *args)
+
+    monkeypatch.setattr(compiler, "backend_compile_and_load", counting)
+    previous = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    yield compiled
+    jax.config.update("jax_enable_compilation_cache", previous)

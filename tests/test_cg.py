@@ -391,25 +391,6 @@ def test_unrolled_with_traced_k_is_a_clear_error(small_problem):
         run(5)
 
 
-@pytest.fixture
-def backend_compiles(monkeypatch):
-    """The XLA compilations from here on (the persistent cache off, so none is loaded)."""
-    from jax._src import compiler
-
-    compiled = []
-    original = compiler.backend_compile_and_load
-
-    def counting(backend, module, *args):
-        compiled.append(str(module.operation.attributes["sym_name"]))
-        return original(backend, module, *args)
-
-    monkeypatch.setattr(compiler, "backend_compile_and_load", counting)
-    previous = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    yield compiled
-    jax.config.update("jax_enable_compilation_cache", previous)
-
-
 # an eager solve is one program per shape and solver form; a count or tolerance is its argument
 @pytest.mark.parametrize("first, second, programs", [
     (TruncatedCG(4, gradient="implicit"),  # a NumPy count and K_adj given: the same program
@@ -435,6 +416,22 @@ def test_an_eager_solve_compiles_one_program_and_reuses_it_for_new_numbers(
         traced = jax.jit(lambda A, b, solver=solver: solve(A, b, solver))(A, b)
         np.testing.assert_allclose(sol.x, traced.x, rtol=1e-13, atol=0)
         assert int(sol.iterations) == int(traced.iterations)
+
+
+def test_an_eager_system_solve_assembles_in_one_program_and_solves_in_another(
+        backend_compiles):
+    disc = pf.discretize(pf.unit_square(14), element="P1", kappa_space="P1",
+                         dirichlet={"left": 1.0})  # a shape of its own, a lifting too
+    kappa = disc.interpolate_kappa(lambda x: 1.0 + x[0] * x[1])
+    f = disc.interpolate(lambda x: np.sin(3 * x[0]))
+    assert disc.system is not None  # built before counting
+    backend_compiles.clear()
+    solver = ConvergedCG(rtol=1e-11)
+    eager = disc.system.solve(kappa, f, solver)
+    assert backend_compiles == ['"jit__assembled"', '"jit__compiled_solve"']  # 18 op by op
+    traced = jax.jit(lambda kappa, f: disc.system.solve(kappa, f, solver))(kappa, f)
+    np.testing.assert_allclose(eager.x, traced.x, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(eager.x, exact(disc, kappa, f), rtol=1e-9)
 
 
 # unrolled with a scan length: K traced below a static bound, one program per bound
