@@ -153,6 +153,9 @@ class Solution(NamedTuple):
     status: jax.Array
 
 
+_MAX_COUNT = int(np.iinfo(np.int32).max)
+
+
 def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
     if value is None and allow_none:
         return
@@ -161,6 +164,8 @@ def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
     if (isinstance(value, bool) or np.ndim(value) != 0
             or not np.issubdtype(np.asarray(value).dtype, np.integer) or int(value) < 0):
         raise SolverConfigError(f"{name}={value!r}: expected an integer >= 0")
+    if int(value) > _MAX_COUNT:  # the loops count in int32
+        raise SolverConfigError(f"{name}={value!r}: expected an integer <= {_MAX_COUNT}")
 
 
 def _check_preconditioner(spec: Any) -> None:
@@ -319,10 +324,12 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     bad input and a breakdown raise typed errors; under ``jit`` they set ``status``.
 
     An eager call (no tracers, no counter) runs as one compiled program, kept per shape and
-    solver form: ``K``, ``K_adj`` (implicit mode, or unrolled below a ``scan_length``),
-    ``rtol``, ``atol``, ``max_iterations`` and a preconditioner pytree are its arguments, so
-    new values reuse it; an unrolled ``K`` without a ``scan_length`` is the scan's length and
-    compiles anew. (Run op by op, a solve on a new shape compiled some 35 small programs.)
+    solver form: ``K`` (implicit mode, or unrolled below a ``scan_length``), ``K_adj``
+    (implicit mode), ``rtol``, ``atol``, ``max_iterations`` and a preconditioner pytree of
+    arrays are its arguments, so new values reuse it; an unrolled ``K`` without a
+    ``scan_length`` is the scan's length and compiles anew. A preconditioner holding Python
+    numbers, or a counter, runs op by op (run so, a solve on a new shape compiled some 35
+    small programs), which may round differently in the last bits.
 
     >>> import numpy as np, scipy.sparse as sp
     >>> from prdp_fem.operator import SparseMatrix
@@ -344,9 +351,11 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     if is_traced(matrix.values, b, x0, nullspace, dynamic):
         return _solve_traced(matrix, b, x0, solver, nullspace, counter)
     _check_finite_inputs(matrix, b, x0)
-    if counter is None:
+    if nullspace is not None:
+        _check_nullspace(nullspace, b)  # inside the compiled solve it is traced
+    if counter is None and _compilable(dynamic):
         sol = _compiled_solve(matrix, b, x0, nullspace, _typed(dynamic), static)
-    else:  # its host calls: op by op (a compiled program with them is not cached)
+    else:  # a counter's host calls, or a preconditioner's Python numbers: op by op
         sol = _solve_traced(matrix, b, x0, solver, nullspace, counter)
     _raise_on_status(sol)
     return sol
@@ -366,7 +375,8 @@ def _split_solver(solver: TruncatedCG | ConvergedCG, n: int) -> tuple[dict, tupl
         if fields["adjoint_iterations"] is None:
             fields["adjoint_iterations"] = fields["iterations"]
         names = ["iterations", "adjoint_iterations"]
-    else:  # unrolled: K is the scan's length unless a scan_length is
+    else:  # unrolled: K is the scan's length unless a scan_length is; K_adj is not read
+        fields["adjoint_iterations"] = None
         names = [] if solver.scan_length is None else ["iterations"]
     if not isinstance(solver.preconditioner, str):
         names.append("preconditioner")
@@ -374,9 +384,17 @@ def _split_solver(solver: TruncatedCG | ConvergedCG, n: int) -> tuple[dict, tupl
 
 
 # the types of the dynamic numbers in a compiled eager solve: a NumPy integer against a Python
-# one (or an int rtol) would otherwise be another signature, another program
-_NUMBER_TYPES = {"rtol": np.float64, "atol": np.float64, "max_iterations": np.int64,
-                 "iterations": np.int64, "adjoint_iterations": np.int64}
+# one (or an int rtol) would otherwise be another signature, another program. The loops count
+# in int32 (_check_count keeps counts within it)
+_NUMBER_TYPES = {"rtol": np.float64, "atol": np.float64, "max_iterations": np.int32,
+                 "iterations": np.int32, "adjoint_iterations": np.int32}
+
+
+def _compilable(dynamic: dict) -> bool:
+    """Whether every dynamic leaf is an array: a preconditioner pytree may hold Python numbers
+    (a sweep count read by ``range``), which a compiled solve would trace."""
+    leaves = jax.tree_util.tree_leaves(dynamic.get("preconditioner"))
+    return all(hasattr(leaf, "dtype") for leaf in leaves)
 
 
 def _typed(dynamic: dict) -> dict:
@@ -475,13 +493,23 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
         jnp.all(jnp.asarray([jnp.all(jnp.isfinite(a)) for a in arrays])))
 
 
+def _check_nullspace(nullspace: Any, b: jax.Array) -> None:
+    """A concrete nullspace vector: ``b``'s shape, finite, not zero (on the host)."""
+    if np.shape(nullspace) != b.shape:
+        raise ShapeError(f"nullspace{tuple(np.shape(nullspace))}: expected a vector of length "
+                         f"{b.shape[0]} spanning the operator's nullspace")
+    v = np.asarray(nullspace)
+    if not (np.isfinite(v).all() and np.any(v)):
+        raise SolverConfigError("nullspace: expected a finite, non-zero vector")
+
+
 def _unit_nullspace(nullspace: jax.Array, b: jax.Array) -> jax.Array:
     v = jnp.asarray(nullspace, dtype=b.dtype)
     if v.shape != b.shape:
         raise ShapeError(f"nullspace{tuple(v.shape)}: expected a vector of length "
-                                f"{b.shape[0]} spanning the operator's nullspace")
-    if not is_traced(v) and not (np.isfinite(np.asarray(v)).all() and np.any(np.asarray(v))):
-        raise SolverConfigError("nullspace: expected a finite, non-zero vector")
+                         f"{b.shape[0]} spanning the operator's nullspace")
+    if not is_traced(v):
+        _check_nullspace(v, b)
     return v / _robust_norm(v)
 
 

@@ -99,8 +99,8 @@ class LinearSystem:
         """:func:`~prdp_fem.cg.solve` of ``A(kappa) u = b(kappa, f)``, nullspace included.
 
         Called eagerly, a non-finite ``kappa`` raises :class:`~prdp_fem.errors.CoefficientError`
-        (even where it would not reach the free dofs), and the assembly and the solve run as
-        two compiled programs, kept per shape.
+        (even where it would not reach the free dofs), and the assembly runs as one compiled
+        program, kept per shape (the solve as :func:`~prdp_fem.cg.solve` runs it).
         """
         kappa = finite_vector(kappa, "kappa", self.n_kappa, error=CoefficientError)
         if is_traced(self, kappa, f):
@@ -122,4 +122,3 @@ def _assembled(system: LinearSystem, kappa: jax.Array, f: jax.Array | None
     """``(A(kappa), b(kappa, f))`` of an eager :meth:`LinearSystem.solve`, as one program: op
     by op they compiled 17 small ones on a new shape (0.3 s on 2 CPU cores)."""
     return system.operator(kappa), system.rhs(kappa, f)
-

@@ -159,7 +159,10 @@ def shared_compiles_made(monkeypatch) -> list:
 
 @pytest.fixture
 def backend_compiles(monkeypatch):
-    """The XLA compilations from here on (the persistent cache off, so none is loaded)."""
+    """The XLA compilations from here on (the persistent cache off, so none is loaded).
+
+    Patches JAX's private ``backend_compile_and_load`` (as tests/test_program_store.py does):
+    a JAX upgrade that renames it fails here, loudly."""
     import jax
     from jax._src import compiler
 

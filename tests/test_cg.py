@@ -2,6 +2,8 @@
 (vjp: unrolled and implicit, jvp, jit/recompiles, vmap)."""
 
 import dataclasses
+from functools import partial
+from typing import Any
 
 import jax
 import jax.extend.core
@@ -418,6 +420,42 @@ def test_an_eager_solve_compiles_one_program_and_reuses_it_for_new_numbers(
         assert int(sol.iterations) == int(traced.iterations)
 
 
+@partial(jax.tree_util.register_dataclass, data_fields=["scale"], meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class _Sweeps:
+    """A preconditioner pytree with a Python-number leaf read by ``range`` (allowed)."""
+
+    scale: Any
+
+    def __call__(self, r):
+        for _ in range(int(self.scale)):
+            r = 0.5 * r
+        return r
+
+
+def test_an_eager_solve_keeps_what_op_by_op_did_at_the_edges(small_problem):
+    """Found by review of the compiled eager solve: each worked (or raised) before it."""
+    disc, kappa, f = small_problem
+    A, b = disc.system.operator(jnp.asarray(kappa)), disc.system.rhs(kappa, f)
+    # a concrete array K_adj in unrolled mode is not read: no unhashable cache key
+    with_array = solve(A, b, TruncatedCG(5, adjoint_iterations=np.asarray(2)))
+    np.testing.assert_array_equal(with_array.x, solve(A, b, TruncatedCG(5)).x)
+    # a count beyond the loops' int32 is refused, not wrapped to a few iterations
+    for solver in (lambda: TruncatedCG(2**32 + 3, gradient="implicit"),
+                   lambda: ConvergedCG(max_iterations=2**31)):
+        with pytest.raises(pf.SolverConfigError, match="expected an integer <= 2147483647"):
+            solver()
+    # a zero nullspace vector is named as such (inside the program it is traced)
+    with pytest.raises(pf.SolverConfigError, match="nullspace: expected a finite, non-zero"):
+        solve(A, b, ConvergedCG(), nullspace=np.zeros(disc.n_free))
+    # a preconditioner with a Python number runs op by op: M = I / 4, so CG's iterates are
+    # Jacobi-free CG's (a scaled identity does not change them)
+    swept = solve(A, b, ConvergedCG(rtol=1e-10, preconditioner=_Sweeps(2)))
+    plain = solve(A, b, ConvergedCG(rtol=1e-10, preconditioner="identity"))
+    assert int(swept.iterations) == int(plain.iterations)
+    np.testing.assert_allclose(swept.x, plain.x, rtol=1e-9)
+
+
 def test_an_eager_system_solve_assembles_in_one_program_and_solves_in_another(
         backend_compiles):
     disc = pf.discretize(pf.unit_square(14), element="P1", kappa_space="P1",
@@ -428,7 +466,7 @@ def test_an_eager_system_solve_assembles_in_one_program_and_solves_in_another(
     backend_compiles.clear()
     solver = ConvergedCG(rtol=1e-11)
     eager = disc.system.solve(kappa, f, solver)
-    assert backend_compiles == ['"jit__assembled"', '"jit__compiled_solve"']  # 18 op by op
+    assert backend_compiles == ['"jit__assembled"', '"jit__compiled_solve"']  # 52 op by op
     traced = jax.jit(lambda kappa, f: disc.system.solve(kappa, f, solver))(kappa, f)
     np.testing.assert_allclose(eager.x, traced.x, rtol=1e-13, atol=0)
     np.testing.assert_allclose(eager.x, exact(disc, kappa, f), rtol=1e-9)
