@@ -494,22 +494,20 @@ def _all_finite(*arrays: jax.Array) -> jax.Array:
 
 
 def _check_nullspace(nullspace: Any, b: jax.Array) -> None:
-    """A concrete nullspace vector: ``b``'s shape, finite, not zero (on the host)."""
+    """A nullspace vector of ``b``'s shape and, where concrete, finite and not zero."""
     if np.shape(nullspace) != b.shape:
         raise ShapeError(f"nullspace{tuple(np.shape(nullspace))}: expected a vector of length "
                          f"{b.shape[0]} spanning the operator's nullspace")
+    if is_traced(nullspace):
+        return
     v = np.asarray(nullspace)
     if not (np.isfinite(v).all() and np.any(v)):
         raise SolverConfigError("nullspace: expected a finite, non-zero vector")
 
 
 def _unit_nullspace(nullspace: jax.Array, b: jax.Array) -> jax.Array:
+    _check_nullspace(nullspace, b)
     v = jnp.asarray(nullspace, dtype=b.dtype)
-    if v.shape != b.shape:
-        raise ShapeError(f"nullspace{tuple(v.shape)}: expected a vector of length "
-                         f"{b.shape[0]} spanning the operator's nullspace")
-    if not is_traced(v):
-        _check_nullspace(v, b)
     return v / _robust_norm(v)
 
 
