@@ -18,6 +18,17 @@ if "PRDP_FEM_COMPILATION_CACHE" not in os.environ:
     os.environ["PRDP_FEM_COMPILATION_CACHE"] = _CACHE
     atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 
+# Compiling was two thirds of the suite's time: the tests build thousands of programs on
+# meshes of tens to thousands of unknowns and run each a few times. XLA compiles them about
+# three times faster with LLVM's optimisation off and the classic CPU fusion emitters. The
+# programs are the same HLO in IEEE arithmetic (no fast-math), so only the order of some sums
+# can change, as on another CPU (a batched program is compared to its unbatched one to
+# round-off); tests that read a compiled program's text ask for the shipped emitters.
+# `XLA_FLAGS` set by the caller wins: `XLA_FLAGS= python -m pytest ...` compiles as users do.
+if "XLA_FLAGS" not in os.environ:  # read when JAX starts its backend, after this import
+    os.environ["XLA_FLAGS"] = ("--xla_backend_optimization_level=0"
+                               " --xla_cpu_use_fusion_emitters=false")
+
 import prdp_fem as pf
 
 MESH_DIR = Path(__file__).resolve().parent.parent / "meshes"

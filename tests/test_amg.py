@@ -246,7 +246,9 @@ def test_vmap_over_stacked_hierarchies(problems):
     second = amg_preconditioner(problem.operator.with_values(2.0 * problem.operator.values))
     stacked = jax.tree_util.tree_map(lambda a, c: jnp.stack([a, c]), first, second)
     applied = jax.vmap(lambda M, r: M(r), in_axes=(0, None))(stacked, problem.b)
-    np.testing.assert_array_equal(applied, jnp.stack([first(problem.b), second(problem.b)]))
+    # to round-off, not bit for bit: how XLA fuses the batched gathers is its own choice
+    np.testing.assert_allclose(applied, jnp.stack([first(problem.b), second(problem.b)]),
+                               rtol=1e-14)
 
 
 # ------------------------------------------------------------------------------------------
@@ -266,7 +268,8 @@ def test_linear_rules_of_the_cycle(problems, implementation):
     np.testing.assert_allclose(transposed, M(dr), rtol=1e-14)
     # grad(r.Mr / 2) = M r (symmetric), under jit and vmap too
     grad = jax.jit(jax.vmap(jax.grad(lambda v: 0.5 * jnp.vdot(v, M(v)))))
-    np.testing.assert_allclose(grad(jnp.stack([r, dr]))[0], z, rtol=1e-12)
+    np.testing.assert_allclose(grad(jnp.stack([r, dr]))[0], z, rtol=1e-12,
+                               atol=1e-14 * np.abs(z).max())
 
 
 # ------------------------------------------------------------------------------------------
