@@ -759,3 +759,60 @@ def test_scaled_jacobi_equals_pcg_with_z_equal_M_r(small_problem, mode):
                                                       value_and_grad(values, general, K))
         np.testing.assert_allclose(value, reference, rtol=1e-12)
         np.testing.assert_allclose(grad, reference_grad, rtol=1e-9, atol=1e-13)
+
+
+# ------------------------------------------------------------------------------------------
+# with a preconditioner to apply, the while loops precondition at the top of an iteration
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preconditioner", ["diagonal", "amg"])
+@pytest.mark.parametrize("k", [0, 1, 4, 17, "past"])
+def test_preconditioned_while_loops_take_the_scans_iterations(small_problem, preconditioner,
+                                                              k):
+    # implicit mode's loop preconditions the residual it starts from; the unrolled scan
+    # preconditions the residual it ends with: the same iterates, iterations and freeze
+    disc, kappa, f = small_problem
+    op = disc.system.operator(jnp.asarray(kappa))
+    b = disc.system.rhs(jnp.asarray(kappa), jnp.asarray(f))
+    precond = _DiagonalAsGeneral(1.0 / pf.diagonal(op)) if preconditioner == "diagonal" \
+        else pf.amg_preconditioner(op)
+    k = 10 * disc.n_free if k == "past" else k
+    unrolled, implicit = (solve(op, b, TruncatedCG(k, precond, gradient=mode))
+                          for mode in ("unrolled", "implicit"))
+    scale = float(jnp.abs(unrolled.x).max())
+    np.testing.assert_allclose(implicit.x, unrolled.x, rtol=1e-13, atol=1e-15 * scale)
+    assert int(implicit.iterations) == int(unrolled.iterations)
+    if k > disc.n_free:  # frozen after convergence, in both, at the same iteration
+        assert int(implicit.iterations) < disc.n_free
+        np.testing.assert_allclose(implicit.x, exact(disc, kappa, f), rtol=1e-12,
+                                   atol=1e-12 * scale)
+
+
+def test_a_truncated_solve_applies_the_preconditioner_once_per_iteration(small_problem):
+    # K iterations need z_0 .. z_{K-1}: a solve that also formed z_K (or z_0 before its loop)
+    # ran one V-cycle more, and its program held one more inlined copy of it
+    disc, kappa, f = small_problem
+    op = disc.system.operator(jnp.asarray(kappa))
+    b = disc.system.rhs(jnp.asarray(kappa), jnp.asarray(f))
+    applications, traces = [], []
+
+    @jax.tree_util.register_dataclass
+    @dataclasses.dataclass(frozen=True)
+    class Counted:
+        inverse_diagonal: jax.Array
+
+        def __call__(self, r):
+            traces.append(1)
+            jax.debug.callback(lambda: applications.append(1))
+            return self.inverse_diagonal * r
+
+    precond = Counted(1.0 / pf.diagonal(op))
+    for K in (1, 7):
+        applications.clear()
+        sol = solve(op, b, TruncatedCG(K, precond, gradient="implicit"))
+        assert int(sol.iterations) == K
+        assert len(applications) == K
+    assert len(traces) == 1  # one program for both K, the preconditioner once in its loop
+    reference = solve(op, b, TruncatedCG(7, _DiagonalAsGeneral(precond.inverse_diagonal)))
+    np.testing.assert_allclose(sol.x, reference.x, rtol=1e-13)
