@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import settings
 
 # hermetic: the session (and the CLI subprocesses it starts) share one throwaway compilation
 # cache instead of the user's; set before prdp_fem is imported, which switches the cache on
@@ -30,6 +31,13 @@ if "XLA_FLAGS" not in os.environ:  # read when JAX starts its backend, after thi
                                " --xla_cpu_use_fusion_emitters=false")
 
 import prdp_fem as pf
+
+# Property tests draw the same examples in every run (derived from each test's source), so CI
+# passes or fails on the code, not on a new draw. `--hypothesis-profile=explore` draws fresh
+# ones; a failure prints its arguments either way.
+settings.register_profile("reproducible", derandomize=True, database=None, deadline=None)
+settings.register_profile("explore", database=None, deadline=None)
+settings.load_profile("reproducible")
 
 MESH_DIR = Path(__file__).resolve().parent.parent / "meshes"
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
