@@ -37,12 +37,13 @@ Gradient modes
     segment at a time in the backward pass: ``O(sqrt(K))`` n-vectors for about one more forward
     sweep (1.6 GB -> 0.13 GB at 65k dofs and K = 1000, ``prdp-fem bench memory``). Once CG has
     frozen at round-off (or terminated exactly, e.g. a right-hand side in a small invariant
-    subspace) before ``K``, the map *is* the solution map, and its derivative is taken
-    implicitly (``lax.custom_linear_solve``, one extra solve): the reverse sweep through the
-    frozen iterations would give the derivative of the last Krylov iterate, which was measured
-    0.7 % to 24 % off. Just *before* freezing, in CG's superlinear phase, the truncated map
-    varies on scales below ~1e-7 in kappa: its exact derivative can differ from finite
-    differences taken at larger steps.
+    subspace) before ``K``, the map *is* the solution map: the scan's iterate is returned and
+    its derivative taken implicitly (the tangent or adjoint solved to round-off through
+    ``lax.custom_linear_solve``, as in implicit mode; the forward sweep solves nothing more).
+    The reverse sweep through the frozen iterations would give the derivative of the last
+    Krylov iterate, which was measured 0.7 % to 24 % off. Just *before* freezing, in CG's
+    superlinear phase, the truncated map varies on scales below ~1e-7 in kappa: its exact
+    derivative can differ from finite differences taken at larger steps.
 ``"implicit"``
     The solve is a ``jax.custom_jvp`` whose tangent is ``dx = A^{-1} (db - dA x)``, the
     tangent system solved with ``adjoint_iterations`` PCG iterations through
@@ -831,7 +832,7 @@ def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
     # derivative of the last moving Krylov iterate, which lags the exact one (the CG
     # polynomial is small on the spectrum, its slope is not): differentiate implicitly there
     converged = jax.lax.stop_gradient(~_active(state) & ~state.broken)
-    x = jax.lax.cond(converged, lambda: _solution_map(matrix, krylov, b, iterations),
+    x = jax.lax.cond(converged, lambda: _as_solution_map(x, matrix, precond, b, iterations),
                      lambda: x)
     return Solution(x, jnp.sum(moved).astype(jnp.int32), history[-1],
                     jax.lax.stop_gradient(start.r0_norm), history,
@@ -918,21 +919,42 @@ def _scan_iterations(body, state, iterations: int, segment: int | None):
     return state, outputs
 
 
-def _solution_map(matrix, krylov: _Krylov, b, max_iterations: int) -> jax.Array:
-    """``A^+ b`` by PCG to round-off, with exact implicit derivatives in both modes.
+def _as_solution_map(x, matrix, precond, b, iterations) -> jax.Array:
+    """``x``, a solve frozen at round-off, differentiated as the solution map ``A^+ b``.
 
-    ``lax.custom_linear_solve`` differentiates ``x = A^{-1} b`` through ``A``'s product and
-    solves the tangent/adjoint systems with the same (symmetric) solver: the forward sweep's
-    prepared system, held constant.
+    The value is the frozen iterate itself (the solution to working precision), so the
+    forward sweep runs no second solve; the derivatives are the implicit ones of
+    :func:`_frozen_jvp`, the tangent solved by PCG to round-off (at most ``iterations``
+    iterations, as the frozen scan took) with the preconditioner held constant.
     """
-    krylov = jax.tree_util.tree_map(jax.lax.stop_gradient, krylov)
-    no_tolerance = jnp.zeros(2, b.dtype)
+    precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
+    pattern = (matrix.rows, matrix.cols, matrix.layout)
+    return _frozen(x, matrix.values, b, jnp.asarray(iterations, jnp.int32), pattern, precond,
+                   (matrix.shape, matrix.kernel))
 
-    def pcg(_, rhs):
-        return _while_solve(krylov, rhs, None, max_iterations, no_tolerance, 0,
-                            track_norm=False).x
 
-    return jax.lax.custom_linear_solve(prepare(matrix), b, pcg, symmetric=True)
+@partial(jax.custom_jvp, nondiff_argnums=(6,))
+def _frozen(x, values, b, iterations, pattern, precond, form):
+    return x
+
+
+@_frozen.defjvp
+def _frozen_jvp(form, primals, tangents):
+    """``dx = A^+ (db - dA x)``: the tangent of ``A x = b``, by :func:`_linear_solve`.
+
+    ``x``'s own tangent (the reverse sweep through the frozen scan: the lagging derivative of
+    the last moving Krylov iterate) is dropped. The primal is this function called again, so
+    a derivative of this derivative sees the implicit tangent of ``x`` too.
+    """
+    x, values, b, iterations, pattern, precond = primals
+    values_dot, b_dot = tangents[1], tangents[2]
+    x = _frozen(x, values, b, iterations, pattern, precond, form)
+    rows, cols, _ = pattern
+    minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0],
+                                      indices_are_sorted=True)
+    x_dot = _linear_solve(values, b_dot + minus_dA_x, iterations, pattern, precond,
+                          jnp.zeros(2, b.dtype), form, False, None)
+    return x, x_dot
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(2,))

@@ -28,6 +28,7 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from functools import cached_property
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
@@ -196,7 +197,15 @@ class Discretization:
 
     @cached_property
     def system(self) -> LinearSystem:
-        """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once."""
+        """The JAX maps ``kappa -> A``, ``(kappa, f) -> b``; builds the source map S once.
+
+        Built eagerly even when first read inside a traced function (``jax.jit``): the arrays
+        are constants of the mesh, and cached as tracers they would leak out of the trace.
+        """
+        with jax.ensure_compile_time_eval():
+            return self._system()
+
+    def _system(self) -> LinearSystem:
         return LinearSystem(
             assembly=FixedMatrix.from_scipy(self.assembly),
             rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),

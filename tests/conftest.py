@@ -197,3 +197,16 @@ def backend_compiles(monkeypatch):
     jax.config.update("jax_enable_compilation_cache", False)
     yield compiled
     jax.config.update("jax_enable_compilation_cache", previous)
+
+
+def count_primitives(fn, arg, name: str) -> int:
+    """How many ``name`` equations the jaxpr of ``fn(arg)`` holds, nested ones included."""
+    import jax
+    import jax.extend.core
+
+    def count(jaxpr) -> int:
+        return sum((eqn.primitive.name == name)
+                   + sum(count(sub.jaxpr if hasattr(sub, "jaxpr") else sub)
+                         for sub in jax.extend.core.jaxprs_in_params(eqn.params))
+                   for eqn in jaxpr.eqns)
+    return count(jax.make_jaxpr(fn)(arg).jaxpr)

@@ -1,5 +1,7 @@
 """Discretisation: the assembly map against scikit-fem, boundary data, convergence rates."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import skfem
@@ -40,6 +42,18 @@ def test_assembly_map_equals_scikit_fem(make, element, kappa_space):
     op = disc.system.operator(kappa)
     assert abs(op.to_scipy() - disc.stiffness_matrix(kappa)).max() < 1e-13
     np.testing.assert_allclose(disc.system.rhs(kappa), disc.rhs(kappa), atol=1e-13)
+
+
+def test_the_system_first_read_inside_jit_is_built_eagerly():
+    """``disc.system`` is cached on first read; read first inside ``jax.jit`` it was built of
+    tracers (its matrices are put on the device), which leaked out of the trace and broke
+    every later use of the discretisation."""
+    disc = pf.discretize(pf.unit_square(4), element="P1")
+    kappa = np.linspace(1.0, 2.0, disc.n_kappa)
+    inside = jax.jit(lambda k: disc.system.rhs(k))(jnp.asarray(kappa))
+    np.testing.assert_allclose(inside, disc.rhs(kappa), atol=1e-13)
+    op = disc.system.operator(jnp.asarray(kappa))  # outside the trace, after it
+    assert abs(op.to_scipy() - disc.stiffness_matrix(kappa)).max() < 1e-13
 
 
 @pytest.mark.parametrize("size", [0, 1, 7, 5000])

@@ -13,11 +13,11 @@ import dataclasses
 import functools
 
 import jax
-import jax.extend.core
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from conftest import count_primitives
 
 from prdp_fem.operator import FixedMatrix, SparseMatrix, matvec, prepare, symmetric_matvec
 from prdp_fem.products import paired_product, symmetric_product
@@ -118,16 +118,6 @@ def test_reverse_mode_in_x_compiles_without_scatters():
     assert _scatters(gradient(_symmetric(matrix)), x) == 2 * in_one_product
 
 
-def _primitives(fn, arg, name: str) -> int:
-    """How many ``name`` equations the jaxpr of ``fn(arg)`` holds, nested ones included."""
-    def count(jaxpr) -> int:
-        return sum((eqn.primitive.name == name)
-                   + sum(count(sub.jaxpr if hasattr(sub, "jaxpr") else sub)
-                         for sub in jax.extend.core.jaxprs_in_params(eqn.params))
-                   for eqn in jaxpr.eqns)
-    return count(jax.make_jaxpr(fn)(arg).jaxpr)
-
-
 def test_reverse_mode_in_the_values_is_one_gather_not_a_pad_per_slot():
     """The values' cotangent of an ELL product is ``y_bar[None, :] * x[columns]`` as one
     array: JAX's transpose of the per-slot loop pads every slot's row to the whole ``(w, n)``
@@ -142,8 +132,8 @@ def test_reverse_mode_in_the_values_is_one_gather_not_a_pad_per_slot():
             dataclasses.replace(kernel, values=values), x))))
 
     plain, ours = gradient(lambda k, x: k(x)), gradient(symmetric_product)
-    assert _primitives(plain, kernel.values, "pad") == width
-    assert _primitives(ours, kernel.values, "pad") == 0
+    assert count_primitives(plain, kernel.values, "pad") == width
+    assert count_primitives(ours, kernel.values, "pad") == 0
     _close(_jit(ours, kernel.values), _jit(plain, kernel.values))
 
 
