@@ -733,11 +733,17 @@ _STACKED_FROM = 1 << 12
 _ROW_REDUCTION_FROM = 1 << 14
 
 
-def _step(krylov: _Krylov, state: _CGState) -> tuple[_CGState, jax.Array]:
-    """One PCG iteration; returns the new state and whether it moved ``x``."""
+def _step(krylov: _Krylov, state: _CGState,
+          runs: jax.Array | bool = True) -> tuple[_CGState, jax.Array]:
+    """One PCG iteration; returns the new state and whether it moved ``x``.
+
+    ``runs`` false: a step taken as CG takes a frozen one (a zero step length, ``p`` and
+    ``r.z`` kept, no breakdown), so the state passes through unchanged to round-off (``d +
+    0 p``) and its derivatives through exactly.
+    """
     q = krylov.product(state.p)
     pq = jnp.vdot(state.p, q)
-    active = _active(state)
+    active = _active(state) & runs
     moving = active & (pq > 0)
     alpha = _safe_ratio(state.rz, pq, moving)
     dr = _update(state.dr, alpha, state.p, q)
@@ -809,8 +815,8 @@ def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
     krylov = _krylov(matrix, precond)
     start = _init(krylov, b, x0, stacked=False)
 
-    def iterate(state):
-        new, moving = _step(krylov, state)
+    def iterate(state, runs=True):
+        new, moving = _step(krylov, state, runs)
         return new, (moving, krylov.residual_norm(new.r))
 
     if scan_length is None:
@@ -856,19 +862,20 @@ def unrolled_length(iterations: int, smallest: int = 16) -> int:
 
 def _bounded_iterations(iterate, state, iterations, length: int, segment: int | None):
     """``length`` scan steps of which the first ``iterations`` (traced) apply ``iterate``;
-    the rest compute an iteration and keep the state they were given (outputs: not moving,
-    a zero norm).
+    the rest take the step as CG takes a frozen one, ``iterate(state, runs=False)``, and keep
+    the state they were given (outputs: not moving, a zero norm).
 
-    Masked rather than branched: with the step under a ``lax.cond``, reverse mode saved the
+    Neither branched nor masked: with the step under a ``lax.cond``, reverse mode saved the
     operator's arrays once per step (the cond's residuals are not recognised as the loop
-    invariants they are) and an iteration took 3x the time even where none was skipped.
+    invariants they are) and an iteration took 3x the time even where none was skipped; a
+    select of the whole state after the step cost the forward and reverse sweeps a pass over
+    each of its vectors.
     """
     def body(carry, _):
         current, k = carry
         runs = k < iterations
-        new, (moving, norm) = iterate(current)
-        kept = jax.tree_util.tree_map(partial(jnp.where, runs), new, current)
-        return (kept, k + 1), (moving & runs, jnp.where(runs, norm, 0.0))
+        new, (moving, norm) = iterate(current, runs)
+        return (new, k + 1), (moving, jnp.where(runs, norm, 0.0))
 
     (state, _), outputs = _scan_iterations(body, (state, jnp.asarray(0, jnp.int32)), length,
                                            segment)

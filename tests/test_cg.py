@@ -54,7 +54,6 @@ def test_zero_start_skips_the_product_and_changes_nothing(small_problem, mode):
     implicit gradient); x0=zeros forms it. Same iterates, same gradient."""
     disc, kappa, f = small_problem
     zeros = np.zeros(disc.n_free)
-    assert disc.system is not None  # built (and cached) outside the traces below
 
     def loss(kappa, x0):
         x = solve_problem(disc, kappa, f, TruncatedCG(7, gradient=mode), x0=x0).x
@@ -476,8 +475,7 @@ def test_an_eager_system_solve_assembles_in_one_program_and_solves_in_another(
 
 
 def _scan_length_loss(disc, f, w, k, scan_length, checkpoint=False):
-    """w . x_K(kappa) and its solution, unrolled (static K when scan_length is None). Call it
-    outside a trace: it builds (and caches) the system."""
+    """w . x_K(kappa) and its solution, unrolled (static K when scan_length is None)."""
     system = disc.system
 
     def loss(kappa):
@@ -516,8 +514,6 @@ def test_scan_length_traces_once_for_every_k_below_it(small_problem):
     disc, kappa, f = small_problem
     w = jnp.sin(jnp.arange(disc.n_free))
     traces = []
-
-    assert disc.system is not None  # built (and cached) outside the trace below
 
     @jax.jit
     def value(kappa, k):
