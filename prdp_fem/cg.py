@@ -234,7 +234,8 @@ class TruncatedCG:
         (``Solution.iterations`` says how many did). The values and derivatives are those of
         the ``K``-iteration scan (to round-off; the built-in scenes' unrolled runs take the
         same steps bit for bit); the time and reverse mode's memory are those of
-        ``scan_length`` iterations (a passed-on step computes an iteration and drops it).
+        ``scan_length`` iterations (a passed-on step computes an iteration with a zero step
+        length, as CG takes a frozen one).
         ``None`` (default): a scan of exactly ``iterations`` (static) steps.
     """
 
