@@ -29,7 +29,6 @@ from collections.abc import Callable, Mapping
 from functools import cached_property
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
@@ -41,6 +40,7 @@ from .errors import CoefficientError, DataError, DiscretizationError
 from .host_cg import jacobi_pcg
 from .operator import FixedMatrix, _first_of_each, ell_layout
 from .system import LinearSystem
+from .transfer import as_jax
 from .validation import finite_vector, is_traced, positive_coefficient
 
 __all__ = ["Discretization", "discretize"]
@@ -208,18 +208,18 @@ class Discretization:
     def _system(self) -> LinearSystem:
         return LinearSystem(
             assembly=FixedMatrix.from_scipy(self.assembly),
-            rows=jnp.asarray(self.pattern[0], dtype=jnp.int32),
-            cols=jnp.asarray(self.pattern[1], dtype=jnp.int32),
+            rows=as_jax(self.pattern[0], np.int32),
+            cols=as_jax(self.pattern[1], np.int32),
             lifting=FixedMatrix.from_scipy(self.lifting_assembly),
-            lifting_rows=jnp.asarray(self.lifting_pattern[0], dtype=jnp.int32),
-            lifting_cols=jnp.asarray(self.lifting_pattern[1], dtype=jnp.int32),
+            lifting_rows=as_jax(self.lifting_pattern[0], np.int32),
+            lifting_cols=as_jax(self.lifting_pattern[1], np.int32),
             source=FixedMatrix.from_scipy(self.source_matrix),
-            neumann=jnp.asarray(self.neumann),
-            free_dofs=jnp.asarray(self.free_dofs, dtype=jnp.int32),
-            dirichlet_dofs=jnp.asarray(self.dirichlet_dofs, dtype=jnp.int32),
-            dirichlet_values=jnp.asarray(self.dirichlet_values),
+            neumann=as_jax(self.neumann),
+            free_dofs=as_jax(self.free_dofs, np.int32),
+            dirichlet_dofs=as_jax(self.dirichlet_dofs, np.int32),
+            dirichlet_values=as_jax(self.dirichlet_values),
             n_dofs=self.n_dofs,
-            nullspace=None if self.nullspace is None else jnp.asarray(self.nullspace),
+            nullspace=None if self.nullspace is None else as_jax(self.nullspace),
             layout=ell_layout(*self.pattern, self.n_free),
         )
 

@@ -51,6 +51,7 @@ from .reference import amg_solve
 from .regularizers import Regularizer, regularizer
 from .residuals import ResidualFactors, residual_factors
 from .system import LinearSystem
+from .transfer import as_jax
 from .validation import finite_vector
 
 __all__ = [
@@ -253,7 +254,7 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
         known = finite_vector(0.0 if known is None else known,
                               "known (nodal source f of a log_kappa inversion)", disc.n_dofs)
     if truth is not None:
-        truth = jnp.asarray(finite_vector(
+        truth = as_jax(finite_vector(
             truth, f"truth ({unknown} field)", n_param,
             error=CoefficientError if unknown == "log_kappa" else DataError))
     if isinstance(regularization, str):
@@ -265,7 +266,7 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
         raise ShapeError(f"regularization: built for {regularization.reference.shape[0]} "
                          f"parameters, expected {n_param}")
     problem = InverseProblem(disc.system, parameterization, observation, regularization,
-                             jnp.asarray(float(alpha)), jnp.asarray(known), truth,
+                             as_jax(float(alpha)), as_jax(known), truth,
                              SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
     return problem.with_residual() if residual else problem
 

@@ -29,6 +29,7 @@ import scipy.sparse as sp
 from .discretization import Discretization
 from .errors import DataError, SensorError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, matvec, symmetric_matvec
+from .transfer import as_jax
 from .validation import finite_vector
 
 __all__ = ["Observation", "boundary_values", "full_field", "point_sensors", "with_noise"]
@@ -82,7 +83,7 @@ def _observation(operator: sp.spmatrix, weight: sp.spmatrix, u_true: np.ndarray 
         data = operator @ finite_vector(u_true, "u_true (nodal state, all dofs)", n_dofs)
     data = finite_vector(data, "data (observed values)", n_obs)
     return Observation(SparseMatrix.from_scipy(operator), SparseMatrix.from_scipy(weight),
-                       jnp.asarray(data), jnp.zeros(()))
+                       as_jax(data), jnp.zeros(()))
 
 
 def full_field(disc: Discretization, *, u_true: np.ndarray | None = None,

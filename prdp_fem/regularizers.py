@@ -39,6 +39,7 @@ from .discretization import Discretization
 from .errors import SolverConfigError
 from .operator import SparseMatrix, matvec, symmetric_matvec
 from .parameters import parameter_basis, parameter_mass
+from .transfer import as_jax
 from .validation import finite_vector
 
 __all__ = ["REGULARIZERS", "Regularizer", "gradient_gram", "regularizer"]
@@ -103,8 +104,8 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
     gram = {"l2": operator, "tv": None}.get(kind)  # L2: the mass matrix is its own Gram form
     if kind == "h1":
         gram = SparseMatrix.from_scipy(gradient_gram(matrix, weights, dim))
-    return Regularizer(kind, operator, jnp.asarray(weights), jnp.asarray(m0),
-                       jnp.asarray(float(epsilon)), dim, gram)
+    return Regularizer(kind, operator, as_jax(weights), as_jax(m0),
+                       as_jax(float(epsilon)), dim, gram)
 
 
 def gradient_gram(gradient: sp.spmatrix, weights: np.ndarray, dim: int) -> sp.csr_matrix:
