@@ -185,5 +185,5 @@ def with_noise(observation: Observation, level: float, seed: int = 0) -> Observa
     data = np.asarray(observation.data)
     sigma = float(level) * float(np.max(np.abs(data)))
     noise = sigma * np.random.default_rng(seed).standard_normal(data.shape)
-    return dataclasses.replace(observation, data=jnp.asarray(data + noise),
-                               noise_std=jnp.asarray(sigma))
+    return dataclasses.replace(observation, data=as_jax(data + noise),
+                               noise_std=as_jax(sigma))
