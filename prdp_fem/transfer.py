@@ -13,6 +13,8 @@ from typing import Any
 import jax
 import numpy as np
 
+__all__ = ["as_jax"]
+
 
 def as_jax(value: Any, dtype: Any = None) -> jax.Array:
     """``value`` (array-like or number, on the host) as a JAX array of ``dtype``.
