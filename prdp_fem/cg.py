@@ -936,9 +936,9 @@ def _as_solution_map(x, matrix, precond, b, iterations) -> jax.Array:
     iterations, as the frozen scan took) with the preconditioner held constant.
     """
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
-    pattern = (matrix.rows, matrix.cols, matrix.layout)
+    pattern, form = _pattern_and_form(matrix)
     return _frozen(x, matrix.values, b, jnp.asarray(iterations, jnp.int32), pattern, precond,
-                   (matrix.shape, matrix.kernel))
+                   form)
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(6,))
@@ -948,7 +948,7 @@ def _frozen(x, values, b, iterations, pattern, precond, form):
 
 @_frozen.defjvp
 def _frozen_jvp(form, primals, tangents):
-    """``dx = A^+ (db - dA x)``: the tangent of ``A x = b``, by :func:`_linear_solve`.
+    """``dx = A^+ (db - dA x)``: the tangent of ``A x = b``, by :func:`_implicit_tangent`.
 
     ``x``'s own tangent (the reverse sweep through the frozen scan: the lagging derivative of
     the last moving Krylov iterate) is dropped. The primal is this function called again, so
@@ -957,11 +957,8 @@ def _frozen_jvp(form, primals, tangents):
     x, values, b, iterations, pattern, precond = primals
     values_dot, b_dot = tangents[1], tangents[2]
     x = _frozen(x, values, b, iterations, pattern, precond, form)
-    rows, cols, _ = pattern
-    minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0],
-                                      indices_are_sorted=True)
-    x_dot = _linear_solve(values, b_dot + minus_dA_x, iterations, pattern, precond,
-                          jnp.zeros(2, b.dtype), form, False, None)
+    x_dot = _implicit_tangent(values, values_dot, b_dot, x, iterations, pattern, precond,
+                              jnp.zeros(2, b.dtype), form, False, None)
     return x, x_dot
 
 
@@ -1048,13 +1045,18 @@ def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond, rtol
                     history_size, track_norm, counter=None) -> Solution:
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
-    pattern = (matrix.rows, matrix.cols, matrix.layout)
+    pattern, form = _pattern_and_form(matrix)
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
                          jnp.asarray(adjoint_iterations, jnp.int32), pattern, precond,
-                         tolerances, (matrix.shape, matrix.kernel), history_size, track_norm,
-                         counter)
+                         tolerances, form, history_size, track_norm, counter)
     diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
     return Solution(sol.x, *diagnostics)
+
+
+def _pattern_and_form(matrix: SparseMatrix) -> tuple[tuple, tuple]:
+    """``matrix`` less its values: the index arrays (traced) and the static shape and kernel,
+    as the custom rules take them (:func:`_pattern_matrix` puts them back together)."""
+    return (matrix.rows, matrix.cols, matrix.layout), (matrix.shape, matrix.kernel)
 
 
 def _pattern_matrix(values, pattern, form) -> SparseMatrix:
@@ -1089,14 +1091,20 @@ def _implicit_jvp(form, history_size, track_norm, counter, primals, tangents):
     values_dot, b_dot = tangents[0], tangents[1]
     sol = _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond,
                          tolerances, form, history_size, track_norm, counter)
-    x = sol.x
+    x_dot = _implicit_tangent(values, values_dot, b_dot, sol.x, adjoint_iterations, pattern,
+                              precond, tolerances, form, track_norm, counter)
+    return sol, Solution(x_dot, *(_zero_tangent(leaf) for leaf in sol[1:]))
+
+
+def _implicit_tangent(values, values_dot, b_dot, x, iterations, pattern, precond, tolerances,
+                      form, track_norm, counter) -> jax.Array:
+    """``A^+ (db - dA x)``, the tangent of ``A x = b``, by :func:`_linear_solve`."""
     rows, cols, _ = pattern
     # -dA x: the tangent of the product with x held fixed (values enter linearly)
     minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0],
                                       indices_are_sorted=True)
-    x_dot = _linear_solve(values, b_dot + minus_dA_x, adjoint_iterations, pattern, precond,
-                          tolerances, form, track_norm, counter)
-    return sol, Solution(x_dot, *(_zero_tangent(leaf) for leaf in sol[1:]))
+    return _linear_solve(values, b_dot + minus_dA_x, iterations, pattern, precond, tolerances,
+                         form, track_norm, counter)
 
 
 def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, track_norm,
