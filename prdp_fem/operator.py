@@ -113,39 +113,77 @@ def ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
 def _host_ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
                      n_cols: int | None = None) -> EllLayout:
     """:func:`ell_layout` with NumPy ``int32`` arrays, for a caller that puts the layout (or
-    the kernel it prepares) on the device in one call."""
-    rows, cols = np.asarray(rows, dtype=np.int64), np.asarray(cols, dtype=np.int64)
+    the kernel it prepares) on the device in one call.
+
+    Built slot by slot from each row's first entry (rows are sorted, so row ``i``'s ``k``-th
+    entry sits at ``start[i] + k``): ``w`` passes over ``n`` rows instead of a scatter of all
+    ``nnz`` entries into the ``(w, n)`` arrays. The scatter and its ``nnz``-long temporaries
+    were most of a large matrix's layout time, much of it first touches of fresh memory.
+    """
+    if max(np.size(rows), n, n_cols or 0) >= np.iinfo(np.int32).max:
+        raise ShapeError(f"ell_layout: {np.size(rows)} entries in a {n} x {n_cols or n} "
+                         "pattern; the layout's int32 indices hold fewer than 2**31 - 1")
+    rows, cols = np.asarray(rows, dtype=np.int32), np.asarray(cols, dtype=np.int32)
     if np.any(rows[1:] < rows[:-1]):  # slots and first diagonal entries count along rows
         raise ShapeError("ell_layout: rows are not sorted; expected a row-sorted pattern "
                          "(SparseMatrix.from_coo and from_scipy sort it)")
     nnz = rows.size
-    positions = np.arange(nnz)
     square = n_cols is None or n_cols == n
     n_cols = n if n_cols is None else n_cols
-    diagonal = np.full(n if square else 0, nnz, dtype=np.int64)
-    other = np.ones(nnz, dtype=bool)
-    repeated = np.zeros(0, dtype=np.int64)
-    if square:
-        on_diagonal = np.flatnonzero(rows == cols)
-        first = _first_of_each(rows[on_diagonal])
-        diagonal[rows[on_diagonal[first]]] = on_diagonal[first]
-        other[on_diagonal[first]] = False
-        repeated = on_diagonal[~first]
-    o_rows, o_positions, o_cols = rows[other], positions[other], cols[other]
-    counts = np.bincount(o_rows, minlength=n)
-    slot = np.arange(o_rows.size) - (np.cumsum(counts) - counts)[o_rows]
+    counts = np.bincount(rows, minlength=n)  # entries per row, then those not on the diagonal
+    diagonal, others, repeated = _diagonal_apart(rows, cols, n, nnz, counts, square)
+    starts = (np.cumsum(counts) - counts).astype(np.int32)
     width = _ell_width(counts)
     if width > _UNROLLED_SLOTS:  # whole chunks for the kernel's loop (padding adds zeros)
         width = -(-width // _UNROLLED_SLOTS) * _UNROLLED_SLOTS
-    inside = slot < width
-    slots = np.full((width, n), nnz, dtype=np.int64)
-    columns = np.tile(np.minimum(np.arange(n), max(n_cols - 1, 0)), (width, 1))
-    slots[slot[inside], o_rows[inside]] = o_positions[inside]
-    columns[slot[inside], o_rows[inside]] = o_cols[inside]
-    as_index = partial(np.asarray, dtype=np.int32)
-    return EllLayout(as_index(diagonal), as_index(slots), as_index(columns),
-                     as_index(o_positions[~inside]), as_index(o_rows[~inside]),
-                     as_index(o_cols[~inside]), as_index(repeated), as_index(rows[repeated]))
+    own_column = np.minimum(np.arange(n, dtype=np.int32), max(n_cols - 1, 0))
+    slots = np.full((width, n), nnz, dtype=np.int32)
+    columns = np.empty((width, n), dtype=np.int32)
+    every_row = int(counts.min()) if n else 0  # slots below this are all full
+    for k in range(width):
+        present = slice(None) if k < every_row else np.flatnonzero(counts > k)
+        position = starts[present] + k
+        if others is not None:
+            position = others[position]
+        slots[k, present] = position
+        if k >= every_row:
+            columns[k] = own_column
+        columns[k, present] = cols[position]
+    spill_rows, spilled = _spilled(counts, starts, width)
+    if others is not None:
+        spilled = others[spilled]
+    return EllLayout(diagonal, slots, columns, spilled, spill_rows, cols[spilled], repeated,
+                     rows[repeated])
+
+
+def _diagonal_apart(rows: np.ndarray, cols: np.ndarray, n: int, nnz: int, counts: np.ndarray,
+                    square: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The diagonal positions (``nnz`` where a row has none), the positions of the other
+    entries (``None``: all of them) and those of repeated diagonal entries; ``counts`` loses
+    the diagonal in place."""
+    empty = np.zeros(0, dtype=np.int32)
+    if not square:
+        return empty, None, empty
+    on_diagonal = np.flatnonzero(rows == cols).astype(np.int32)
+    first = _first_of_each(rows[on_diagonal])
+    kept = on_diagonal[first]
+    diagonal = np.full(n, nnz, dtype=np.int32)
+    diagonal[rows[kept]] = kept
+    counts[rows[kept]] -= 1
+    others = np.delete(np.arange(nnz, dtype=np.int32), kept) if kept.size else None
+    return diagonal, others, on_diagonal[~first]
+
+
+def _spilled(counts: np.ndarray, starts: np.ndarray,
+             width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and (other-entry) indices of the entries past slot ``width``, in row order."""
+    extra = np.maximum(counts - width, 0)
+    long_rows = np.flatnonzero(extra).astype(np.int32)
+    extra = extra[long_rows]
+    spill_rows = np.repeat(long_rows, extra)
+    within = np.arange(spill_rows.size, dtype=np.int32) - np.repeat(
+        (np.cumsum(extra) - extra).astype(np.int32), extra)
+    return spill_rows, starts[spill_rows] + width + within
 
 
 def _first_of_each(values: np.ndarray) -> np.ndarray:

@@ -166,6 +166,54 @@ def test_long_rows_spill_into_the_coo_tail_and_still_multiply_right():
     np.testing.assert_allclose(pf.matvec(A, x), matrix @ x, rtol=1e-13)
 
 
+def _layout_by_definition(rows, cols, n, n_cols, width):
+    """The ELL layout read off row by row (the definition in ``ell_layout``'s docstring):
+    a square row's first diagonal entry apart, its other entries in order in slots
+    ``0..width-1``, the rest in the tail; padding points at ``nnz`` and the row's own column."""
+    nnz, square = len(rows), n_cols == n
+    diagonal, repeated = [nnz] * n if square else [], []
+    others = [[] for _ in range(n)]
+    for position, (i, j) in enumerate(zip(rows, cols, strict=True)):
+        if square and i == j and diagonal[i] == nnz:
+            diagonal[i] = position
+            continue
+        others[i].append(position)
+        if square and i == j:
+            repeated.append(position)
+    slots = [[row[k] if k < len(row) else nnz for row in others] for k in range(width)]
+    columns = [[cols[row[k]] if k < len(row) else min(i, n_cols - 1)
+                for i, row in enumerate(others)] for k in range(width)]
+    tail = [(i, p) for i, row in enumerate(others) for p in row[width:]]
+    return {"diagonal": diagonal, "slots": slots, "columns": columns,
+            "overflow_slots": [p for _, p in tail], "overflow_rows": [i for i, _ in tail],
+            "overflow_columns": [cols[p] for _, p in tail], "repeated_diagonal": repeated,
+            "repeated_diagonal_rows": [rows[p] for p in repeated]}
+
+
+@settings(max_examples=200, deadline=None)
+@given(n=st.integers(1, 9), n_cols=st.integers(1, 9), square=st.booleans(),
+       entries=st.lists(st.tuples(st.integers(0, 8), st.integers(0, 8)), max_size=70),
+       hub=st.integers(0, 40))
+def test_the_ell_layout_is_its_definition(n, n_cols, square, entries, hub):
+    """Duplicates, repeated diagonals, empty rows, rectangular shapes and a long row (``hub``
+    more entries in row 0, so some spill into the tail); the slot-by-slot build must place
+    every entry where the row-by-row reading does, in the same order."""
+    from prdp_fem.operator import _host_ell_layout
+    n_cols = n if square else n_cols
+    entries = sorted([(i % n, j % n_cols) for i, j in entries]
+                     + [(0, k % n_cols) for k in range(hub)], key=lambda e: e[0])
+    rows = [i for i, _ in entries]
+    cols = [j for _, j in entries]
+    layout = _host_ell_layout(np.array(rows, dtype=int), np.array(cols, dtype=int), n,
+                              None if square else n_cols)
+    expected = _layout_by_definition(rows, cols, n, n_cols, layout.slots.shape[0])
+    for field, value in expected.items():
+        got = getattr(layout, field)
+        assert got.dtype == np.int32, field
+        np.testing.assert_array_equal(got, np.array(value, dtype=np.int32).reshape(got.shape),
+                                      err_msg=field)
+
+
 def _primitives(jaxpr) -> set[str]:
     names = set()
     for equation in jaxpr.eqns:
