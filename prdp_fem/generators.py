@@ -16,7 +16,7 @@ import numpy as np
 import skfem
 
 from .errors import DiscretizationError
-from .mesh import mesh_from_arrays
+from .mesh import mesh_from_arrays, with_names
 
 __all__ = ["disk", "geometric_spacing", "l_shape", "rectangle_with_hole", "tensor_mesh",
            "unit_cube", "unit_square"]
@@ -51,7 +51,7 @@ def unit_square(n: int, cell: str = "triangle") -> skfem.Mesh:
         mesh = skfem.MeshQuad1.init_tensor(x, x)
     else:
         raise DiscretizationError(f"cell={cell!r}: expected 'triangle' or 'quad'")
-    return mesh.with_boundaries(_sides(2))
+    return with_names(mesh, _sides(2))
 
 
 def unit_cube(n: int, cell: str = "tetra") -> skfem.Mesh:
@@ -64,7 +64,7 @@ def unit_cube(n: int, cell: str = "tetra") -> skfem.Mesh:
         mesh = skfem.MeshHex1.init_tensor(x, x, x)
     else:
         raise DiscretizationError(f"cell={cell!r}: expected 'tetra' or 'hexahedron'")
-    return mesh.with_boundaries(_sides(3))
+    return with_names(mesh, _sides(3))
 
 
 def tensor_mesh(*coordinates: np.ndarray, cell: str = "triangle") -> skfem.Mesh:
@@ -93,7 +93,7 @@ def tensor_mesh(*coordinates: np.ndarray, cell: str = "triangle") -> skfem.Mesh:
     if cell not in cells[dim]:
         raise DiscretizationError(f"cell={cell!r}: expected one of {sorted(cells[dim])}")
     mesh = cells[dim][cell].init_tensor(*arrays)
-    return mesh.with_boundaries(_sides(dim, [c[0] for c in arrays], [c[-1] for c in arrays]))
+    return with_names(mesh, _sides(dim, [c[0] for c in arrays], [c[-1] for c in arrays]))
 
 
 def geometric_spacing(n: int, ratio: float, length: float = 1.0) -> np.ndarray:
@@ -117,14 +117,14 @@ def l_shape(refinements: int = 3) -> skfem.Mesh:
     """L-shaped domain ``[-1, 1]^2`` minus the lower-right quadrant (re-entrant corner at 0)."""
     refinements = _check_n(refinements, 0)
     mesh = skfem.MeshTri1.init_lshaped().refined(refinements)
-    return mesh.with_boundaries({"boundary": lambda x: np.ones_like(x[0], dtype=bool)})
+    return with_names(mesh, {"boundary": lambda x: np.ones_like(x[0], dtype=bool)})
 
 
 def disk(refinements: int = 3) -> skfem.Mesh:
     """Unit disk (boundary nodes on the circle at every refinement)."""
     refinements = _check_n(refinements, 0)
     mesh = skfem.MeshTri1.init_circle(refinements)
-    return mesh.with_boundaries({"boundary": lambda x: np.ones_like(x[0], dtype=bool)})
+    return with_names(mesh, {"boundary": lambda x: np.ones_like(x[0], dtype=bool)})
 
 
 def rectangle_with_hole(
@@ -159,4 +159,4 @@ def rectangle_with_hole(
         within_y = (x[1] > y0 - _TOL) & (x[1] < y1 + _TOL)
         return within_x & within_y
 
-    return mesh.with_boundaries({**sides, "hole": on_hole})
+    return with_names(mesh, {**sides, "hole": on_hole})

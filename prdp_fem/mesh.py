@@ -300,10 +300,41 @@ def _mesh_from_meshio(raw: meshio.Mesh, source: str, *, repair: bool) -> skfem.M
     _check_not_folded(mesh, source)
     boundaries = _facet_tags(mesh, facet_blocks, raw.field_data, dim, source)
     subdomains = _cell_tags(cell_tags, raw.field_data, dim)
-    if boundaries or subdomains:
-        mesh = mesh.with_boundaries(boundaries) if boundaries else mesh
-        mesh = mesh.with_subdomains(subdomains) if subdomains else mesh
-    return mesh
+    return with_names(mesh, boundaries, subdomains)
+
+
+# what scikit-fem computes from ``t`` on first use and keeps on the mesh object
+_CONNECTIVITY = ("_facets", "_t2f", "_f2t", "_f2e", "_edges", "_t2e")
+
+
+def with_names(mesh: skfem.Mesh, boundaries: dict | None = None,
+               subdomains: dict | None = None) -> skfem.Mesh:
+    """``mesh`` with named boundaries and subdomains, keeping the facets it has built.
+
+    A boundary is an array of facet indices or a test of facet midpoints (``x`` of shape
+    ``(dim, n)``), which selects among the boundary facets, as scikit-fem's
+    ``with_boundaries`` does. Its ``with_boundaries`` and ``with_subdomains`` return a copy
+    without the facets and incidences built so far, and building them again was the largest
+    part of ``unit_square(512)``; the copy has the same ``t``, so it takes them over here.
+    The midpoints are taken of the boundary facets only, not of all of them.
+    """
+    named = mesh
+    if boundaries:
+        tests = [test for test in boundaries.values() if callable(test)]
+        if tests:
+            on_boundary = mesh.boundary_facets()
+            midpoints = mesh.p[:, mesh.facets[:, on_boundary]].mean(axis=1)
+        named = named.with_boundaries({
+            name: on_boundary[np.asarray(test(midpoints), dtype=bool)] if callable(test)
+            else test for name, test in boundaries.items()})
+    if subdomains:
+        named = named.with_subdomains(subdomains)
+    if named is not mesh and np.array_equal(named.t, mesh.t):
+        built = vars(mesh)
+        for name in _CONNECTIVITY:
+            if name in built:
+                setattr(named, name, built[name])
+    return named
 
 
 def _select_cells(raw: meshio.Mesh, source: str):

@@ -6,10 +6,11 @@ import warnings
 import meshio
 import numpy as np
 import pytest
+import skfem
 from conftest import SHIPPED_MESHES
 
 import prdp_fem as pf
-from prdp_fem.mesh import save_mesh
+from prdp_fem.mesh import save_mesh, with_names
 
 EXPECTED_TAGS = {
     "square_tri.msh": ("MeshTri1", {"left", "right", "bottom", "top"}),
@@ -113,6 +114,30 @@ def test_generators_measure_and_round_trip(make, tmp_path):
     np.testing.assert_allclose(again.p, mesh.p)
     assert abs(operator_of(again) - operator_of(mesh)).max() < 1e-12
     assert quality.total_measure > 0
+
+
+@pytest.mark.parametrize("cell, dim", [(skfem.MeshTri1, 2), (skfem.MeshQuad1, 2),
+                                       (skfem.MeshTet1, 3), (skfem.MeshHex1, 3)])
+def test_named_boundaries_are_scikit_fems_and_keep_the_facets(cell, dim):
+    """with_names names what scikit-fem's with_boundaries names (a midpoint test picks among
+    the boundary facets only: "upper" leaves the interior facets above y = 0.5 out), and the
+    named copy keeps the facets and incidences the mesh has built instead of building them
+    again."""
+    x = np.linspace(0.0, 1.0, 4)
+    def make():
+        return cell.init_tensor(*[x] * dim)
+    tests = {"left": lambda p: p[0] < 1e-10, "upper": lambda p: p[1] > 0.5,
+             "given": np.array([0, 2], dtype=np.int32)}
+    expected = make().with_boundaries(tests)
+    mesh = make()
+    named = with_names(mesh, tests, {"first": np.arange(3)})
+    for name, facets in expected.boundaries.items():
+        assert named.boundaries[name].dtype == facets.dtype
+        np.testing.assert_array_equal(named.boundaries[name], facets)
+    np.testing.assert_array_equal(named.subdomains["first"], np.arange(3))
+    assert named.facets is mesh.facets and named.t2f is mesh.t2f and named.f2t is mesh.f2t
+    np.testing.assert_array_equal(named.facets, make().facets)
+    assert "_facets" in vars(pf.unit_square(2)) and "_facets" in vars(pf.rectangle_with_hole(4))
 
 
 def test_generator_measures():
