@@ -154,6 +154,29 @@ def test_vmap_over_x_over_values_and_nested(matrix):
     _close(_jit(nested, batched_values, xs), _jit(reference, batched_values, xs))
 
 
+@pytest.mark.parametrize("outer, inner", [((0, None), (None, 0)), ((None, 0), (0, None)),
+                                          ((0, 0), (None, 0)), ((0, None), (0, 0))])
+@pytest.mark.parametrize("x_dtype", [jnp.float64, jnp.float32])
+def test_the_products_type_under_nested_vmap_is_the_kernels(matrix, outer, inner, x_dtype):
+    """The primitive's type is read off its operands, not traced: batch sizes from whichever
+    operand each level maps (after that operand's outer axes), dtype from values and x."""
+    values, x = _point(matrix)
+    levels = ((2, outer), (3, inner))
+
+    def batched(array, mapped, dtype):
+        shape = [size for size, axes in levels if axes[mapped] == 0]
+        return jax.ShapeDtypeStruct((*shape, *array.shape), dtype)
+
+    args = (batched(values, 0, values.dtype), batched(x, 1, x_dtype))
+
+    def nested(product):
+        return jax.vmap(jax.vmap(product, in_axes=inner), in_axes=outer)
+    ours = jax.eval_shape(nested(_symmetric(matrix)), *args)
+    reference = jax.eval_shape(nested(_plain(matrix)), *args)
+    assert (ours.shape, ours.dtype) == (reference.shape, reference.dtype) == ((2, 3, N),
+                                                                              jnp.float64)
+
+
 def test_vmap_of_grad_and_grad_of_vmap(matrix):
     values, _ = _point(matrix)
     rng = np.random.default_rng(5)
