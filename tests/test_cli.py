@@ -1,10 +1,12 @@
 """The prdp-fem command: the forward study, exit codes and one-line errors."""
 
+import gc
 import json
+import sys
 
 import pytest
 
-from prdp_fem.cli import main
+from prdp_fem.cli import main, run
 
 
 def test_forward_study_writes_records(tmp_path, capsys):
@@ -86,3 +88,18 @@ def test_bad_learned_table_is_one_line_and_exit_2(tmp_path, capsys):
     path.write_text("[inverse]\nunknown = 'source'\n[learned]\nsamples = 8\n")
     assert main(["study", str(path), "--steps", "0"]) == 2
     assert "a learned study's epochs; expected an integer >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, code", [(["scenes"], 0), (["scenes", "no-such-scene"], 2)])
+def test_the_program_exits_with_mains_code_and_a_frozen_heap(argv, code, monkeypatch, capsys):
+    """``prdp-fem`` (run) leaves the heap to the exit frozen, so Python's last collections
+    skip it; main, as called here in a live process, does not freeze anything."""
+    assert gc.get_freeze_count() == 0
+    assert main(argv) == code and gc.get_freeze_count() == 0
+    monkeypatch.setattr(sys, "argv", ["prdp-fem", *argv])
+    try:
+        with pytest.raises(SystemExit) as exit:
+            run()
+        assert exit.value.code == code and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
