@@ -39,6 +39,7 @@ from .errors import (
     DegenerateCellError,
     DuplicateNodeError,
     InvertedCellError,
+    MeshError,
     MeshFileError,
     MeshRepairWarning,
     MixedDimensionError,
@@ -325,7 +326,7 @@ def with_names(mesh: skfem.Mesh, boundaries: dict | None = None,
             on_boundary = mesh.boundary_facets()
             midpoints = mesh.p[:, mesh.facets[:, on_boundary]].mean(axis=1)
         named = named.with_boundaries({
-            name: on_boundary[np.asarray(test(midpoints), dtype=bool)] if callable(test)
+            name: on_boundary[_facet_mask(test, midpoints, name)] if callable(test)
             else test for name, test in boundaries.items()})
     if subdomains:
         named = named.with_subdomains(subdomains)
@@ -335,6 +336,16 @@ def with_names(mesh: skfem.Mesh, boundaries: dict | None = None,
             if name in built:
                 setattr(named, name, built[name])
     return named
+
+
+def _facet_mask(test, midpoints: np.ndarray, name: str) -> np.ndarray:
+    """``test(midpoints)`` as one flag per facet, or a :class:`MeshError` naming the boundary."""
+    mask = np.asarray(test(midpoints))
+    if mask.shape != midpoints.shape[1:]:
+        raise MeshError("<named boundaries>", f"boundary {name!r}: its test returned shape "
+                        f"{mask.shape}; expected one flag per facet midpoint, shape "
+                        f"{midpoints.shape[1:]}")
+    return mask.astype(bool)
 
 
 def _select_cells(raw: meshio.Mesh, source: str):

@@ -69,6 +69,8 @@ _OVERFLOW_COST = 4
 # wider rows are applied in a loop over chunks of this many slots: an unrolled fusion of
 # hundreds of gathers (the coarse levels of a 3-D AMG hierarchy) took 9-17 s to compile
 _UNROLLED_SLOTS = 32
+# layouts up to this width are filled slot by slot, wider ones by a scatter of their entries
+_LOOPED_SLOTS = 64
 
 
 @partial(jax.tree_util.register_dataclass,
@@ -137,6 +139,18 @@ def _host_ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
     if width > _UNROLLED_SLOTS:  # whole chunks for the kernel's loop (padding adds zeros)
         width = -(-width // _UNROLLED_SLOTS) * _UNROLLED_SLOTS
     own_column = np.minimum(np.arange(n, dtype=np.int32), max(n_cols - 1, 0))
+    fill = _fill_by_slot if width <= _LOOPED_SLOTS else _fill_by_entry
+    slots, columns = fill(counts, starts, others, cols, own_column, width, nnz)
+    spill_rows, spilled = _spilled(counts, starts, width)
+    if others is not None:
+        spilled = others[spilled]
+    return EllLayout(diagonal, slots, columns, spilled, spill_rows, cols[spilled], repeated,
+                     rows[repeated])
+
+
+def _fill_by_slot(counts, starts, others, cols, own_column, width: int, nnz: int):
+    """The ``(w, n)`` positions and columns, one pass over the rows per slot."""
+    n = counts.size
     slots = np.full((width, n), nnz, dtype=np.int32)
     columns = np.empty((width, n), dtype=np.int32)
     every_row = int(counts.min()) if n else 0  # slots below this are all full
@@ -149,11 +163,24 @@ def _host_ell_layout(rows: np.ndarray, cols: np.ndarray, n: int,
         if k >= every_row:
             columns[k] = own_column
         columns[k, present] = cols[position]
-    spill_rows, spilled = _spilled(counts, starts, width)
+    return slots, columns
+
+
+def _fill_by_entry(counts, starts, others, cols, own_column, width: int, nnz: int):
+    """The same arrays by one scatter of the entries: for wide layouts (a few long rows, a
+    coarse AMG level), where a Python pass per slot would cost more than the scatter."""
+    n = counts.size
+    row = np.repeat(np.arange(n, dtype=np.int32), counts)
+    slot = np.arange(row.size, dtype=np.int32) - np.repeat(starts, counts)
+    inside = slot < width
+    position = np.flatnonzero(inside).astype(np.int32)
     if others is not None:
-        spilled = others[spilled]
-    return EllLayout(diagonal, slots, columns, spilled, spill_rows, cols[spilled], repeated,
-                     rows[repeated])
+        position = others[position]
+    slots = np.full((width, n), nnz, dtype=np.int32)
+    columns = np.tile(own_column, (width, 1))
+    slots[slot[inside], row[inside]] = position
+    columns[slot[inside], row[inside]] = cols[position]
+    return slots, columns
 
 
 def _diagonal_apart(rows: np.ndarray, cols: np.ndarray, n: int, nnz: int, counts: np.ndarray,

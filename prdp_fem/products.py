@@ -98,21 +98,25 @@ def _abstract_eval(*avals, treedef, levels, transposed):
     """The product's type, read off its operands: one batch axis per ``vmap`` level (each
     maps some operand), then the kernel's rows, in the dtype of its values and ``x``.
 
-    ELL and COO kernels (``n_rows``) are read; others are traced (``jax.eval_shape``).
-    Tracing every bind here took a twentieth of the mother problem's compile.
+    ELL and COO kernels (``n_rows``) with floating values and a floating, strongly typed
+    ``x`` are read; anything else (CSR, a weakly typed ``x`` whose promotion follows the
+    values, integer values) is traced (``jax.eval_shape``). Tracing every bind here took a
+    twentieth of the mother problem's compile.
     """
     kernel, transpose_kernel = jax.tree_util.tree_unflatten(treedef, avals[:-1])
     if transposed and transpose_kernel is not None:
         kernel = transpose_kernel
-    rows = getattr(kernel, "n_rows", None)
-    if rows is None:
+    rows, x = getattr(kernel, "n_rows", None), avals[-1]
+    values = [leaf for leaf in jax.tree_util.tree_leaves(kernel)
+              if jnp.issubdtype(leaf.dtype, jnp.inexact)]
+    if rows is None or not values or not jnp.issubdtype(x.dtype, jnp.inexact) or any(
+            aval.weak_type for aval in (*values, x)):
         out = jax.eval_shape(partial(_product, treedef=treedef, levels=levels,
                                      transposed=transposed), *avals)
         return jax.core.ShapedArray(out.shape, out.dtype)
-    values = [leaf.dtype for leaf in jax.tree_util.tree_leaves(kernel)
-              if jnp.issubdtype(leaf.dtype, jnp.inexact)]
     batch = tuple(_level_size(avals, levels, level) for level in range(len(levels)))
-    return jax.core.ShapedArray((*batch, rows), jnp.result_type(*values, avals[-1].dtype))
+    dtype = jnp.result_type(*(value.dtype for value in values), x.dtype)
+    return jax.core.ShapedArray((*batch, rows), dtype)
 
 
 def _level_size(avals, levels: Levels, level: int) -> int:

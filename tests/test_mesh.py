@@ -140,6 +140,14 @@ def test_named_boundaries_are_scikit_fems_and_keep_the_facets(cell, dim):
     assert "_facets" in vars(pf.unit_square(2)) and "_facets" in vars(pf.rectangle_with_hole(4))
 
 
+def test_a_boundary_test_must_flag_each_facet():
+    """A midpoint test that returns one flag, not one per facet, is refused by name (scikit-fem
+    raised a bare ValueError; indexing with it would have stored a 2-D array)."""
+    mesh = skfem.MeshTri1.init_tensor(np.linspace(0, 1, 3), np.linspace(0, 1, 3))
+    with pytest.raises(pf.MeshError, match=r"boundary 'all'.*shape \(\).*one flag per facet"):
+        with_names(mesh, {"all": lambda x: True})
+
+
 def test_generator_measures():
     assert pf.mesh_quality(pf.l_shape(2)).total_measure == pytest.approx(3.0)
     assert pf.mesh_quality(pf.rectangle_with_hole(8)).total_measure == pytest.approx(1.75)

@@ -166,10 +166,12 @@ def test_long_rows_spill_into_the_coo_tail_and_still_multiply_right():
     np.testing.assert_allclose(pf.matvec(A, x), matrix @ x, rtol=1e-13)
 
 
-def _layout_by_definition(rows, cols, n, n_cols, width):
+def _layout_by_definition(rows, cols, n, n_cols):
     """The ELL layout read off row by row (the definition in ``ell_layout``'s docstring):
     a square row's first diagonal entry apart, its other entries in order in slots
-    ``0..width-1``, the rest in the tail; padding points at ``nnz`` and the row's own column."""
+    ``0..w-1``, the rest in the tail; padding points at ``nnz`` and the row's own column. The
+    width ``w`` minimises ``n w + 4 spilled(w) + n [spilled(w) > 0]`` (the first minimum),
+    rounded up to whole 32-slot chunks past 32."""
     nnz, square = len(rows), n_cols == n
     diagonal, repeated = [nnz] * n if square else [], []
     others = [[] for _ in range(n)]
@@ -180,6 +182,14 @@ def _layout_by_definition(rows, cols, n, n_cols, width):
         others[i].append(position)
         if square and i == j:
             repeated.append(position)
+    counts = [len(row) for row in others]
+
+    def cost(w):
+        spilled = sum(max(c - w, 0) for c in counts)
+        return n * w + 4 * spilled + n * (spilled > 0)
+
+    width = min(range(max(counts) + 1), key=cost)
+    width = -(-width // 32) * 32 if width > 32 else width
     slots = [[row[k] if k < len(row) else nnz for row in others] for k in range(width)]
     columns = [[cols[row[k]] if k < len(row) else min(i, n_cols - 1)
                 for i, row in enumerate(others)] for k in range(width)]
@@ -193,20 +203,24 @@ def _layout_by_definition(rows, cols, n, n_cols, width):
 @settings(max_examples=200, deadline=None)
 @given(n=st.integers(1, 9), n_cols=st.integers(1, 9), square=st.booleans(),
        entries=st.lists(st.tuples(st.integers(0, 8), st.integers(0, 8)), max_size=70),
-       hub=st.integers(0, 40))
-def test_the_ell_layout_is_its_definition(n, n_cols, square, entries, hub):
-    """Duplicates, repeated diagonals, empty rows, rectangular shapes and a long row (``hub``
-    more entries in row 0, so some spill into the tail); the slot-by-slot build must place
-    every entry where the row-by-row reading does, in the same order."""
+       hub=st.integers(0, 40), wide=st.sampled_from([0, 0, 40, 70]))
+def test_the_ell_layout_is_its_definition(n, n_cols, square, entries, hub, wide):
+    """Duplicates, repeated diagonals, empty rows, rectangular shapes, a long row (``hub``
+    more entries in row 0, so some spill into the tail) and wide layouts (``wide`` more
+    entries in every row: rounded up to whole 32-slot chunks, and past 64 filled by a
+    scatter instead of slot by slot); each build must place every entry where the
+    row-by-row reading does, in the same order, at the width of the cost model."""
     from prdp_fem.operator import _host_ell_layout
     n_cols = n if square else n_cols
     entries = sorted([(i % n, j % n_cols) for i, j in entries]
-                     + [(0, k % n_cols) for k in range(hub)], key=lambda e: e[0])
+                     + [(0, k % n_cols) for k in range(hub)]
+                     + [(i, k % n_cols) for i in range(n) for k in range(wide)],
+                     key=lambda e: e[0])
     rows = [i for i, _ in entries]
     cols = [j for _, j in entries]
     layout = _host_ell_layout(np.array(rows, dtype=int), np.array(cols, dtype=int), n,
                               None if square else n_cols)
-    expected = _layout_by_definition(rows, cols, n, n_cols, layout.slots.shape[0])
+    expected = _layout_by_definition(rows, cols, n, n_cols)
     for field, value in expected.items():
         got = getattr(layout, field)
         assert got.dtype == np.int32, field

@@ -177,6 +177,20 @@ def test_the_products_type_under_nested_vmap_is_the_kernels(matrix, outer, inner
                                                                               jnp.float64)
 
 
+@pytest.mark.parametrize("values_dtype, x", [
+    (jnp.float32, lambda: jnp.broadcast_to(jnp.asarray(1.0), (N,))),  # weak: follows values
+    (jnp.float32, lambda: jnp.ones(N)), (jnp.float64, lambda: jnp.arange(N, dtype=jnp.int32)),
+    (jnp.int32, lambda: jnp.arange(N)), (jnp.float64, lambda: jnp.ones(N, jnp.complex64))])
+def test_the_products_dtype_is_the_kernels(matrix, values_dtype, x):
+    """Promotions the type cannot be read off plainly (a weakly typed x, integer values) are
+    traced: the declared type is what the kernel returns, so the product compiles."""
+    A = matrix.with_values(matrix.values.astype(values_dtype))
+    declared = jax.eval_shape(lambda x: symmetric_product(prepare(A), x), x())
+    computed = _jit(lambda x: prepare(A)(x), x())
+    assert declared.dtype == computed.dtype
+    np.testing.assert_array_equal(_jit(lambda x: symmetric_product(prepare(A), x), x()), computed)
+
+
 def test_vmap_of_grad_and_grad_of_vmap(matrix):
     values, _ = _point(matrix)
     rng = np.random.default_rng(5)
