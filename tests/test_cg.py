@@ -808,7 +808,7 @@ def test_a_truncated_solve_applies_the_preconditioner_once_per_iteration(small_p
         applications.clear()
         sol = solve(op, b, TruncatedCG(K, precond, gradient="implicit"))
         assert int(sol.iterations) == K
-        jax.effects_barrier()  # debug callbacks may still be running when the result is
+        jax.effects_barrier()  # debug callbacks may outlast the result being ready
         assert len(applications) == K
     assert len(traces) == 1  # one program for both K, the preconditioner once in its loop
     reference = solve(op, b, TruncatedCG(7, _DiagonalAsGeneral(precond.inverse_diagonal)))
