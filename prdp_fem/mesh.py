@@ -321,13 +321,7 @@ def with_names(mesh: skfem.Mesh, boundaries: dict | None = None,
     """
     named = mesh
     if boundaries:
-        tests = [test for test in boundaries.values() if callable(test)]
-        if tests:
-            on_boundary = mesh.boundary_facets()
-            midpoints = mesh.p[:, mesh.facets[:, on_boundary]].mean(axis=1)
-        named = named.with_boundaries({
-            name: on_boundary[_facet_mask(test, midpoints, name)] if callable(test)
-            else test for name, test in boundaries.items()})
+        named = named.with_boundaries(_boundary_facets(mesh, boundaries))
     if subdomains:
         named = named.with_subdomains(subdomains)
     if named is not mesh and np.array_equal(named.t, mesh.t):
@@ -336,6 +330,17 @@ def with_names(mesh: skfem.Mesh, boundaries: dict | None = None,
             if name in built:
                 setattr(named, name, built[name])
     return named
+
+
+def _boundary_facets(mesh: skfem.Mesh, boundaries: dict) -> dict:
+    """Each named boundary as facet indices: arrays as given, tests evaluated at the
+    midpoints of the boundary facets (built once for all of them)."""
+    if not any(callable(test) for test in boundaries.values()):
+        return boundaries
+    on_boundary = mesh.boundary_facets()
+    midpoints = mesh.p[:, mesh.facets[:, on_boundary]].mean(axis=1)
+    return {name: on_boundary[_facet_mask(test, midpoints, name)] if callable(test) else test
+            for name, test in boundaries.items()}
 
 
 def _facet_mask(test, midpoints: np.ndarray, name: str) -> np.ndarray:
