@@ -58,8 +58,8 @@ from .errors import ShapeError
 from .products import paired_product, symmetric_product
 
 __all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
-           "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "matvec", "prepare",
-           "prepare_on_host", "prepared_from_scipy", "rmatvec", "symmetric_matvec"]
+           "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "host_prepared", "matvec",
+           "prepare", "prepare_on_host", "prepared_from_scipy", "rmatvec", "symmetric_matvec"]
 
 # the product kernels prepare() can build (see the module docstring)
 KERNELS = ("ell", "coo", "csr")
@@ -587,7 +587,7 @@ class FixedMatrix:
         """Lay out ``matrix`` and its transpose (on the host)."""
         csr = sp.csr_matrix(matrix)
         # prepared in NumPy: as eager JAX ops they compiled each gather and concatenation
-        forward, transpose = (prepared_from_scipy(m) for m in (csr, csr.T))
+        forward, transpose = jax.device_put((host_prepared(csr), host_prepared(csr.T)))
         return cls(forward, transpose, tuple(int(s) for s in csr.shape))
 
     def to_scipy(self) -> sp.csr_matrix:
@@ -607,7 +607,13 @@ def prepared_from_scipy(matrix: sp.spmatrix | sp.sparray) -> EllMatrix | CooMatr
     out and prepared in NumPy, then put on the device in one call. ``prepare_on_host(
     SparseMatrix.from_scipy(matrix, layout=True))`` without the round trip through the
     device: 17 transfers per matrix, a third of the JAX side of an AMG rebuild."""
-    return jax.device_put(prepare(_numpy_matrix(matrix, layout=True)))
+    return jax.device_put(host_prepared(matrix))
+
+
+def host_prepared(matrix: sp.spmatrix | sp.sparray) -> EllMatrix | CooMatrix | CsrMatrix:
+    """:func:`prepared_from_scipy` with NumPy leaves, for a caller that puts several kernels
+    on the device in one call (an AMG hierarchy: one transfer instead of one per matrix)."""
+    return prepare(_numpy_matrix(matrix, layout=True))
 
 
 def _numpy_matrix(matrix: sp.spmatrix | sp.sparray, layout: bool | None) -> SparseMatrix:

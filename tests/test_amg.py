@@ -145,6 +145,64 @@ def test_vector_of_the_wrong_length_is_a_shape_error(problems, implementation):
 
 
 # ------------------------------------------------------------------------------------------
+# the Jacobi smoother's spectral radius (Lanczos)
+# ------------------------------------------------------------------------------------------
+
+
+def _exact_rho_jacobi(matrix) -> float:
+    dense = sp.csr_matrix(matrix).toarray()
+    scale = 1.0 / np.sqrt(np.diag(dense))
+    return float(np.linalg.eigvalsh(dense * scale[:, None] * scale[None, :])[-1])
+
+
+def _random_spd(n, seed):
+    """A sparse SPD matrix with rows of very different scales (a diagonal congruence)."""
+    rng = np.random.default_rng(seed)
+    a = sp.random(n, n, density=0.05, random_state=seed)
+    a = a + a.T + sp.diags(np.abs(a + a.T).sum(axis=1).A1 + 0.1)
+    d = sp.diags(10.0 ** rng.uniform(-3, 3, n))
+    return sp.csr_matrix(d @ a @ d)
+
+
+@pytest.mark.parametrize("name", ["square", "cube", "contrast", "levels", "random"])
+def test_the_smoothers_spectral_radius_is_within_a_percent_below_the_exact_one(problems, name):
+    from prdp_fem.amg import _rho_jacobi
+    if name == "levels":  # every level of a hierarchy, coarse ones included
+        matrices = [level.A for level in amg_hierarchy(problems["contrast"].operator).levels]
+    elif name == "random":
+        matrices = [_random_spd(n, seed) for seed, n in enumerate((300, 40, 3))]
+    else:
+        matrices = [problems[name].operator.to_scipy()]
+    for matrix in matrices:
+        exact = _exact_rho_jacobi(matrix)
+        estimate = _rho_jacobi(matrix)
+        # Ritz values lie below the largest eigenvalue; 4/3 / estimate keeps omega rho < 2
+        assert 0.99 * exact <= estimate <= exact * (1 + 1e-12), (matrix.shape, estimate, exact)
+
+
+def test_the_smoothers_spectral_radius_is_deterministic_and_exact_on_an_invariant_subspace():
+    from prdp_fem.amg import _rho_jacobi
+    matrix = _random_spd(200, 7)
+    np.random.seed(1)  # noqa: NPY002 (the estimate must not read the global generator)
+    first = _rho_jacobi(matrix)
+    np.random.seed(2)  # noqa: NPY002
+    assert _rho_jacobi(matrix) == first
+    # D^-1 A = I: the first Lanczos step spans an invariant subspace, the estimate is exact
+    assert _rho_jacobi(sp.diags(np.linspace(1.0, 5.0, 50))) == pytest.approx(1.0, abs=1e-15)
+
+
+def test_a_level_without_a_positive_diagonal_gets_pyamgs_estimate():
+    from pyamg.relaxation.smoothing import rho_D_inv_A
+
+    from prdp_fem.amg import _rho_jacobi, seeded_numpy_random
+    matrix = sp.csr_matrix(np.array([[2.0, 1.0, 0.0], [1.0, -1.0, 0.5], [0.0, 0.5, 3.0]]))
+    with seeded_numpy_random():
+        expected = float(rho_D_inv_A(matrix.copy()))
+    with seeded_numpy_random():
+        assert _rho_jacobi(matrix) == expected
+
+
+# ------------------------------------------------------------------------------------------
 # the map M: pyamg's cycle, symmetric positive definite
 # ------------------------------------------------------------------------------------------
 
