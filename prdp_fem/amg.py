@@ -40,9 +40,10 @@ at 261k, 0.055 / 0.20 s at 30k (3-D). Jacobi needs 19-22 iterations where symmet
 Gauss-Seidel needs 11-14, but a JAX cycle is a few fused products per level while pyamg's cycle
 is driven from Python (per-level calls, two extra residual norms per application through
 ``aspreconditioner``) with a sequential smoother; on an accelerator a callback would add a
-device-host round trip per iteration as well. The JAX cycle costs more to compile (1.5-2.4 s
-against 0.6-1.0 s) and to set up (the level arrays are copied to JAX). The callback stays as
-the reference cycle and for smoothers the JAX cycle lacks.
+device-host round trip per iteration as well. The JAX cycle costs more to compile (1.3-2.6 s
+against 0.5 s); its setup adds the levels' kernels on the device and saves on the smoother's
+spectral radii (Lanczos, :func:`_rho_jacobi`): 1.0-1.2x pyamg's own setup either way. The
+callback stays as the reference cycle and for smoothers the JAX cycle lacks.
 
 Build once, eagerly, and pass the result (a hierarchy cannot be built from traced values)::
 
