@@ -111,18 +111,23 @@ def test_bad_matrices_raise_typed_errors(problems):
         jax.jit(lambda v: amg_preconditioner(operator.with_values(v)))(operator.values)
 
 
-def test_a_hierarchy_with_a_non_finite_cycle_is_refused_at_build(problems, monkeypatch):
-    build = pf.amg.pyamg.smoothed_aggregation_solver
+@pytest.mark.parametrize("builder, options", [("_smoothed_aggregation", {}),
+                                               ("_pyamg_solver", {"kind": "rs"})])
+def test_a_hierarchy_with_a_non_finite_cycle_is_refused_at_build(problems, monkeypatch, builder,
+                                                                 options):
+    build = getattr(pf.amg, builder)
 
     def broken(*args, **kwargs):  # as Ruge-Stueben can break down on 3-D tetrahedra
-        ml = build(*args, **kwargs)
+        built = build(*args, **kwargs)
+        ml = built[0] if isinstance(built, tuple) else built
         ml.levels[-1].A = ml.levels[-1].A * np.nan
-        return ml
+        return built
 
-    monkeypatch.setattr(pf.amg.pyamg, "smoothed_aggregation_solver", broken)
-    with pytest.raises(pf.SolverConfigError, match=r"kind='sa': the V-cycle of this hierarchy "
-                       r"is not finite and positive"):
-        amg_preconditioner(problems["square"].operator)
+    monkeypatch.setattr(pf.amg, builder, broken)
+    kind = options.get("kind", "sa")
+    with pytest.raises(pf.SolverConfigError, match=rf"kind='{kind}': the V-cycle of this "
+                       r"hierarchy is not finite and positive"):
+        amg_preconditioner(problems["square"].operator, **options)
 
 
 def test_amg_by_name_in_a_solver_points_to_amg_preconditioner():
@@ -189,6 +194,47 @@ def test_the_smoothers_spectral_radius_is_deterministic_and_exact_on_an_invarian
     assert _rho_jacobi(matrix) == first
     # D^-1 A = I: the first Lanczos step spans an invariant subspace, the estimate is exact
     assert _rho_jacobi(sp.diags(np.linspace(1.0, 5.0, 50))) == pytest.approx(1.0, abs=1e-15)
+
+
+@pytest.mark.parametrize("name", ["square", "cube", "contrast"])
+def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(problems, name,
+                                                                         monkeypatch):
+    import pyamg.aggregation.smooth
+
+    from prdp_fem.amg import _smoothed_aggregation, seeded_numpy_random
+
+    def exact_radius(matrix):  # of D^-1 A, pyamg's prolongation smoother's operator
+        return float(np.max(np.abs(np.linalg.eigvals(sp.csr_matrix(matrix).toarray()))))
+
+    csr = problems[name].operator.to_scipy()
+    monkeypatch.setattr(pyamg.aggregation.smooth, "approximate_spectral_radius",
+                        lambda matrix, **_: exact_radius(matrix))
+    with seeded_numpy_random():
+        theirs = pyamg.smoothed_aggregation_solver(csr.copy(), symmetry="symmetric",
+                                                   max_coarse=10, presmoother=None,
+                                                   postsmoother=None)
+    ours, radii = _smoothed_aggregation(csr.copy(), 10, _exact_rho_jacobi)
+    assert len(ours.levels) == len(theirs.levels) >= 3 and len(radii) == len(ours.levels) - 1
+    for depth, (mine, pyamgs) in enumerate(zip(ours.levels, theirs.levels, strict=True)):
+        for matrix in ("A", "P", "R") if depth < len(radii) else ("A",):
+            a, b = sp.csr_matrix(getattr(mine, matrix)), sp.csr_matrix(getattr(pyamgs, matrix))
+            assert a.shape == b.shape and a.format == b.format, (depth, matrix)
+            assert abs(a - b).max() <= 1e-13 * abs(b).max(), (depth, matrix)
+
+
+def test_the_smoothers_radius_is_the_prolongators_one_estimate(problems, monkeypatch):
+    estimates = []
+    rho_jacobi = pf.amg._rho_jacobi
+
+    def counted(matrix):
+        estimates.append(rho_jacobi(matrix))
+        return estimates[-1]
+
+    monkeypatch.setattr(pf.amg, "_rho_jacobi", counted)
+    ml = amg_hierarchy(problems["contrast"].operator, omega=1.2)
+    assert len(estimates) == len(ml.levels) - 1  # one per level, shared
+    omegas = [level.presmoother.keywords["omega"] for level in ml.levels[:-1]]
+    np.testing.assert_allclose(omegas, 1.2 / np.array(estimates), rtol=1e-15)
 
 
 def test_a_level_without_a_positive_diagonal_gets_pyamgs_estimate():
