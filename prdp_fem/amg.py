@@ -41,8 +41,9 @@ Gauss-Seidel needs 11-14, but a JAX cycle is a few fused products per level whil
 is driven from Python (per-level calls, two extra residual norms per application through
 ``aspreconditioner``) with a sequential smoother; on an accelerator a callback would add a
 device-host round trip per iteration as well. The JAX cycle costs more to compile (1.3-2.6 s
-against 0.5 s); its setup adds the levels' kernels on the device and saves on the smoother's
-spectral radii (Lanczos, :func:`_rho_jacobi`): 1.0-1.2x pyamg's own setup either way. The
+against 0.5-0.9 s). Setup, either way, is 0.6-1.0x pyamg's own: it adds the levels' kernels
+on the device and estimates each level's spectral radius once, by Lanczos
+(:func:`_smoothed_aggregation`), where pyamg estimates it twice by restarted Arnoldi. The
 callback stays as the reference cycle and for smoothers the JAX cycle lacks.
 
 Build once, eagerly, and pass the result (a hierarchy cannot be built from traced values)::
