@@ -800,7 +800,7 @@ def test_a_truncated_solve_applies_the_preconditioner_once_per_iteration(small_p
 
         def __call__(self, r):
             traces.append(1)
-            jax.debug.callback(lambda: applications.append(1))
+            jax.debug.callback(lambda: applications.append(1), ordered=True)
             return self.inverse_diagonal * r
 
     precond = Counted(1.0 / pf.diagonal(op))
