@@ -126,9 +126,10 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
     ``smoother="jacobi"``: damped Jacobi, ``omega_l = omega / rho(D_l^{-1} A_l)``
     (:func:`_rho_jacobi`), ``sweeps`` sweeps -- the smoother :class:`AMGCycle` implements, so
     the two cycles are the same map. ``"gauss_seidel"``: symmetric Gauss-Seidel (pyamg's
-    default). ``kind="sa"`` with the default ``strength`` is pyamg's smoothed aggregation run
-    step by step (:func:`_smoothed_aggregation`); otherwise ``strength`` is passed to pyamg's
-    solver as is (``None``: its default for ``kind``).
+    default). ``kind="sa"`` with the symmetric strength (``None``, pyamg's default, or
+    ``("symmetric", {"theta": t})``) is pyamg's smoothed aggregation run step by step
+    (:func:`_smoothed_aggregation`); another ``strength`` is passed to pyamg's solver as is
+    (``None`` with ``kind="rs"``: its default).
 
     >>> import scipy.sparse as sp
     >>> ml = amg_hierarchy(sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(100, 100)))
@@ -137,16 +138,18 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
     """
     _check_options(kind, smoother, omega, sweeps, max_coarse)
     csr = _host_matrix(matrix)
+    theta = _symmetric_theta(strength) if kind == "sa" else None
     with seeded_numpy_random():
         try:
-            if kind == "sa" and strength is None:
-                ml, radii = _smoothed_aggregation(csr, max_coarse)
+            if theta is not None:
+                ml, radii = _smoothed_aggregation(csr, max_coarse, theta)
             else:
                 ml, radii = _pyamg_solver(csr, kind, max_coarse, strength), None
         except (ValueError, TypeError, ArithmeticError) as error:
             raise SolverConfigError(f"kind={kind!r}, strength={strength!r}: pyamg could not "
                                     f"build a hierarchy ({error}); expected valid pyamg "
-                                    "options") from None
+                                    "options and a symmetric positive definite matrix"
+                                    ) from None
         if smoother == "jacobi":
             if radii is None:
                 radii = [_rho_jacobi(level.A) for level in ml.levels[:-1]]
@@ -173,21 +176,35 @@ def _pyamg_solver(csr: sp.csr_matrix, kind: str, max_coarse: int,
     return pyamg.ruge_stuben_solver(csr, **options)
 
 
+def _symmetric_theta(strength: Any) -> float | None:
+    """``theta`` of a symmetric strength of connection, in the spellings pyamg accepts for
+    one setting on every level (``None``, ``"symmetric"``, ``("symmetric", {"theta": t})``);
+    ``None`` for any other strength."""
+    if strength is None or (isinstance(strength, str) and strength == "symmetric"):
+        return 0.0
+    if isinstance(strength, tuple) and len(strength) == 2 and strength[0] == "symmetric" \
+            and isinstance(strength[1], dict) and set(strength[1]) <= {"theta"}:
+        theta = strength[1].get("theta", 0.0)
+        return float(theta) if isinstance(theta, int | float) \
+            and not isinstance(theta, bool) else None
+    return None
+
+
 #: pyamg's smoothed aggregation defaults that :func:`_smoothed_aggregation` runs
 _MAX_LEVELS = 10
 _IMPROVE_CANDIDATES = ("block_gauss_seidel", {"sweep": "symmetric", "iterations": 4})
 _PROLONGATION_OMEGA = 4.0 / 3.0
 
 
-def _smoothed_aggregation(csr: sp.csr_matrix,
-                          max_coarse: int,
+def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int, theta: float = 0.0,
                           radius: Callable[[sp.spmatrix], float] | None = None
                           ) -> tuple[pyamg.MultilevelSolver, list[float]]:
-    r"""pyamg's ``smoothed_aggregation_solver(csr, symmetry="symmetric")`` with its defaults,
-    run step by step from pyamg's own parts, and the radius ``rho_l = rho(D_l^{-1} A_l)`` of
-    each level above the coarsest (``radius``: :func:`_rho_jacobi`).
+    r"""pyamg's ``smoothed_aggregation_solver(csr, symmetry="symmetric", strength=("symmetric",
+    {"theta": theta}))`` with its other defaults, run step by step from pyamg's own parts, and
+    the radius ``rho_l = rho(D_l^{-1} A_l)`` of each level above the coarsest (``radius``:
+    :func:`_rho_jacobi`).
 
-    Per level: symmetric strength (``theta = 0``), standard aggregation, the candidates
+    Per level: symmetric strength of connection, standard aggregation, the candidates
     ``B = 1`` improved by four symmetric block Gauss-Seidel sweeps on the finest level, the
     tentative prolongator ``T`` fitted to them, then
 
@@ -198,8 +215,8 @@ def _smoothed_aggregation(csr: sp.csr_matrix,
 
     pyamg estimates ``rho_l`` for ``P_l`` by restarted Arnoldi and keeps it to itself, and the
     Jacobi smoother needs the same radius: run here, one Lanczos estimate serves both. Given
-    the same radii, the levels equal pyamg's to round-off (tested); the setup took half of
-    pyamg's at 65k dofs.
+    the same radii, the levels equal pyamg's to round-off (tested); this loop took 0.5-0.6x
+    the time of pyamg's at 65k dofs.
     """
     radius = _rho_jacobi if radius is None else radius
     finest = pyamg.MultilevelSolver.Level()
@@ -208,7 +225,8 @@ def _smoothed_aggregation(csr: sp.csr_matrix,
     levels, radii = [finest], []
     while len(levels) < _MAX_LEVELS and levels[-1].A.shape[0] > max_coarse:
         level = levels[-1]
-        aggregates, _ = standard_aggregation(symmetric_strength_of_connection(level.A))
+        strength = symmetric_strength_of_connection(level.A, theta=theta)
+        aggregates, _ = standard_aggregation(strength)
         if len(levels) == 1:
             zero = np.zeros((level.A.shape[0], 1), dtype=level.A.dtype)
             level.B = relaxation_as_linear_operator(_IMPROVE_CANDIDATES, level.A, zero) @ level.B
@@ -239,15 +257,22 @@ def seeded_numpy_random(seed: int = 0):
         np.random.set_state(saved)  # noqa: NPY002
 
 
+#: The largest Jacobi ``omega``: ``omega_l rho`` stays 5 % below 2, beyond the estimate's error
+_LARGEST_OMEGA = 1.9
+
+
 def _check_options(kind, smoother, omega, sweeps, max_coarse) -> None:
     if kind not in KINDS:
         raise SolverConfigError(f"kind={kind!r}: expected one of {KINDS} (smoothed aggregation "
                                 "or Ruge-Stueben)")
     if smoother not in SMOOTHERS:
         raise SolverConfigError(f"smoother={smoother!r}: expected one of {SMOOTHERS}")
-    if isinstance(omega, bool) or not isinstance(omega, int | float) or not 0 < omega < 2:
-        raise SolverConfigError(f"omega={omega!r}: expected a number in (0, 2) (the Jacobi "
-                                "damping is omega / rho(D^-1 A): below 2 it converges)")
+    if isinstance(omega, bool) or not isinstance(omega, int | float) or \
+            not 0 < omega <= _LARGEST_OMEGA:
+        raise SolverConfigError(
+            f"omega={omega!r}: expected a number in (0, {_LARGEST_OMEGA}] (the Jacobi damping "
+            "is omega / rho(D^-1 A) with rho estimated from below, within a fraction of a "
+            "percent: at omega rho >= 2 the V-cycle is no longer positive definite)")
     for name, value in (("sweeps", sweeps), ("max_coarse", max_coarse)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise SolverConfigError(f"{name}={value!r}: expected an integer >= 1")
@@ -295,16 +320,18 @@ def _rho_jacobi(matrix: sp.spmatrix) -> float:
     against the whole basis, driven from Python): 2.5-3.5x the time per level at 30k-261k
     dofs, and pyamg's setup made the same estimate once more to smooth each prolongator
     (:func:`_smoothed_aggregation` now shares this one). Lanczos on the symmetric form keeps
-    three vectors. Its largest
-    Ritz value approaches ``rho`` from below (0.1 % below at 65k dofs after 30 steps,
-    where pyamg's read 0.1 % below as well), and ``omega_l rho < 2`` holds for any estimate
-    above ``omega rho / 2``. Deterministic: the start does not draw from NumPy's global
-    generator. A matrix without a positive, finite diagonal (no symmetric form; a broken
-    Ruge-Stueben level) gets pyamg's estimate, and the check cycle judges the hierarchy.
+    three vectors. Its largest Ritz value approaches ``rho`` from below (0.15 % below at 65k
+    dofs after 30 steps, where pyamg's read 0.1 % below), so ``omega_l rho < 2`` holds for
+    every ``omega`` up to :data:`_LARGEST_OMEGA`. The start does not draw from NumPy's global
+    generator. A diagonal that is not finite gives NaN, for the check cycle to refuse; one
+    with an entry <= 0 (no symmetric form) gets pyamg's estimate, drawn from the generator
+    that :func:`amg_hierarchy` seeds.
     """
     csr = sp.csr_matrix(matrix)
     diagonal = csr.diagonal()
-    if not (np.all(np.isfinite(diagonal)) and np.all(diagonal > 0)):
+    if not np.all(np.isfinite(diagonal)):
+        return float("nan")
+    if not np.all(diagonal > 0):
         return float(rho_D_inv_A(csr))
     scale = 1.0 / np.sqrt(diagonal)
     v = np.random.default_rng(0).standard_normal(csr.shape[0])

@@ -59,7 +59,7 @@ from .products import paired_product, symmetric_product
 
 __all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
            "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "host_prepared", "matvec",
-           "prepare", "prepare_on_host", "prepared_from_scipy", "rmatvec", "symmetric_matvec"]
+           "prepare", "prepare_on_host", "rmatvec", "symmetric_matvec"]
 
 # the product kernels prepare() can build (see the module docstring)
 KERNELS = ("ell", "coo", "csr")
@@ -602,17 +602,13 @@ def prepare_on_host(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
     return jax.device_put(prepare(jax.tree_util.tree_map(np.asarray, matrix)))
 
 
-def prepared_from_scipy(matrix: sp.spmatrix | sp.sparray) -> EllMatrix | CooMatrix | CsrMatrix:
-    """The product kernel of a constant SciPy matrix with its ELL layout (any shape): laid
-    out and prepared in NumPy, then put on the device in one call. ``prepare_on_host(
-    SparseMatrix.from_scipy(matrix, layout=True))`` without the round trip through the
-    device: 17 transfers per matrix, a third of the JAX side of an AMG rebuild."""
-    return jax.device_put(host_prepared(matrix))
-
-
 def host_prepared(matrix: sp.spmatrix | sp.sparray) -> EllMatrix | CooMatrix | CsrMatrix:
-    """:func:`prepared_from_scipy` with NumPy leaves, for a caller that puts several kernels
-    on the device in one call (an AMG hierarchy: one transfer instead of one per matrix)."""
+    """The product kernel of a constant SciPy matrix with its ELL layout (any shape), laid out
+    and prepared in NumPy: NumPy leaves, for the caller to put on the device with the rest of
+    its arrays in one ``jax.device_put`` (an AMG hierarchy, a :class:`FixedMatrix` pair).
+    ``prepare_on_host(SparseMatrix.from_scipy(matrix, layout=True))`` without the round trip
+    through the device: 17 transfers per matrix were a third of the JAX side of an AMG
+    rebuild, and one per matrix still a tenth of it."""
     return prepare(_numpy_matrix(matrix, layout=True))
 
 

@@ -82,7 +82,8 @@ def pyamg_iterations(ml, b):
     ({"implementation": "cuda"}, r"implementation='cuda': expected one of \('jax', 'callback'\)"),
     ({"smoother": "sor"}, r"smoother='sor': expected one of"),
     ({"implementation": "jax", "smoother": "gauss_seidel"}, r"implements 'jacobi' only"),
-    ({"omega": 2.0}, r"omega=2.0: expected a number in \(0, 2\)"),
+    ({"omega": 1.95}, r"omega=1.95: expected a number in \(0, 1.9\] \(the Jacobi damping"),
+    ({"omega": 0}, r"omega=0: expected a number in \(0, 1.9\]"),
     ({"sweeps": 0}, r"sweeps=0: expected an integer >= 1"),
     ({"max_coarse": 1.5}, r"max_coarse=1.5: expected an integer >= 1"),
 ])
@@ -196,8 +197,9 @@ def test_the_smoothers_spectral_radius_is_deterministic_and_exact_on_an_invarian
     assert _rho_jacobi(sp.diags(np.linspace(1.0, 5.0, 50))) == pytest.approx(1.0, abs=1e-15)
 
 
-@pytest.mark.parametrize("name", ["square", "cube", "contrast"])
-def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(problems, name,
+@pytest.mark.parametrize("name, theta", [("square", 0.0), ("cube", 0.0), ("contrast", 0.0),
+                                         ("contrast", 0.25)])
+def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(problems, name, theta,
                                                                          monkeypatch):
     import pyamg.aggregation.smooth
 
@@ -210,10 +212,10 @@ def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(proble
     monkeypatch.setattr(pyamg.aggregation.smooth, "approximate_spectral_radius",
                         lambda matrix, **_: exact_radius(matrix))
     with seeded_numpy_random():
-        theirs = pyamg.smoothed_aggregation_solver(csr.copy(), symmetry="symmetric",
-                                                   max_coarse=10, presmoother=None,
-                                                   postsmoother=None)
-    ours, radii = _smoothed_aggregation(csr.copy(), 10, _exact_rho_jacobi)
+        theirs = pyamg.smoothed_aggregation_solver(
+            csr.copy(), symmetry="symmetric", strength=("symmetric", {"theta": theta}),
+            max_coarse=10, presmoother=None, postsmoother=None)
+    ours, radii = _smoothed_aggregation(csr.copy(), 10, theta, _exact_rho_jacobi)
     assert len(ours.levels) == len(theirs.levels) >= 3 and len(radii) == len(ours.levels) - 1
     for depth, (mine, pyamgs) in enumerate(zip(ours.levels, theirs.levels, strict=True)):
         for matrix in ("A", "P", "R") if depth < len(radii) else ("A",):
@@ -235,6 +237,24 @@ def test_the_smoothers_radius_is_the_prolongators_one_estimate(problems, monkeyp
     assert len(estimates) == len(ml.levels) - 1  # one per level, shared
     omegas = [level.presmoother.keywords["omega"] for level in ml.levels[:-1]]
     np.testing.assert_allclose(omegas, 1.2 / np.array(estimates), rtol=1e-15)
+
+
+@pytest.mark.parametrize("spelling", ["symmetric", ("symmetric", {}),
+                                      ("symmetric", {"theta": 0.0})])
+def test_the_default_strength_spelt_out_builds_the_same_hierarchy(problems, spelling):
+    default = amg_hierarchy(problems["contrast"].operator)
+    spelt = amg_hierarchy(problems["contrast"].operator, strength=spelling)
+    assert len(spelt.levels) == len(default.levels)
+    for ours, reference in zip(spelt.levels, default.levels, strict=True):
+        assert (sp.csr_matrix(ours.A) != sp.csr_matrix(reference.A)).nnz == 0
+    assert [level.presmoother.keywords["omega"] for level in spelt.levels[:-1]] == \
+        [level.presmoother.keywords["omega"] for level in default.levels[:-1]]
+
+
+def test_a_level_with_a_non_finite_diagonal_gets_a_nan_radius():
+    from prdp_fem.amg import _rho_jacobi
+    assert np.isnan(_rho_jacobi(sp.diags([1.0, np.nan, 2.0])))
+    assert np.isnan(_rho_jacobi(sp.diags([1.0, np.inf, 2.0])))
 
 
 def test_a_level_without_a_positive_diagonal_gets_pyamgs_estimate():

@@ -305,21 +305,21 @@ def test_rectangular_ell_has_no_diagonal_and_multiplies_right(shape):
 
 
 @pytest.mark.parametrize("shape", [(30, 30), (40, 17), (17, 40)])
-def test_a_kernel_prepared_from_scipy_is_the_device_kernel_of_its_layout(shape):
-    """prepared_from_scipy (AMG levels, FixedMatrix) skips the device round trip of
-    prepare_on_host(from_scipy(...)): the same arrays, on the device, the same product."""
-    from prdp_fem.operator import prepare_on_host, prepared_from_scipy
+def test_a_kernel_prepared_on_the_host_is_the_device_kernel_of_its_layout(shape):
+    """host_prepared (AMG levels, FixedMatrix) skips the device round trip of
+    prepare_on_host(from_scipy(...)): the same arrays, in NumPy, the same product."""
+    from prdp_fem.operator import host_prepared, prepare_on_host
     matrix = sp.random(*shape, density=0.3, random_state=4, format="csr")
     matrix.setdiag(np.arange(1.0, min(shape) + 1))  # a diagonal, as A_l has
-    kernel = prepared_from_scipy(matrix)
+    kernel = host_prepared(matrix)
     reference = prepare_on_host(pf.SparseMatrix.from_scipy(matrix, layout=True))
     assert isinstance(kernel, pf.EllMatrix)
     for leaf, expected in zip(jax.tree_util.tree_leaves(kernel),
                               jax.tree_util.tree_leaves(reference), strict=True):
-        assert isinstance(leaf, jax.Array) and leaf.dtype == expected.dtype
+        assert isinstance(leaf, np.ndarray) and leaf.dtype == expected.dtype
         np.testing.assert_array_equal(leaf, expected)
     x = np.random.default_rng(5).normal(size=shape[1])
-    np.testing.assert_allclose(kernel(x), matrix @ x, rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(jax.device_put(kernel)(x), matrix @ x, rtol=1e-13, atol=1e-14)
 
 
 def test_wide_rows_past_the_unrolled_slots_multiply_and_differentiate_right():
