@@ -196,13 +196,12 @@ _IMPROVE_CANDIDATES = ("block_gauss_seidel", {"sweep": "symmetric", "iterations"
 _PROLONGATION_OMEGA = 4.0 / 3.0
 
 
-def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int, theta: float = 0.0,
-                          radius: Callable[[sp.spmatrix], float] | None = None
-                          ) -> tuple[pyamg.MultilevelSolver, list[float]]:
+def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int,
+                          theta: float = 0.0) -> tuple[pyamg.MultilevelSolver, list[float]]:
     r"""pyamg's ``smoothed_aggregation_solver(csr, symmetry="symmetric", strength=("symmetric",
     {"theta": theta}))`` with its other defaults, run step by step from pyamg's own parts, and
-    the radius ``rho_l = rho(D_l^{-1} A_l)`` of each level above the coarsest (``radius``:
-    :func:`_rho_jacobi`).
+    the radius ``rho_l = rho(D_l^{-1} A_l)`` of each level above the coarsest
+    (:func:`_rho_jacobi`).
 
     Per level: symmetric strength of connection, standard aggregation, the candidates
     ``B = 1`` improved by four symmetric block Gauss-Seidel sweeps on the finest level, the
@@ -218,7 +217,6 @@ def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int, theta: float = 0.
     the same radii, the levels equal pyamg's to round-off (tested); this loop took 0.5-0.6x
     the time of pyamg's at 65k dofs.
     """
-    radius = _rho_jacobi if radius is None else radius
     finest = pyamg.MultilevelSolver.Level()
     finest.A, finest.B = csr, np.ones((csr.shape[0], 1), dtype=csr.dtype)
     csr.symmetry = "symmetric"
@@ -231,7 +229,7 @@ def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int, theta: float = 0.
             zero = np.zeros((level.A.shape[0], 1), dtype=level.A.dtype)
             level.B = relaxation_as_linear_operator(_IMPROVE_CANDIDATES, level.A, zero) @ level.B
         tentative, coarse_candidates = fit_candidates(aggregates, level.B)
-        radii.append(radius(level.A))
+        radii.append(_rho_jacobi(level.A))
         jacobi = (_PROLONGATION_OMEGA / radii[-1]) * scale_rows(
             level.A, get_diagonal(level.A, inv=True), copy=True)
         level.P = tentative - jacobi @ tentative
