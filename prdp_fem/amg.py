@@ -180,7 +180,7 @@ def _symmetric_theta(strength: Any) -> float | None:
     """``theta`` of a symmetric strength of connection, in the spellings pyamg accepts for
     one setting on every level (``None``, ``"symmetric"``, ``("symmetric", {"theta": t})``);
     ``None`` for any other strength."""
-    if strength is None or (isinstance(strength, str) and strength == "symmetric"):
+    if strength is None or strength == "symmetric":
         return 0.0
     if isinstance(strength, tuple) and len(strength) == 2 and strength[0] == "symmetric" \
             and isinstance(strength[1], dict) and set(strength[1]) <= {"theta"}:
