@@ -28,7 +28,9 @@ Two implementations of the same cycle:
     The level matrices as :class:`~prdp_fem.operator.SparseMatrix` pytree leaves (arguments of
     the jitted solve, never closed-over constants), products through
     :func:`~prdp_fem.operator.matvec`, damped-Jacobi smoothing (parallel: one product per
-    sweep) with ``omega_l = omega / rho(D_l^{-1} A_l)``. Runs on any backend, GPU included.
+    sweep) with ``omega_l = omega / rho(D_l^{-1} A_l)``. The coarse levels, from the first
+    whose dense matrix is small (:func:`_first_dense_level`), are one dense matrix: ``V_l``
+    itself, computed on the host. Runs on any backend, GPU included.
 ``"callback"`` (:class:`PyamgCycle`)
     ``jax.pure_callback`` into pyamg's own compiled cycle (``ml.aspreconditioner(cycle='V')``)
     on the CPU, symmetric Gauss-Seidel by default (fewer iterations than Jacobi).
@@ -40,8 +42,8 @@ at 261k, 0.055 / 0.20 s at 30k (3-D). Jacobi needs 19-22 iterations where symmet
 Gauss-Seidel needs 11-14, but a JAX cycle is a few fused products per level while pyamg's cycle
 is driven from Python (per-level calls, two extra residual norms per application through
 ``aspreconditioner``) with a sequential smoother; on an accelerator a callback would add a
-device-host round trip per iteration as well. The JAX cycle costs more to compile (1.3-2.6 s
-against 0.5-0.9 s). Setup, either way, is 0.6-1.0x pyamg's own: it adds the levels' kernels
+device-host round trip per iteration as well. The JAX cycle costs more to compile (1.2-1.6 s
+against 0.5-0.8 s). Setup, either way, is 0.6-1.0x pyamg's own: it adds the levels' kernels
 on the device and estimates each level's spectral radius once, by Lanczos
 (:func:`_smoothed_aggregation`), where pyamg estimates it twice by restarted Arnoldi. The
 callback stays as the reference cycle and for smoothers the JAX cycle lacks.
@@ -472,18 +474,19 @@ class AMGLevel:
     smoother_scale: jax.Array
 
 
-@partial(jax.tree_util.register_dataclass, data_fields=["levels", "coarse_inverse"],
+@partial(jax.tree_util.register_dataclass, data_fields=["levels", "coarse_map"],
          meta_fields=["sweeps"])
 @dataclasses.dataclass(frozen=True)
 class AMGCycle:
-    """The V-cycle in JAX: damped-Jacobi smoothing, ``A_L^+`` dense on the coarsest level.
+    """The V-cycle in JAX: damped-Jacobi smoothing on ``levels``, the cycle below them (down
+    to ``A_L^+`` on the coarsest level) as one dense matrix, ``coarse_map``.
 
     Build with :func:`amg_preconditioner` (``implementation="jax"``) or
     :meth:`from_pyamg`. A pytree: pass it to jitted functions as an argument.
     """
 
     levels: tuple[AMGLevel, ...]
-    coarse_inverse: jax.Array
+    coarse_map: jax.Array  # the cycle below ``levels``, one dense matrix (_first_dense_level)
     sweeps: int
 
     @classmethod
@@ -497,21 +500,26 @@ class AMGCycle:
     @classmethod
     def _from_checked(cls, ml: pyamg.MultilevelSolver) -> AMGCycle:
         """:meth:`from_pyamg` of a hierarchy whose cycle :func:`amg_hierarchy` checked."""
-        levels, sweeps = [], 1
+        host_levels, sweeps = [], 1
         for depth, level in enumerate(ml.levels[:-1]):
             omega, sweeps = _jacobi_parameters(level, depth)
             a = sp.csr_matrix(level.A)  # diagonal on the host: no compile per level shape
-            levels.append(AMGLevel(_sparse(a), _sparse(level.P), _sparse(sp.csr_matrix(level.P).T),
-                                   omega / a.diagonal()))
-        coarse_inverse = scipy.linalg.pinv(sp.csr_matrix(ml.levels[-1].A).toarray())
+            host_levels.append(AMGLevel(*(_HostProduct(m) for m in (a, level.P, level.P.T)),
+                                        omega / a.diagonal()))
+        coarsest = scipy.linalg.pinv(sp.csr_matrix(ml.levels[-1].A).toarray())
+        cut = _first_dense_level(ml)
+        coarse_map = _dense_map(host_levels[cut:], coarsest, sweeps)
+        levels = tuple(AMGLevel(_sparse(level.matrix.matrix), _sparse(level.prolongation.matrix),
+                                _sparse(level.restriction.matrix), level.smoother_scale)
+                       for level in host_levels[:cut])
         # every level's arrays in one transfer: one call per matrix was a tenth of the build
-        levels, coarse_inverse = jax.device_put((tuple(levels), coarse_inverse))
-        return cls(levels, coarse_inverse, sweeps)
+        levels, coarse_map = jax.device_put((levels, coarse_map))
+        return cls(levels, coarse_map, sweeps)
 
     @property
     def n(self) -> int:
         return self.levels[0].smoother_scale.shape[0] if self.levels \
-            else self.coarse_inverse.shape[0]
+            else self.coarse_map.shape[0]
 
     def __call__(self, r: jax.Array) -> jax.Array:
         r = _checked_vector(r, self.n)
@@ -529,6 +537,51 @@ def _sparse(matrix):
     csr = sp.csr_matrix(matrix, dtype=float)
     csr.eliminate_zeros()
     return host_prepared(csr)
+
+
+#: A level is applied as a dense matrix when that matrix holds at most this fraction of the
+#: finest matrix's stored entries: its product then has at most half the multiplications of
+#: one finest product, of which a cycle runs three or more, and is a contiguous BLAS product
+#: rather than a gather per entry (at 250k dofs in 3-D, a dense level of 702 rows left the
+#: solve's time unchanged) ...
+_DENSE_FRACTION = 0.5
+#: ... or has at most this many rows.
+_DENSE_ROWS = 64
+
+
+def _first_dense_level(ml: pyamg.MultilevelSolver) -> int:
+    """The first level from which the JAX cycle applies the rest of the V-cycle as one dense
+    matrix (the coarsest level at the latest).
+
+    Every level costs the cycle's compilation about the same, whatever its size, while a
+    coarse level's products are cheap to run. A dense tail cut the compile of the AMG-PCG
+    solve from 1.4-1.7 s to 1.1-1.4 s on 2-D P1 at 65k dofs (levels of 136, 16 and 2 rows)
+    and from 2.4-3.0 s to 1.1-1.4 s on 3-D P1 at 250k (702, 12 and 1), the solve's time
+    unchanged.
+    """
+    bound = max(_DENSE_FRACTION * ml.levels[0].A.nnz, _DENSE_ROWS**2)
+    return next(depth for depth, level in enumerate(ml.levels)
+                if level.A.shape[0] ** 2 <= bound or depth == len(ml.levels) - 1)
+
+
+@dataclasses.dataclass(frozen=True)
+class _HostProduct:
+    """``x -> (matrix @ x^T)^T`` on the host: a level's product on every row of ``x``."""
+
+    matrix: Any
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(self.matrix @ x.T).T
+
+
+def _dense_map(levels, coarsest: np.ndarray, sweeps: int) -> np.ndarray:
+    """The V-cycle of ``levels`` above ``coarsest`` (``A_L^+``) as a dense matrix: the cycle
+    :func:`_v_cycle` itself, run on the host on the identity's rows (that gives ``V^T``, so
+    the result is ``V`` whether or not it is symmetric to the last bit)."""
+    if not levels:
+        return coarsest
+    n = levels[0].smoother_scale.shape[0]
+    return np.ascontiguousarray(_v_cycle(levels, coarsest, sweeps, np.eye(n)).T)
 
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:
@@ -555,19 +608,20 @@ class _JaxCycle:
 
     def __call__(self, r, *leaves):
         cycle = jax.tree_util.tree_unflatten(self.treedef, leaves)
-        apply_one = partial(_v_cycle, cycle.levels, cycle.coarse_inverse, cycle.sweeps)
-        return _each_vector(apply_one, r.astype(cycle.coarse_inverse.dtype)).astype(r.dtype)
+        apply_one = partial(_v_cycle, cycle.levels, cycle.coarse_map, cycle.sweeps)
+        return _each_vector(apply_one, r.astype(cycle.coarse_map.dtype)).astype(r.dtype)
 
 
-def _v_cycle(levels, coarse_inverse, sweeps: int, b: jax.Array) -> jax.Array:
-    """``V_l(b)`` of the module docstring (recursion unrolled at trace time)."""
+def _v_cycle(levels, coarse_map, sweeps: int, b: jax.Array) -> jax.Array:
+    """``V_l(b)`` of the module docstring (recursion unrolled at trace time), for every vector
+    along the last axis of ``b``; below ``levels``, ``coarse_map @ b``."""
     if not levels:
-        return coarse_inverse @ b
+        return b @ coarse_map.T
     level = levels[0]
     x = level.smoother_scale * b  # the first sweep from x = 0 needs no product
     x = _jacobi(level, b, x, sweeps - 1)
     residual = b - level.matrix(x)
-    coarse = _v_cycle(levels[1:], coarse_inverse, sweeps, level.restriction(residual))
+    coarse = _v_cycle(levels[1:], coarse_map, sweeps, level.restriction(residual))
     x = x + level.prolongation(coarse)
     return _jacobi(level, b, x, sweeps)
 

@@ -283,6 +283,42 @@ def test_cycle_is_pyamgs_cycle_on_the_same_hierarchy(problems, name, implementat
     np.testing.assert_allclose(M(r), expected, rtol=1e-12, atol=1e-12 * abs(expected).max())
 
 
+@pytest.mark.parametrize(("fraction", "rows", "sparse_levels"), [
+    (0.0, 0, "all but the coarsest"),  # the cycle level by level, A_L^+ alone dense
+    (0.0, 64, "above 64 rows"),
+    (0.0, 10**6, "none"),  # the whole cycle one dense matrix
+])
+def test_the_dense_tail_of_the_jax_cycle_is_pyamgs_cycle(monkeypatch, fraction, rows,
+                                                        sparse_levels):
+    monkeypatch.setattr(pf.amg, "_DENSE_FRACTION", fraction)
+    monkeypatch.setattr(pf.amg, "_DENSE_ROWS", rows)
+    problem = Problem(pf.unit_square(40))
+    ml = amg_hierarchy(problem.operator)
+    sizes = [level.A.shape[0] for level in ml.levels]
+    expected_sparse = {"all but the coarsest": len(sizes) - 1, "none": 0,
+                       "above 64 rows": sum(n > 64 for n in sizes)}[sparse_levels]
+    assert 0 < sum(n > 64 for n in sizes) < len(sizes) - 1  # each case cuts elsewhere
+    M = AMGCycle.from_pyamg(ml)
+    assert len(M.levels) == expected_sparse
+    assert M.coarse_map.shape == (sizes[expected_sparse],) * 2
+    r = np.random.default_rng(3).standard_normal((3, M.n))
+    expected = np.stack([ml.aspreconditioner(cycle="V") @ row for row in r])
+    np.testing.assert_allclose(jax.vmap(M)(r), expected, rtol=1e-12,
+                               atol=1e-12 * abs(expected).max())
+
+
+def test_the_dense_tail_starts_at_the_first_level_small_enough():
+    """A level goes dense once its dense matrix holds at most half the finest
+    matrix's entries (or it has at most 64 rows): on 2-D P1 at 65k dofs (324105 entries),
+    from 136 rows (18496 entries; the level above has 1224 rows, 1.5M entries)."""
+    operator, _ = pf.bench.poisson_operator(256)
+    ml = amg_hierarchy(operator)
+    sizes = [level.A.shape[0] for level in ml.levels]
+    assert sizes[:4] == [65025, 10943, 1224, 136] and len(sizes) > 4
+    assert pf.amg._first_dense_level(ml) == 3
+    assert len(AMGCycle.from_pyamg(ml).levels) == 3
+
+
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
 @pytest.mark.parametrize("name", ["square", "cube", "contrast"])
 def test_preconditioner_is_symmetric_positive_definite(problems, name, implementation):
