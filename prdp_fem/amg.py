@@ -500,20 +500,17 @@ class AMGCycle:
     @classmethod
     def _from_checked(cls, ml: pyamg.MultilevelSolver) -> AMGCycle:
         """:meth:`from_pyamg` of a hierarchy whose cycle :func:`amg_hierarchy` checked."""
-        host_levels, sweeps = [], 1
+        cut = _first_dense_level(ml)
+        levels, tail, sweeps = [], [], 1  # device kernels above the cut, host products below
         for depth, level in enumerate(ml.levels[:-1]):
             omega, sweeps = _jacobi_parameters(level, depth)
             a = sp.csr_matrix(level.A)  # diagonal on the host: no compile per level shape
-            host_levels.append(AMGLevel(*(_HostProduct(m) for m in (a, level.P, level.P.T)),
-                                        omega / a.diagonal()))
+            product = _sparse if depth < cut else _HostProduct
+            (levels if depth < cut else tail).append(AMGLevel(
+                product(a), product(level.P), product(level.P.T), omega / a.diagonal()))
         coarsest = scipy.linalg.pinv(sp.csr_matrix(ml.levels[-1].A).toarray())
-        cut = _first_dense_level(ml)
-        coarse_map = _dense_map(host_levels[cut:], coarsest, sweeps)
-        levels = tuple(AMGLevel(_sparse(level.matrix.matrix), _sparse(level.prolongation.matrix),
-                                _sparse(level.restriction.matrix), level.smoother_scale)
-                       for level in host_levels[:cut])
         # every level's arrays in one transfer: one call per matrix was a tenth of the build
-        levels, coarse_map = jax.device_put((levels, coarse_map))
+        levels, coarse_map = jax.device_put((tuple(levels), _dense_map(tail, coarsest, sweeps)))
         return cls(levels, coarse_map, sweeps)
 
     @property
@@ -560,8 +557,8 @@ def _first_dense_level(ml: pyamg.MultilevelSolver) -> int:
     unchanged.
     """
     bound = max(_DENSE_FRACTION * ml.levels[0].A.nnz, _DENSE_ROWS**2)
-    return next(depth for depth, level in enumerate(ml.levels)
-                if level.A.shape[0] ** 2 <= bound or depth == len(ml.levels) - 1)
+    return next((depth for depth, level in enumerate(ml.levels)
+                 if level.A.shape[0] ** 2 <= bound), len(ml.levels) - 1)
 
 
 @dataclasses.dataclass(frozen=True)
