@@ -42,7 +42,7 @@ from .errors import (
 )
 from .executables import SharedCompile, kept_programs
 from .history import History, StepRecord
-from .linesearch import lbfgs
+from .linesearch import ZoomSearchState, lbfgs
 from .observations import Observation
 from .operator import SparseMatrix, matvec
 from .parameters import Parameterization, parameter_basis, parameter_mass
@@ -374,6 +374,50 @@ def _stored_or_evaluated(value_fn, z, opt_state):
                         lambda: value_fn.value_and_grad(z))
 
 
+def _refreshes(opt_state) -> bool:
+    """Whether the optimiser's line search evaluates a stale stored value itself
+    (:class:`~prdp_fem.linesearch.ZoomSearchState`, :func:`prdp_fem.lbfgs`'s search)."""
+    nodes = jax.tree_util.tree_leaves(
+        opt_state, is_leaf=lambda node: isinstance(node, ZoomSearchState))
+    return any(isinstance(node, ZoomSearchState) for node in nodes)
+
+
+def _update_from_stored_value(optimizer, opt_state, z, value_fn):
+    """``(J(z), grad J(z), updates, new_state)``: an optimiser update that starts from the
+    value and gradient its line search stored, evaluating them first where they are stale.
+
+    With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
+    the stored value is stale: the first trip hands the search the stale value, and the search
+    evaluates ``J`` and its gradient at ``z`` in its own trial and returns them (see
+    :mod:`prdp_fem.linesearch`); the second trip is the update proper, from them and from
+    ``opt_state`` as given. So the program holds the objective once, where an evaluation
+    before the update held it twice: a CG solve and its adjoint, each compiled anew. Other
+    optimisers: :func:`optax.value_and_grad_from_state`'s evaluation, then the update.
+    """
+    if not _refreshes(opt_state):
+        value, grad = _stored_or_evaluated(value_fn, z, opt_state)
+        updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                              value_fn=value_fn)
+        return value, grad, updates, new_state
+    stored_value, stored_grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
+    stale = ~jnp.isfinite(stored_value)
+
+    def trip(carry):
+        count, value, grad, _, _ = carry
+        updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                              value_fn=value_fn)
+        refreshed = ~jnp.isfinite(value)  # the search evaluated at z: its state holds them
+        value = jnp.where(refreshed, otu.tree_get(new_state, "value"), value)
+        grad = optax.tree.where(refreshed, otu.tree_get(new_state, "grad"), grad)
+        return count + 1, value, grad, updates, new_state
+
+    _, value, grad, updates, new_state = jax.lax.while_loop(
+        lambda carry: (carry[0] == 0) | ((carry[0] == 1) & stale), trip,
+        (jnp.zeros((), jnp.int32), stored_value, stored_grad, optax.tree.zeros_like(z),
+         opt_state))
+    return value, grad, updates, new_state
+
+
 def _step_failed(opt_state) -> jax.Array:
     """Whether the optimiser reports its last update as failed.
 
@@ -405,11 +449,12 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
         value_fn = Objective(problem, solver, counter)
 
         if _uses_stored_value(opt_state):
-            value, grad = _stored_or_evaluated(value_fn, z, opt_state)
+            value, grad, updates, opt_state = _update_from_stored_value(
+                optimizer, opt_state, z, value_fn)
         else:
             value, grad = value_fn.value_and_grad(z)
-        updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
-                                              value_fn=value_fn)
+            updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                                  value_fn=value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return z_next, opt_state, _StepScalars(

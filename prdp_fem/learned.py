@@ -53,7 +53,7 @@ from .inverse import (
     _preconditioner_key,
     _scan_length,
     _solver,
-    _stored_or_evaluated,
+    _update_from_stored_value,
     _uses_stored_value,
 )
 from .observations import Observation
@@ -448,11 +448,12 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
                          preconditioner if cycle is None else cycle, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
         if _uses_stored_value(opt_state):
-            value, grad = _stored_or_evaluated(value_fn, layers, opt_state)
+            value, grad, updates, opt_state = _update_from_stored_value(
+                optimizer, opt_state, layers, value_fn)
         else:
             value, grad = value_fn.value_and_grad(layers)
-        updates, opt_state = optimizer.update(grad, opt_state, layers, value=value, grad=grad,
-                                              value_fn=value_fn)
+            updates, opt_state = optimizer.update(grad, opt_state, layers, value=value,
+                                                  grad=grad, value_fn=value_fn)
         return _StepResult(optax.apply_updates(layers, updates), opt_state, value,
                            optax.tree.norm(grad))
 

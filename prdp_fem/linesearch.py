@@ -60,6 +60,13 @@ finite (the trial left the domain, e.g. an overflowing coefficient), at ``t / 10
 while it stays so. All trials count against ``max_linesearch_steps``. Everywhere else,
 every step, value and gradient is optax's.
 
+One more entry: handed a non-finite ``value`` (none yet, or marked stale), the search
+evaluates ``J`` and its gradient at ``params`` instead of searching, and returns a zero update
+with a :class:`ZoomSearchState` that stores them. :func:`prdp_fem.inverse.invert` then calls
+the same update again with them (``prdp_fem.inverse._update_from_stored_value``): the
+step's program holds the objective once, in the search's loop, instead of once more for the
+value at the start.
+
 A gradient with the wrong sign: optax's search spends its 20 evaluations, this one three.
 
 >>> import jax, jax.numpy as jnp, optax, optax.tree_utils as otu
@@ -97,10 +104,21 @@ try:  # the search's init/step/stop functions; optax's transform hides them in i
 except ImportError:  # pragma: no cover - depends on the installed optax
     _optax_zoom = None  # optax's own search then (see _optax_search)
 
-__all__ = ["FIRST_STEPS", "Contradiction", "lbfgs", "scale_by_zoom_linesearch"]
+__all__ = ["FIRST_STEPS", "Contradiction", "ZoomSearchState", "lbfgs",
+           "scale_by_zoom_linesearch"]
 
 #: The first line search's initial trial: optax's unit step, or J(z_0) / |s_0|.
 FIRST_STEPS = ("unit", "polyak")
+
+
+class ZoomSearchState(optax.ScaleByZoomLinesearchState):
+    """optax's zoom-search state as :func:`scale_by_zoom_linesearch` keeps it: the same
+    fields, read the same way (:func:`optax.value_and_grad_from_state`, ``tree_get``). Its
+    type says that the search refreshes a non-finite ``value``: it evaluates ``J`` and its
+    gradient at ``params``, stores them here and returns a zero update (see the module's
+    docstring)."""
+
+    __slots__ = ()
 
 
 class Contradiction(NamedTuple):
@@ -179,9 +197,11 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
     after the objective changed, restarts a far overshoot (see the module's docstring).
 
     The arguments are optax's (the defaults are those :func:`optax.lbfgs` uses; extra update
-    arguments go on to ``value_fn`` as keywords); the state is
+    arguments go on to ``value_fn`` as keywords); the state is a :class:`ZoomSearchState`, an
     :class:`optax.ScaleByZoomLinesearchState`, so :func:`optax.value_and_grad_from_state`
-    and the failure test of :func:`prdp_fem.inverse.invert` read it as they read optax's.
+    and the failure test of :func:`prdp_fem.inverse.invert` read it as they read optax's. A
+    non-finite ``value`` asks for ``J`` and its gradient at ``params`` instead of a search
+    (see the module's docstring).
 
     ``first_step`` picks the first search's initial trial: ``"unit"`` (optax's: ``t = 1``)
     or ``"polyak"``, where the linear model of a nonnegative objective reaches zero,
@@ -222,9 +242,16 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
     except (TypeError, AttributeError) as error:  # none (None), other arguments or state
         return _optax_search(optax_search, first_step, error)
 
+    def init(params):
+        return ZoomSearchState(*optax_search.init(params))
+
     def update(updates, state, params, *, value, grad,
                value_fn: Callable[..., Any], **value_fn_kwargs):
-        value_and_grad = _value_and_grad(value_fn, value_fn_kwargs)
+        evaluate = _evaluation(_value_and_grad(value_fn, value_fn_kwargs), value_fn_kwargs)
+        # no value to search from: evaluate at params, through the trial below (one copy of
+        # the objective in the program), and return it (see the module's docstring)
+        value = jnp.asarray(value)
+        refresh = ~jnp.isfinite(value)
         guess = jnp.asarray(1.0) if initial_guess_strategy == "one" else state.learning_rate
         if first_step == "polyak":
             guess = _polyak_first_guess(state, updates, value, grad, guess)
@@ -238,41 +265,49 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
             (state.info.num_linesearch_steps > 0)
 
         def going_on(carry):
-            search, seen, spent = carry
-            return searching(search) & ~seen.found & \
+            search, seen, spent, _ = carry
+            searches_on = searching(search) & ~seen.found & \
                 (spent + search.count < max_linesearch_steps)
+            return jnp.where(refresh, search.count < 1, searches_on)
 
         def trial(carry):
-            search, seen, spent = carry
-            search = _step_with_one_evaluation(step_search, search, value_and_grad,
-                                               value_fn_kwargs)
+            search, seen, spent, _ = carry
+            search, evaluated = _step_with_one_evaluation(step_search, search, evaluate,
+                                                          value_fn_kwargs, at_start=refresh)
             seen = _watch(seen, search, approx_dec_rtol)
             overshot, restart_at = _overshoot(search)
-            restart = objective_changed & overshot & ~seen.found & \
+            restart = objective_changed & overshot & ~seen.found & ~refresh & \
                 (spent + search.count < max_linesearch_steps)
             spent = spent + jnp.where(restart, search.count, 0)
             search = jax.lax.cond(
                 restart, lambda s: optax.tree.cast_like(start_at(restart_at), other_tree=s),
                 lambda s: s, search)
-            return search, seen, spent
+            return search, seen, spent, evaluated
 
         dtype = jnp.result_type(start.value_init)
-        final, seen, spent = jax.lax.while_loop(
-            going_on, trial, (start, _nothing_seen(dtype), jnp.zeros_like(start.count)))
-        final = jax.lax.cond(seen.found, functools.partial(_give_up, curv_rtol=curv_rtol),
+        not_yet = _filled_evaluation(evaluate, params, jnp.nan)
+        final, seen, spent, (value_there, grad_there) = jax.lax.while_loop(
+            going_on, trial, (start, _nothing_seen(dtype), jnp.zeros_like(start.count),
+                              not_yet))
+        final = jax.lax.cond(seen.found & ~refresh,
+                             functools.partial(_give_up, curv_rtol=curv_rtol),
                              lambda s: s, final)
         # only the cap on all trials stops a search that is still going (after restarts)
-        final = jax.lax.cond(searching(final) & ~seen.found, _out_of_trials, lambda s: s,
-                             final)
+        final = jax.lax.cond(searching(final) & ~seen.found & ~refresh, _out_of_trials,
+                             lambda s: s, final)
         info = optax.ZoomLinesearchInfo(num_linesearch_steps=spent + final.count,
                                         decrease_error=final.decrease_error,
                                         curvature_error=final.curvature_error)
-        new_state = optax.ScaleByZoomLinesearchState(
-            learning_rate=final.stepsize, value=final.value, grad=final.grad, info=info)
-        return (optax.tree.scale(final.stepsize, updates),
-                optax.tree.cast_like(new_state, other_tree=state))
+        searched = ZoomSearchState(learning_rate=final.stepsize, value=final.value,
+                                   grad=final.grad, info=info)
+        refreshed = state._replace(value=value_there, grad=grad_there)
+        new_state = optax.tree.where(refresh, optax.tree.cast_like(refreshed, other_tree=state),
+                                     optax.tree.cast_like(searched, other_tree=state))
+        step = optax.tree.where(refresh, optax.tree.zeros_like(updates),
+                                optax.tree.scale(final.stepsize, updates))
+        return step, new_state
 
-    return optax.GradientTransformationExtraArgs(optax_search.init, update)
+    return optax.GradientTransformationExtraArgs(init, update)
 
 
 #: The fields of optax's zoom-search state that this module reads or replaces.
@@ -298,15 +333,32 @@ def _value_and_grad(value_fn, value_fn_kwargs) -> Callable:
     return own if callable(own) and not value_fn_kwargs else jax.value_and_grad(value_fn)
 
 
-def _step_with_one_evaluation(step_search, search, value_and_grad, fn_kwargs):
-    """optax's search step ``step_search(search, ...)``, with ``value_and_grad`` in the
-    program once instead of once in each branch of the step's ``cond`` (bracket or zoom).
+def _evaluation(value_and_grad, fn_kwargs) -> Callable:
+    """``point -> value_and_grad(point, **fn_kwargs)``, jitted once per search so that its
+    trace for the placeholders' types (:func:`_filled_evaluation`: the value and gradient
+    exactly as the evaluation returns them, no cast) is the one the search's loop calls."""
+    return jax.jit(lambda point: value_and_grad(point, **fn_kwargs))
+
+
+def _filled_evaluation(evaluate: Callable, params, value: float):
+    """An evaluation's ``(J, g)`` types at ``params``, filled with ``J = value`` and ``g = 0``
+    (nothing is computed)."""
+    value_shape, grad_shapes = jax.eval_shape(evaluate, params)
+    return (jnp.full(value_shape.shape, value, value_shape.dtype),
+            jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), grad_shapes))
+
+
+def _step_with_one_evaluation(step_search, search, evaluate, fn_kwargs,
+                              at_start: jax.Array | bool = False):
+    """optax's search step ``step_search(search, ...)``, with the objective's evaluation
+    ``evaluate`` (:func:`_evaluation`) in the program once instead of once in each branch of
+    the step's ``cond`` (bracket or zoom).
 
     Each branch picks its trial step ``t`` from the state alone, then evaluates at
     ``z + t d``. So the step runs twice in a loop: first with a stand-in evaluation,
     ``J = -inf`` and ``g = 0``, which meets both Wolfe conditions, so that the search neither
     fails nor falls back to its safe step and the result's ``stepsize`` is the trial ``t``;
-    ``value_and_grad`` runs there, once; then with that value and gradient, the same
+    ``evaluate`` runs there, once; then with that value and gradient, the same
     arithmetic on the same state, so the same ``t``. For float64 parameters these are
     optax's trial steps exactly (its values to round-off: the objective is compiled in
     another place of the program). Float32 parameters are evaluated at a float32 point,
@@ -317,31 +369,31 @@ def _step_with_one_evaluation(step_search, search, value_and_grad, fn_kwargs):
     step, so the evaluation may land there instead of at ``t``. Such a search is lost anyway
     (and :func:`prdp_fem.inverse.invert` stops on a non-finite value or gradient).
 
+    Returns the stepped state and the evaluation ``(J, g)``. ``at_start`` (traced): evaluate
+    at the search's ``params`` instead of the trial point (a refresh; the state's step is then
+    meaningless).
+
     Why: XLA inlines every call of the evaluation, a CG solve and its adjoint solve (an AMG
     cycle inside each), and compiles each of its kernels separately. One copy instead of
     two took 7 % off the backend compile of an L-BFGS step with Jacobi-PCG and 18 % with AMG;
     the step logic written out twice instead of the loop lost on Jacobi (see the
     performance log).
     """
-    # jitted here so that its trace for the stand-in's shapes (the value and gradient
-    # exactly as the evaluation returns them: no cast) is the one the loop calls
-    evaluate = jax.jit(lambda point: value_and_grad(point, **fn_kwargs))
-    value_shape, grad_shapes = jax.eval_shape(evaluate, search.params)
-    stand_in = (jnp.full(value_shape.shape, -jnp.inf, value_shape.dtype),
-                jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype),
-                                       grad_shapes))
+    stand_in = _filled_evaluation(evaluate, search.params, -jnp.inf)
 
     def run(carry):
         trip, values, _ = carry
         stepped = step_search(search, value_and_grad_fn=lambda *_, **__: values,
                               fn_kwargs=fn_kwargs)
-        trial = optax.tree.add_scale(search.params, stepped.stepsize, search.updates)
+        trial = optax.tree.where(
+            at_start, search.params,
+            optax.tree.add_scale(search.params, stepped.stepsize, search.updates))
         values = jax.lax.cond(trip == 0, lambda: evaluate(trial), lambda: values)
         return trip + 1, values, stepped
 
-    _, _, stepped = jax.lax.while_loop(lambda c: c[0] < 2, run,
-                                       (jnp.zeros((), jnp.int32), stand_in, search))
-    return stepped
+    _, values, stepped = jax.lax.while_loop(lambda c: c[0] < 2, run,
+                                            (jnp.zeros((), jnp.int32), stand_in, search))
+    return stepped, values
 
 
 def _overshoot(search):

@@ -374,6 +374,61 @@ def test_a_step_traces_its_objective_once(monkeypatch):
     assert np.array_equal(again.history.column("loss"), reference.history.column("loss"))
 
 
+def _compiled_step_host_calls(problem, optimizer) -> int:
+    """The host calls (the tally's, one per CG solve) in a compiled implicit-mode step."""
+    from prdp_fem import inverse
+
+    optimizer = optax.with_extra_args_support(optimizer)
+    z = jnp.zeros(problem.n_parameters)
+    step = inverse._make_step(optimizer, "implicit", False, "jacobi")
+    lowered = jax.jit(step, static_argnums=4).lower(
+        problem, IterationCounter(), z, optimizer.init(z), 0,
+        *inverse._device_settings((8, 8, 0.0)))
+    return lowered.compile().as_text().count("custom-call(")
+
+
+def test_an_l_bfgs_step_holds_its_objective_once(monkeypatch):
+    """A step whose stored value is stale (none yet, or PRDP refined K) gets the value and
+    gradient at its start from the line search's own trial (``pf.lbfgs``'s search refreshes
+    a non-finite value), so the compiled step holds the objective -- a CG solve and its
+    adjoint, each compiled anew where it appears -- once: as many host calls as one
+    ``value_and_grad``, where the evaluation before the update held it twice."""
+    from prdp_fem import inverse
+
+    _, problem = _coefficient_problem(n=6, alpha=1e-5)
+    solver = TruncatedCG(8, "jacobi", gradient="implicit", adjoint_iterations=8)
+    alone = jax.jit(lambda z, counter: inverse.Objective(problem, solver, counter)
+                    .value_and_grad(z)).lower(jnp.zeros(problem.n_parameters),
+                                              IterationCounter()).compile()
+    per_objective = alone.as_text().count("custom-call(")
+    assert per_objective == 2  # the primal and the adjoint solve
+    assert _compiled_step_host_calls(problem, pf.lbfgs()) == per_objective
+    # optax's own L-BFGS evaluates before the update and in both branches of its search
+    assert _compiled_step_host_calls(problem, optax.lbfgs()) == 3 * per_objective
+    monkeypatch.setattr(inverse, "_refreshes", lambda opt_state: False)
+    assert _compiled_step_host_calls(problem, pf.lbfgs()) == 2 * per_objective
+
+
+def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(monkeypatch):
+    """A PRDP run that refines K (the stored value goes stale) gives the same losses, to
+    round-off (the objective is compiled in another place), evaluations and iterations with
+    the value refreshed by the search as with an evaluation before the update."""
+    from prdp_fem import inverse
+
+    _, problem = _coefficient_problem(n=6, alpha=1e-5)
+    refreshed = invert(problem, refinement=prdp(), steps=30).history
+    assert refreshed[-1].refinements >= 1
+    monkeypatch.setattr(inverse, "_refreshes", lambda opt_state: False)
+    inverse._step_program.cache_clear()
+    evaluated_first = invert(problem, refinement=prdp(), steps=30).history
+    np.testing.assert_allclose(refreshed.column("loss"), evaluated_first.column("loss"),
+                               rtol=1e-10)
+    for name in ("evaluations", "primal_iterations", "adjoint_iterations_total",
+                 "failed_steps"):
+        assert np.array_equal(refreshed.column(name), evaluated_first.column(name)), name
+    inverse._step_program.cache_clear()  # no step with the patched test kept for later tests
+
+
 def test_a_kept_step_program_does_not_keep_a_finished_run_s_problem_alive():
     import gc
     import weakref

@@ -316,6 +316,32 @@ def test_full_batch_optimisers_lower_the_validation_misfit(tiny, name):
     assert last.adjoint_iterations_total > 0
 
 
+def test_an_l_bfgs_training_refreshes_its_stale_value_in_the_search(tiny, monkeypatch):
+    """``pf.lbfgs`` trains through the step that holds the objective once (its search
+    refreshes the value at a step's start, see ``prdp_fem.inverse``): the same losses to
+    round-off and the same tally as with an evaluation before the update."""
+    from prdp_fem import inverse
+
+    problem, train_set, validation_set, network = tiny
+
+    def training():
+        learned._step_program.cache_clear()
+        return learned.train(problem, network, train_set, validation_set,
+                             optimizer=pf.lbfgs(), refinement=fixed(8), epochs=3,
+                             batch_size=12).records
+
+    refreshed = training()
+    monkeypatch.setattr(inverse, "_refreshes", lambda opt_state: False)
+    evaluated_first = training()
+    learned._step_program.cache_clear()  # no step with the patched test kept for later tests
+    for mine, theirs in zip(refreshed, evaluated_first, strict=True):
+        assert mine.train_loss == pytest.approx(theirs.train_loss, rel=1e-10)
+        assert mine.validation_misfit == pytest.approx(theirs.validation_misfit, rel=1e-10)
+        assert mine.primal_iterations == theirs.primal_iterations
+        assert mine.adjoint_iterations_total == theirs.adjoint_iterations_total
+    assert refreshed[-1].train_loss < 0.8 * refreshed[0].train_loss  # it trains
+
+
 def test_line_search_trials_are_counted_exactly(tiny):
     """Gauss-Newton: the tally of one step is the gradient's and the linearisation's solves
     plus one primal solve per Armijo trial, as the optimiser's state reports them."""

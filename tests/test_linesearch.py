@@ -16,7 +16,7 @@ import pytest
 
 import prdp_fem as pf
 from prdp_fem.inverse import _step_failed
-from prdp_fem.linesearch import Contradiction, _nothing_seen, _watch
+from prdp_fem.linesearch import Contradiction, ZoomSearchState, _nothing_seen, _watch
 
 
 def _rosenbrock(z):
@@ -115,6 +115,37 @@ def test_a_search_step_holds_the_evaluation_once_and_runs_it_once_per_trial():
         assert trials == 20, name
         assert traced["value_fn"] == (1 if name == "ours" else 2), name
         assert ran["value_fn"] == trials, name
+
+
+@pytest.mark.parametrize("stale", [jnp.inf, jnp.nan])
+def test_a_non_finite_value_gets_the_value_and_gradient_at_params_from_one_trial(stale):
+    """No value to search from: the search evaluates at ``params`` once, through its own
+    trial, returns a zero update and stores the value and gradient there; the rest of the
+    state (the step size of the last search, its info) is kept. ``invert`` then updates from
+    them, so its step holds the objective once."""
+    ran = collections.Counter()
+
+    def counted(z):
+        jax.debug.callback(lambda: ran.update(["value_fn"]))
+        return _badly_scaled(z)
+
+    optimizer = pf.lbfgs()
+    z = jnp.array([-3.0, 4.0, -2.0, 3.0])
+    *_, searched = _one_search(optimizer, _badly_scaled, z)  # a state with a search behind it
+    moved = z + 0.1
+    updates, state = jax.jit(lambda z, state: optimizer.update(
+        jnp.zeros(4), state, z, value=stale, grad=jnp.zeros(4), value_fn=counted))(
+        moved, searched)
+    jax.effects_barrier()
+    assert ran["value_fn"] == 1
+    np.testing.assert_array_equal(updates, np.zeros(4))
+    expected_value, expected_grad = jax.value_and_grad(_badly_scaled)(moved)
+    assert float(otu.tree_get(state, "value")) == pytest.approx(float(expected_value),
+                                                                 rel=1e-15)
+    np.testing.assert_allclose(otu.tree_get(state, "grad"), expected_grad, rtol=1e-15)
+    for name in ("learning_rate", "num_linesearch_steps", "decrease_error"):
+        assert float(otu.tree_get(state, name)) == float(otu.tree_get(searched, name)), name
+    assert isinstance(state[-1], ZoomSearchState)
 
 
 def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():
