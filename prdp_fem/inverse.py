@@ -382,9 +382,10 @@ def _refreshes(opt_state) -> bool:
     return any(isinstance(node, ZoomSearchState) for node in nodes)
 
 
-def _update_from_stored_value(optimizer, opt_state, z, value_fn):
-    """``(J(z), grad J(z), updates, new_state)``: an optimiser update that starts from the
-    value and gradient its line search stored, evaluating them first where they are stale.
+def _value_grad_and_update(optimizer, opt_state, z, value_fn):
+    """``(J(z), grad J(z), updates, new_state)``: one optimiser update at ``z``, from the value
+    and gradient its line search stored where it stores them (evaluated first where they are
+    stale), else from a fresh evaluation.
 
     With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
     the stored value is stale: the first trip hands the search the stale value, and the search
@@ -392,13 +393,22 @@ def _update_from_stored_value(optimizer, opt_state, z, value_fn):
     :mod:`prdp_fem.linesearch`); the second trip is the update proper, from them and from
     ``opt_state`` as given. So the program holds the objective once, where an evaluation
     before the update held it twice: a CG solve and its adjoint, each compiled anew. Other
-    optimisers: :func:`optax.value_and_grad_from_state`'s evaluation, then the update.
+    optimisers with a stored value: :func:`optax.value_and_grad_from_state`'s evaluation,
+    then the update.
     """
-    if not _refreshes(opt_state):
+    if not _uses_stored_value(opt_state):
+        value, grad = value_fn.value_and_grad(z)
+    elif not _refreshes(opt_state):
         value, grad = _stored_or_evaluated(value_fn, z, opt_state)
-        updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
-                                              value_fn=value_fn)
-        return value, grad, updates, new_state
+    else:
+        return _refreshed_update(optimizer, opt_state, z, value_fn)
+    updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                          value_fn=value_fn)
+    return value, grad, updates, new_state
+
+
+def _refreshed_update(optimizer, opt_state, z, value_fn):
+    """:func:`_value_grad_and_update` where the line search refreshes a stale value."""
     stored_value, stored_grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
     stale = ~jnp.isfinite(stored_value)
 
@@ -448,13 +458,8 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
 
         value_fn = Objective(problem, solver, counter)
 
-        if _uses_stored_value(opt_state):
-            value, grad, updates, opt_state = _update_from_stored_value(
-                optimizer, opt_state, z, value_fn)
-        else:
-            value, grad = value_fn.value_and_grad(z)
-            updates, opt_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
-                                                  value_fn=value_fn)
+        value, grad, updates, opt_state = _value_grad_and_update(optimizer, opt_state, z,
+                                                                 value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return z_next, opt_state, _StepScalars(

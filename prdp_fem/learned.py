@@ -53,8 +53,8 @@ from .inverse import (
     _preconditioner_key,
     _scan_length,
     _solver,
-    _update_from_stored_value,
     _uses_stored_value,
+    _value_grad_and_update,
 )
 from .observations import Observation
 from .operator import SparseMatrix, matvec, symmetric_matvec
@@ -447,13 +447,8 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
         solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
-        if _uses_stored_value(opt_state):
-            value, grad, updates, opt_state = _update_from_stored_value(
-                optimizer, opt_state, layers, value_fn)
-        else:
-            value, grad = value_fn.value_and_grad(layers)
-            updates, opt_state = optimizer.update(grad, opt_state, layers, value=value,
-                                                  grad=grad, value_fn=value_fn)
+        value, grad, updates, opt_state = _value_grad_and_update(optimizer, opt_state, layers,
+                                                                 value_fn)
         return _StepResult(optax.apply_updates(layers, updates), opt_state, value,
                            optax.tree.norm(grad))
 
