@@ -599,8 +599,9 @@ class _CGState(NamedTuple):
     array. Stacked, both updates are one fused pass (``[d, r] += alpha [p, -q]``), ``r.r`` is a
     row reduction of it, and ``p``'s last reader is its own update, so XLA updates ``p`` in
     place: kept apart, the CPU backend ran the updates as two passes and copied ``p`` every
-    iteration. The while loops run stacked above ``_STACKED_FROM`` unknowns (an iteration
-    0.83-0.9x the time at 65k-1M dofs); the scan of unrolled mode keeps the pair, whose
+    iteration. The while loops run stacked where :func:`_stacks` says so (a truncated loop
+    above ``_STACKED_FROM`` unknowns: an iteration 0.83-0.9x the time at 65k-1M dofs); the
+    scan of unrolled mode keeps the pair, whose
     reverse sweep is cheaper than the transposes of the stacking (stacked, a K = 100
     gradient at 65k dofs took 1.1x the time, 1.25x with the symmetric product).
     """
@@ -732,6 +733,26 @@ _STACKED_FROM = 1 << 12
 # 2 CPU cores, 0.66-0.7x the slice-and-dot's iteration time at 20k-25k unknowns and 0.9x at
 # 261k, but 1.1-1.2x at 16k, where the slice stays in cache.
 _ROW_REDUCTION_FROM = 1 << 14
+
+
+def _stacks(krylov: _Krylov, n: int, track_norm: bool) -> bool:
+    """Whether a while loop over ``n`` unknowns keeps ``[d, r]`` stacked (:class:`_CGState`).
+
+    A truncated loop: above ``_STACKED_FROM``. A loop that tracks ``||r||`` (a tolerance)
+    reads the row ``r`` for the norm every iteration, and stacked, XLA's CPU backend copies
+    that row out of ``[d, r]`` to take its dot products. It pays off only where ``r.r`` is
+    the row reduction instead (Jacobi's scaled system above ``_ROW_REDUCTION_FROM``). Measured
+    on 2 CPU cores, iterations of ``ConvergedCG`` to rtol 1e-10 on the P1 Laplacian, paired
+    against stacked (the same iterates bit for bit):
+
+    - Jacobi: 0.66-0.85x at 12k-16k unknowns, 0.99-1.04x at 5k-11k, 1.03-1.24x at 18k-25k;
+    - identity and smoothed-aggregation AMG: 0.75-0.93x and 0.87-0.96x at 9k-65k.
+
+    The truncated loops were measured neutral (0.98-1.03x at 9k-65k).
+    """
+    if track_norm:
+        return krylov.precond is None and n > _ROW_REDUCTION_FROM
+    return n > _STACKED_FROM
 
 
 def _step(krylov: _Krylov, state: _CGState,
@@ -1001,7 +1022,7 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
     norm is taken once at the end -- a reduction pass less per iteration.
     """
     preconditioning_first = krylov.precond is not None
-    start = _init(krylov, b, x0, stacked=b.shape[-1] > _STACKED_FROM,
+    start = _init(krylov, b, x0, stacked=_stacks(krylov, b.shape[-1], track_norm),
                   precondition=not preconditioning_first)
     # max(rtol ||b||, atol) / r0_scale with numerator and denominator scaled by 2^-e: the same
     # bits as unscaled, but rtol ||b|| cannot flush to 0 (below about 1e-298; XLA's CPU code

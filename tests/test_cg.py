@@ -121,6 +121,56 @@ def test_stacked_and_paired_states_take_the_same_iterations(n_side, jacobi):
     assert float(jnp.abs(stacked.d).max()) > 0  # it moved
 
 
+def _loop_states(jaxpr, n: int) -> list[bool]:
+    """For each while loop in a jaxpr (nested ones too): whether it carries a stacked
+    ``(2, n)`` state."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "while":
+            found.append(any(getattr(v.aval, "shape", None) == (2, n) for v in eqn.outvars))
+        for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+            found += _loop_states(sub, n)
+    return found
+
+
+@pytest.mark.parametrize(("solver", "n_side", "stacked"), [
+    (ConvergedCG(rtol=1e-10), 128, False),  # 16129 unknowns: r.r is a slice's dot product
+    (ConvergedCG(rtol=1e-10), 130, True),  # 16641: r.r is the stacked state's row reduction
+    (ConvergedCG(rtol=1e-10, preconditioner="identity"), 130, False),
+    (TruncatedCG(20, gradient="implicit"), 128, True),
+    (TruncatedCG(20, gradient="implicit", history_size=4), 128, False),  # tracks the norm
+])
+def test_a_loop_that_tracks_the_norm_stacks_only_for_the_row_reduction(solver, n_side,
+                                                                         stacked):
+    """Stacked, a tolerance loop copies the row r out of [d, r] for its norm every iteration;
+    that pays off only where r.r is the row reduction (the measurements: cg._stacks)."""
+    from prdp_fem.bench import poisson_operator
+
+    op, b = poisson_operator(n_side)
+    b = jnp.asarray(b)
+    jaxpr = jax.make_jaxpr(lambda b: solve(op, b, solver).x)(b).jaxpr
+    assert _loop_states(jaxpr, b.size) == [stacked]
+
+
+@pytest.mark.parametrize("preconditioner", ["jacobi", "identity"])
+def test_a_tolerance_loop_takes_the_same_iterates_paired_or_stacked(monkeypatch,
+                                                                     preconditioner):
+    from prdp_fem import cg
+    from prdp_fem.bench import poisson_operator
+
+    op, b = poisson_operator(128)
+    run = jax.jit(lambda b: solve(op, b, ConvergedCG(rtol=1e-10,
+                                                     preconditioner=preconditioner)))
+    paired = run(jnp.asarray(b))
+    monkeypatch.setattr(cg, "_stacks", lambda krylov, n, track_norm: True)
+    jax.clear_caches()
+    stacked = jax.jit(lambda b: solve(op, b, ConvergedCG(
+        rtol=1e-10, preconditioner=preconditioner)))(jnp.asarray(b))
+    assert int(paired.iterations) == int(stacked.iterations) > 100
+    np.testing.assert_array_equal(paired.x, stacked.x)
+    np.testing.assert_array_equal(paired.residual_norm, stacked.residual_norm)
+
+
 @pytest.mark.parametrize("mode", ["unrolled", "implicit"])
 def test_k_far_past_convergence_is_finite_and_exact(small_problem, mode):
     disc, kappa, f = small_problem
