@@ -740,12 +740,13 @@ def _stacks(krylov: _Krylov, n: int, track_norm: bool) -> bool:
 
     A truncated loop: above ``_STACKED_FROM``. A loop that tracks ``||r||`` (a tolerance)
     reads the row ``r`` for the norm every iteration, and stacked, XLA's CPU backend copies
-    that row out of ``[d, r]`` to take its dot products. It pays off only where ``r.r`` is
-    the row reduction instead (Jacobi's scaled system above ``_ROW_REDUCTION_FROM``). Measured
+    that row out of ``[d, r]`` to take its dot products. Stacking pays off only where ``r.r``
+    is the row reduction instead (Jacobi's scaled system above ``_ROW_REDUCTION_FROM``). Measured
     on 2 CPU cores, iterations of ``ConvergedCG`` to rtol 1e-10 on the P1 Laplacian, paired
     against stacked (the same iterates bit for bit):
 
-    - Jacobi: 0.66-0.85x at 12k-16k unknowns, 0.99-1.04x at 5k-11k, 1.03-1.24x at 18k-25k;
+    - Jacobi: 0.66-0.91x at 12k-16k unknowns, 0.99-1.04x at 5k-11k, 1.03-1.24x at 18k-25k
+      (two runs of 0.87 and 0.88 among them);
     - identity and smoothed-aggregation AMG: 0.75-0.93x and 0.87-0.96x at 9k-65k.
 
     The truncated loops were measured neutral (0.98-1.03x at 9k-65k).
