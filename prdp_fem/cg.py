@@ -599,11 +599,11 @@ class _CGState(NamedTuple):
     array. Stacked, both updates are one fused pass (``[d, r] += alpha [p, -q]``), ``r.r`` is a
     row reduction of it, and ``p``'s last reader is its own update, so XLA updates ``p`` in
     place: kept apart, the CPU backend ran the updates as two passes and copied ``p`` every
-    iteration. The while loops run stacked where :func:`_stacks` says so (a truncated loop
-    above ``_STACKED_FROM`` unknowns: an iteration 0.83-0.9x the time at 65k-1M dofs); the
-    scan of unrolled mode keeps the pair, whose
-    reverse sweep is cheaper than the transposes of the stacking (stacked, a K = 100
-    gradient at 65k dofs took 1.1x the time, 1.25x with the symmetric product).
+    iteration. The while loops run stacked where :func:`_stacks` says so (Jacobi above 16384
+    unknowns: an iteration 0.83-0.9x the time at 65k-1M dofs); the scan of unrolled mode
+    keeps the pair, whose reverse sweep is cheaper than the transposes of the stacking
+    (stacked, a K = 100 gradient at 65k dofs took 1.1x the time, 1.25x with the symmetric
+    product).
     """
 
     dr: jax.Array | tuple[jax.Array, jax.Array]  # [d, r]
@@ -722,12 +722,6 @@ def _freeze_level(rz0: jax.Array) -> jax.Array:
     return jnp.square(jnp.finfo(rz0.dtype).eps) * rz0
 
 
-# The while loops stack [d, r] above this many unknowns. Below it XLA's CPU backend wrote each
-# ELL slot's gather out and fused their sum into both consumers of q (p.q and the stacked
-# update): 1.1x the paired loop's time for P2 at 3969 unknowns. From 4225 on it keeps the
-# product in one fusion, and the stacked loop is the faster (P2 at 9k-32k: 0.93-0.99x).
-_STACKED_FROM = 1 << 12
-
 # From this many unknowns on, the unpreconditioned ``r.r`` of a stacked state is a reduction over
 # both rows of ``[d, r]`` (it reads ``d`` for nothing, but copies no slice of ``r``): measured on
 # 2 CPU cores, 0.66-0.7x the slice-and-dot's iteration time at 20k-25k unknowns and 0.9x at
@@ -735,25 +729,25 @@ _STACKED_FROM = 1 << 12
 _ROW_REDUCTION_FROM = 1 << 14
 
 
-def _stacks(krylov: _Krylov, n: int, track_norm: bool) -> bool:
-    """Whether a while loop over ``n`` unknowns keeps ``[d, r]`` stacked (:class:`_CGState`).
+def _stacks(krylov: _Krylov, n: int) -> bool:
+    """Whether a while loop over ``n`` unknowns keeps ``[d, r]`` stacked (:class:`_CGState`):
+    only in Jacobi's scaled system above ``_ROW_REDUCTION_FROM``, where ``r.r`` is the row
+    reduction of the stacked state.
 
-    A truncated loop: above ``_STACKED_FROM``. A loop that tracks ``||r||`` (a tolerance)
-    reads the row ``r`` for the norm every iteration, and stacked, XLA's CPU backend copies
-    that row out of ``[d, r]`` to take its dot products. Stacking pays off only where ``r.r``
-    is the row reduction instead (Jacobi's scaled system above ``_ROW_REDUCTION_FROM``). Measured
-    on 2 CPU cores, iterations of ``ConvergedCG`` to rtol 1e-10 on the P1 Laplacian, paired
-    against stacked (the same iterates bit for bit):
+    Elsewhere XLA's CPU backend copies the row ``r`` out of ``[d, r]`` every iteration for
+    its dot products (and for ``||r||`` in a loop that tracks it), and the pair is the
+    faster. Iteration time paired against stacked, on 2 CPU cores, the same iterates bit for
+    bit (P1 Laplacian unless said; ``TruncatedCG`` implicit with a traced ``K``,
+    ``ConvergedCG`` to rtol 1e-10):
 
-    - Jacobi: 0.66-0.91x at 12k-16k unknowns, 0.99-1.04x at 5k-11k, 1.03-1.24x at 18k-25k
-      (two runs of 0.87 and 0.88 among them);
-    - identity and smoothed-aggregation AMG: 0.75-0.93x and 0.87-0.96x at 9k-65k.
-
-    The truncated loops were measured neutral (0.98-1.03x at 9k-65k).
+    - Jacobi, truncated: 0.99-1.01 at 5k-9k unknowns, 0.63-0.86 at 12k-16k, 0.89 at 18k,
+      1.16-1.64 at 25k-65k; P2: 0.27 at 4k, 1.03-1.04 at 9k-16k, 1.17 at 25k;
+    - Jacobi, to a tolerance: 0.99-1.04 at 5k-11k, 0.66-0.91 at 12k-16k, 1.03-1.50 at
+      18k-65k (two runs of 0.87 and 0.88 among them);
+    - identity: 0.85-0.97 (truncated), 0.75-0.93 (to a tolerance) at 9k-65k;
+    - smoothed-aggregation AMG: 0.95-1.02 and 0.87-0.96.
     """
-    if track_norm:
-        return krylov.precond is None and n > _ROW_REDUCTION_FROM
-    return n > _STACKED_FROM
+    return krylov.precond is None and n > _ROW_REDUCTION_FROM
 
 
 def _step(krylov: _Krylov, state: _CGState,
@@ -1023,7 +1017,7 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
     norm is taken once at the end -- a reduction pass less per iteration.
     """
     preconditioning_first = krylov.precond is not None
-    start = _init(krylov, b, x0, stacked=_stacks(krylov, b.shape[-1], track_norm),
+    start = _init(krylov, b, x0, stacked=_stacks(krylov, b.shape[-1]),
                   precondition=not preconditioning_first)
     # max(rtol ||b||, atol) / r0_scale with numerator and denominator scaled by 2^-e: the same
     # bits as unscaled, but rtol ||b|| cannot flush to 0 (below about 1e-298; XLA's CPU code
