@@ -28,6 +28,12 @@ PRDP saving
 (BENCHMARKS.md): run time and cumulative primal + adjoint CG iterations of a PRDP run up to the
 step from which its parameter error stays within 1 % of the converged run's final error,
 divided by the converged run's totals (same scene, optimiser and steps; compilation excluded).
+
+One study follows one trajectory of a truncated optimisation, and a controller setting that
+moves a refinement by a step or two moves where that trajectory goes: the saving of one
+problem instance is one sample. :func:`seed_variants` gives the same scene with other noise
+and sensor draws (``inverse.seed``), and :func:`seed_summary` counts, per run, the instances
+that meet the goal and the medians over them (``prdp-fem bench prdp --seeds 1 2 3``).
 """
 
 from __future__ import annotations
@@ -66,11 +72,14 @@ __all__ = [
     "MotherSolve",
     "PeerFigure",
     "SavingRow",
+    "SeedSummary",
     "median_row",
     "mother_problem",
     "mother_whole_process",
     "prdp_saving",
     "saving_rows",
+    "seed_summary",
+    "seed_variants",
     "solve_mother",
 ]
 
@@ -338,6 +347,7 @@ class SavingRow(NamedTuple):
     repeats: int = 1            # studies whose medians these are (see median_row)
     time_saving_low: float = math.nan   # the lowest and highest time_saving among them
     time_saving_high: float = math.nan
+    seed: int | None = None     # the scene's inverse.seed where seed_variants set it
 
     @property
     def error_difference(self) -> float:
@@ -423,7 +433,8 @@ def median_row(rows) -> SavingRow:
     ``time_saving_low`` / ``_high`` keep the spread of the time saving.
     """
     first = rows[0]
-    if any((row.scene, row.run) != (first.scene, first.run) for row in rows):
+    if any((row.scene, row.run, row.seed) != (first.scene, first.run, first.seed)
+           for row in rows):
         raise ValueError("median_row: rows of different runs")
 
     def count(values):
@@ -440,7 +451,7 @@ def median_row(rows) -> SavingRow:
     savings = np.asarray(fields["time_saving"], dtype=float)
     return SavingRow(first.scene, first.run, **merged, repeats=len(rows),
                      time_saving_low=float(np.min(savings)),
-                     time_saving_high=float(np.max(savings)))
+                     time_saving_high=float(np.max(savings)), seed=first.seed)
 
 
 _COUNT_FIELDS = frozenset({"converged_iterations", "prdp_iterations", "reached_step",
@@ -469,6 +480,68 @@ def saving_rows(scene_name: str, reference: str, summary: list[dict],
         row["reached_step"] if row["reached_step"] != "" else None, row["time_saving"],
         row["iteration_saving"], *at_or_below(name), base["final_error"], row["final_error"])
         for name, row in rows.items() if name != reference]
+
+
+def _seeded(scene) -> bool:
+    """Whether ``inverse.seed`` draws anything: the noise, or the random sensor vertices."""
+    spec = scene.inverse
+    random_sensors = spec.observations == "sensors" and isinstance(spec.sensors, int)
+    return spec.data is None and (spec.noise > 0 or random_sensors)
+
+
+def seed_variants(scene, seeds) -> list[tuple[int | None, Any]]:
+    """``(seed, scene)`` for every seed in ``seeds``: the scene with ``inverse.seed = seed``
+    (other noise, other random sensors; everything else the scene's).
+
+    One ``(None, scene)`` where the scene's data do not depend on the seed (no noise and no
+    random sensors: every seed would give the same study) or where ``seeds`` is empty.
+    """
+    from .scene import with_overrides
+
+    seeds = list(seeds or ())
+    if any(not isinstance(seed, int) or isinstance(seed, bool) or seed < 0 for seed in seeds):
+        raise SolverConfigError(f"seeds={seeds!r}: expected integers >= 0")
+    if len(set(seeds)) != len(seeds):
+        raise SolverConfigError(f"seeds={seeds!r}: expected distinct seeds")
+    if scene.inverse is None:
+        raise SceneError(f"{scene.source}: no [inverse] section; expected an inverse scene")
+    if not seeds or not _seeded(scene):
+        return [(None, scene)]
+    return [(seed, with_overrides(scene, {"inverse": {"seed": seed}})) for seed in seeds]
+
+
+class SeedSummary(NamedTuple):
+    """One run of one scene over the problem instances of :func:`seed_variants`."""
+
+    scene: str
+    run: str
+    instances: int
+    met: int                    # instances meeting the goal read strictly (SavingRow.goal_met)
+    met_below: int              # ... at or below (SavingRow.goal_met_at_or_below)
+    reached: int                # instances that reach the +-1 % band at all
+    time_saving: float          # medians over the instances that reach the band (NaN: none)
+    below_time_saving: float    # ... over those that reach e* at or below
+    error_difference: float     # median over all instances
+
+
+def seed_summary(rows) -> list[SeedSummary]:
+    """Per ``(scene, run)``, in the order of ``rows``: how many instances meet the goal, and
+    the medians of their savings (over the instances that reach ``e*``) and final errors."""
+    groups: dict[tuple[str, str], list[SavingRow]] = {}
+    for row in rows:
+        groups.setdefault((row.scene, row.run), []).append(row)
+
+    def median(values) -> float:
+        finite = [v for v in values if not math.isnan(v)]
+        return float(np.median(finite)) if finite else math.nan
+
+    return [SeedSummary(
+        scene, run, len(group), sum(r.goal_met for r in group),
+        sum(r.goal_met_at_or_below for r in group),
+        sum(r.reached_step is not None for r in group),
+        median([r.time_saving for r in group]), median([r.below_time_saving for r in group]),
+        median([r.error_difference for r in group]))
+        for (scene, run), group in groups.items()]
 
 
 def _reached_at_or_below(history: History, target: float, band: float, metric: str):

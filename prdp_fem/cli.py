@@ -196,6 +196,11 @@ def _parser() -> argparse.ArgumentParser:
     saving.add_argument("--repeats", type=int, default=1,
                         help="studies per scene, run one after another; the table shows "
                         "medians and the range of the time saving (default 1)")
+    saving.add_argument("--seeds", type=int, nargs="+", default=None, metavar="SEED",
+                        help="run each scene once per noise and sensor seed (inverse.seed; "
+                        "a scene whose data draw nothing runs once) and add a summary: per "
+                        "run, how many of these problem instances meet the goal, and the "
+                        "median savings")
     return parser
 
 
@@ -641,18 +646,32 @@ def _bench_mother(args) -> None:
 
 
 def _bench_prdp(args) -> None:
-    from .bench_inverse import SAVING_SCENES, prdp_saving, saving_configurations
+    from .bench_inverse import (
+        SAVING_SCENES,
+        prdp_saving,
+        saving_configurations,
+        seed_summary,
+        seed_variants,
+    )
 
     if args.steps is not None and args.steps < 1:
         raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
     if args.repeats < 1:
         raise SolverConfigError(f"--repeats {args.repeats}: expected an integer >= 1")
     scenes = [_scene(name, args.steps) for name in (args.scene or SAVING_SCENES)]
-    for scene in scenes:  # every scene checked before the first one runs
+    instances = []
+    for scene in scenes:  # every scene and seed checked before the first one runs
         saving_configurations(scene)
-    rows = [_saving_cells(row) for scene in scenes
+        instances += seed_variants(scene, args.seeds)
+    rows = [row._replace(seed=seed) for seed, scene in instances
             for row in prdp_saving(scene, repeats=args.repeats)]
-    _print_table(rows, list(rows[0]))
+    seeded = args.seeds is not None
+    cells = [_saving_cells(row, seeded) for row in rows]
+    _print_table(cells, list(cells[0]))
+    if seeded:
+        print()
+        summary = [_seed_cells(instance) for instance in seed_summary(rows)]
+        _print_table(summary, list(summary[0]))
     medians = (f"medians of {args.repeats} studies run one after another (save_t range: the "
                "lowest and highest time saving among them); " if args.repeats > 1 else "")
     print(medians + "save: 1 - (run time or CG iterations of the PRDP run up to the step from "
@@ -660,14 +679,19 @@ def _bench_prdp(args) -> None:
           "(band@, the study's figures) or at or below 1.01 e* (below@)) / (the converged "
           "run's totals); times exclude compilation; err_diff: (PRDP - converged) / converged "
           "final error; met: save_t >= 80 % and |err_diff| <= 1 %; met_below: below_save_t >= "
-          "80 % and err_diff <= 1 %")
+          "80 % and err_diff <= 1 %" + (
+              "; per seed (inverse.seed: noise and random sensors; '-': the scene's data draw "
+              "nothing), then per run over the seeds: band, met, met_below: instances that "
+              "reach the band / meet each goal; medians of the savings over the instances "
+              "that reach e*" if seeded else ""))
 
 
-def _saving_cells(row) -> dict:
+def _saving_cells(row, seeded: bool = False) -> dict:
     def step(value):
         return "-" if value is None else value
 
-    return {"scene": row.scene, "run": row.run, "conv_s": row.converged_s,
+    return {"scene": row.scene, "run": row.run,
+            **({"seed": step(row.seed)} if seeded else {}), "conv_s": row.converged_s,
             "conv_its": row.converged_iterations, "prdp_s": row.prdp_s,
             "prdp_its": row.prdp_iterations, "band@": step(row.reached_step),
             "save_t": _percent(row.time_saving),
@@ -679,6 +703,17 @@ def _saving_cells(row) -> dict:
             "err_diff": _percent(row.error_difference, digits=2),
             "met": "yes" if row.goal_met else "no",
             "met_below": "yes" if row.goal_met_at_or_below else "no"}
+
+
+def _seed_cells(summary) -> dict:
+    """A row of ``bench prdp --seeds``' summary: the goal met in how many instances."""
+    return {"scene": summary.scene, "run": summary.run,
+            "band": f"{summary.reached}/{summary.instances}",
+            "met": f"{summary.met}/{summary.instances}",
+            "met_below": f"{summary.met_below}/{summary.instances}",
+            "median save_t": _percent(summary.time_saving),
+            "median below_save_t": _percent(summary.below_time_saving),
+            "median err_diff": _percent(summary.error_difference, digits=2)}
 
 
 def _percent(value: float, digits: int = 0) -> str:

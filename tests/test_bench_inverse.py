@@ -25,6 +25,8 @@ from prdp_fem.bench_inverse import (
     prdp_saving,
     saving_configurations,
     saving_rows,
+    seed_summary,
+    seed_variants,
     solve_mother,
 )
 from prdp_fem.cli import main
@@ -32,7 +34,7 @@ from prdp_fem.errors import SceneError, SolverConfigError
 from prdp_fem.history import History, StepRecord
 from prdp_fem.prdp import converged, fixed
 from prdp_fem.reduced import homogeneous, reduced_cg
-from prdp_fem.scene import load_scene
+from prdp_fem.scene import load_scene, parse_scene
 
 
 def kkt_optimum(problem) -> np.ndarray:
@@ -336,6 +338,97 @@ def test_repeated_studies_give_medians_and_the_time_saving_range():
 
 
 # --------------------------------------------------------------------------------------
+# problem instances: the same scene under other noise and sensor draws
+# --------------------------------------------------------------------------------------
+
+NOISY_SENSORS = {"mesh": {"n": 8}, "inverse": {"truth": "x*y", "observations": "sensors",
+                                                "sensors": 10, "noise": 0.01, "seed": 7}}
+
+
+def test_seed_variants_draw_other_noise_and_sensors():
+    from prdp_fem.build import build_inverse
+
+    scene = parse_scene(NOISY_SENSORS)
+    variants = seed_variants(scene, [1, 2])
+    assert [seed for seed, _ in variants] == [1, 2]
+    assert [variant.inverse.seed for _, variant in variants] == [1, 2]
+    # everything else is the scene's
+    assert all(dataclasses.replace(variant.inverse, seed=7) == scene.inverse and
+               (variant.mesh, variant.refinement) == (scene.mesh, scene.refinement)
+               for _, variant in variants)
+    data = [np.asarray(build_inverse(variant).problem.observation.data)
+            for _, variant in variants]
+    assert not np.allclose(data[0], data[1])  # other sensors and noise: other data
+    assert seed_variants(scene, None) == [(None, scene)] == seed_variants(scene, [])
+
+
+@pytest.mark.parametrize("inverse", [
+    {"truth": "x*y"},                                         # no noise, the full field
+    {"truth": "x*y", "observations": "sensors", "sensors": [[0.5, 0.5]]},  # fixed sensors
+    {"truth": "x*y", "data": "x", "noise": 0.01},             # given data: nothing drawn
+])
+def test_seed_variants_run_once_where_the_data_draw_nothing(inverse):
+    scene = parse_scene({"mesh": {"n": 8}, "inverse": inverse})
+    assert seed_variants(scene, [1, 2, 3]) == [(None, scene)]
+    assert seed_variants(load_scene("mother"), [1, 2]) == [(None, load_scene("mother"))]
+
+
+@pytest.mark.parametrize("seeds", [[-1], [1, 1], [True]])
+def test_seed_variants_refuse_bad_seeds(seeds):
+    with pytest.raises(SolverConfigError, match="seeds="):
+        seed_variants(parse_scene(NOISY_SENSORS), seeds)
+
+
+def test_seed_summary_counts_the_instances_that_meet_the_goal():
+    from prdp_fem.bench_inverse import SavingRow
+
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
+    rows = [row._replace(seed=1),                                        # met, both readings
+            row._replace(seed=2, time_saving=0.7, below_time_saving=0.85),  # met below only
+            row._replace(seed=3, reached_step=None, time_saving=np.nan,  # never in the band,
+                         prdp_error=0.9, below_time_saving=0.95),          # below: met
+            row._replace(seed=1, run="prdp unrolled", prdp_error=1.05)]  # 5 % above: neither
+    first, other = seed_summary(rows)
+    assert (first.scene, first.run, first.instances) == ("s", "prdp", 3)
+    assert (first.reached, first.met, first.met_below) == (2, 1, 3)
+    assert first.time_saving == pytest.approx(0.8)        # median of 0.9 and 0.7 (NaN left out)
+    assert first.below_time_saving == pytest.approx(0.9)
+    assert first.error_difference == pytest.approx(0.005)  # median of 0.5 %, 0.5 %, -10 %
+    assert (other.run, other.instances, other.met, other.met_below) == ("prdp unrolled", 1, 0, 0)
+    with pytest.raises(ValueError, match="different runs"):
+        from prdp_fem.bench_inverse import median_row
+        median_row([row._replace(seed=1), row._replace(seed=2)])
+
+
+def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, capsys):
+    """The command runs every instance's study (here: stand-in rows) and prints the seed
+    column and the per-run summary; a scene whose data draw nothing runs once."""
+    from prdp_fem import bench_inverse
+    from prdp_fem.bench_inverse import SavingRow
+
+    seen = []
+
+    def stand_in(scene, *, repeats=1, out=None, progress=None):
+        seen.append((scene.name, scene.inverse.seed, repeats))
+        met = scene.inverse.seed != 2 or scene.name == "mother"
+        return [SavingRow(scene.name, "prdp", 10.0, 1000, 1.0, 100, 5, 0.9 if met else 0.5,
+                          0.9, 5, 0.9, 0.9, 1.0, 1.005)]
+
+    monkeypatch.setattr(bench_inverse, "prdp_saving", stand_in)
+    assert main(["bench", "prdp", "--scene", "plate_hole", "mother", "--seeds", "1", "2"]) == 0
+    mother_seed = load_scene("mother").inverse.seed  # its own: noise-free full-field data
+    assert seen == [("plate_hole", 1, 1), ("plate_hole", 2, 1), ("mother", mother_seed, 1)]
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:3] == ["scene", "run", "seed"]
+    assert [line.split()[:3] for line in lines[1:4]] == [
+        ["plate_hole", "prdp", "1"], ["plate_hole", "prdp", "2"], ["mother", "prdp", "-"]]
+    assert lines[4] == ""
+    assert lines[5].split()[:5] == ["scene", "run", "band", "met", "met_below"]
+    assert lines[6].split()[:5] == ["plate_hole", "prdp", "2/2", "1/2", "2/2"]
+    assert lines[7].split()[:5] == ["mother", "prdp", "1/1", "1/1", "1/1"]
+
+
+# --------------------------------------------------------------------------------------
 # the commands: bad options are one line and exit 2, before anything runs
 # --------------------------------------------------------------------------------------
 
@@ -352,6 +445,8 @@ def test_repeated_studies_give_medians_and_the_time_saving_range():
     (["bench", "prdp", "--scene", "torus"], "scene 'torus': expected"),
     (["bench", "prdp", "--steps", "0"], "--steps 0: expected an integer >= 1"),
     (["bench", "prdp", "--repeats", "0"], "--repeats 0: expected an integer >= 1"),
+    (["bench", "prdp", "--seeds", "1", "1"], "expected distinct seeds"),
+    (["bench", "prdp", "--seeds", "-3"], "expected integers >= 0"),
     (["bench", "prdp", "--scene", "mother", "poisson_h"], "expected an inverse study"),
 ])
 def test_bench_bad_options_are_one_line_and_exit_2(argv, message, capsys):
