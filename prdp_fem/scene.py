@@ -13,7 +13,9 @@ takes the default written in the dataclass below):
                   (full_field | sensors | boundary), ``norm``, ``sensors``, ``boundaries``,
                   ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
 ``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
-``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``
+``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``;
+                  ``ema_window`` unset is 2 for an inversion's loss under a line-search
+                  optimiser, else 6 (:func:`default_ema_window`)
 ``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton | hig), ``steps``,
                   ``learning_rate``; lbfgs: ``memory_size``, ``first_step`` (unit | polyak:
                   the first line search starts at J / |slope|); Newton: ``max_cg``,
@@ -76,6 +78,9 @@ from .expressions import compile_field
 
 __all__ = [
     "BUILTIN_SCENES",
+    "LINE_SEARCH_OPTIMIZERS",
+    "MONOTONE_EMA_WINDOW",
+    "REFERENCE_EMA_WINDOW",
     "HeatSpec",
     "InverseSpec",
     "LearnedSpec",
@@ -93,6 +98,7 @@ __all__ = [
     "SolverSpec",
     "StudySpec",
     "builtin_scene_path",
+    "default_ema_window",
     "load_scene",
     "mesh_scene",
     "parse_scene",
@@ -288,6 +294,10 @@ class RefinementSpec:
     rtol``;
     ``"fixed"`` uses ``K, K_adj``; ``"converged"`` uses ``rtol``. ``monitor``: loss |
     gradient | validation (``validation_every``, ``validation_rtol``).
+
+    ``ema_window`` left unset is :data:`MONOTONE_EMA_WINDOW` (2) in an inversion whose
+    controller watches the loss of a line-search optimiser, else the reference's 6 (see
+    :func:`default_ema_window`).
     """
 
     kind: str = "prdp"
@@ -301,7 +311,7 @@ class RefinementSpec:
     adjoint_factor: float = 1.0
     tau_step: float = 0.98
     tau_stop: float = 0.9
-    ema_window: int = 6
+    ema_window: int | None = None  # None: default_ema_window (parse_scene fills it in)
     delta: int = 3
     latch: bool = False
     restart: bool = True
@@ -598,7 +608,7 @@ def _refinement(t: _Table) -> RefinementSpec:
         "adjoint_factor": lambda k: t.number(k, 1.0, low=1.0),
         "tau_step": lambda k: t.number(k, defaults.tau_step, low=0.0, open_low=True),
         "tau_stop": lambda k: t.number(k, defaults.tau_stop, low=0.0, high=1.0, open_low=True),
-        "ema_window": lambda k: t.integer(k, defaults.ema_window, 1),
+        "ema_window": lambda k: t.integer(k, None, 1),
         "delta": lambda k: t.integer(k, defaults.delta, 2),
         "latch": lambda k: t.boolean(k, defaults.latch),
         "restart": lambda k: t.boolean(k, defaults.restart),
@@ -624,6 +634,41 @@ def _refinement(t: _Table) -> RefinementSpec:
         raise SceneSolverConfigError(f"{t.source}: refinement.K0 = {spec.K0} exceeds K_max = "
                                      f"{spec.K_max}; expected K0 <= K_max")
     return spec
+
+
+#: Optimisers that step only where their line search found a decrease: between two
+#: refinements the loss they report falls monotonically.
+LINE_SEARCH_OPTIMIZERS = ("lbfgs", "newton_cg", "gauss_newton")
+#: The reference's moving-average window (``prdp_fem.prdp.prdp``'s default): it smooths the
+#: epoch-to-epoch noise of stochastic training, a gradient norm or a validation error.
+REFERENCE_EMA_WINDOW = 6
+#: The window where the monitored value is the loss of a line-search optimiser in an
+#: inversion: a monotone signal with no noise to smooth, whose stall the reference's window
+#: sees some ten steps late (see the README's "PRDP saving (measured)").
+MONOTONE_EMA_WINDOW = 2
+
+
+def default_ema_window(study_kind: str, monitor: str, optimizer: str) -> int:
+    """``refinement.ema_window`` where a scene leaves it unset.
+
+    >>> default_ema_window("inverse", "loss", "lbfgs")
+    2
+    >>> default_ema_window("inverse", "gradient", "lbfgs")  # a gradient norm is not monotone
+    6
+    >>> default_ema_window("learned", "loss", "adam")
+    6
+    """
+    monotone = study_kind == "inverse" and monitor == "loss" and \
+        optimizer in LINE_SEARCH_OPTIMIZERS
+    return MONOTONE_EMA_WINDOW if monotone else REFERENCE_EMA_WINDOW
+
+
+def _with_ema_window(refinement: RefinementSpec, study_kind: str,
+                     optimizer: OptimizerSpec) -> RefinementSpec:
+    if refinement.ema_window is not None:
+        return refinement
+    return dataclasses.replace(refinement, ema_window=default_ema_window(
+        study_kind, refinement.monitor, optimizer.name))
 
 
 def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
@@ -817,6 +862,8 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         raw=json.dumps(table, sort_keys=True),
         learned=_learned(_Table(sections["learned"], "learned", source)) if learned else None,
         heat=_heat(_Table(sections["heat"], "heat", source)) if heat else None)
+    scene = dataclasses.replace(scene, refinement=_with_ema_window(
+        scene.refinement, kind, scene.optimizer))
     if learned:
         _check_learned_optimizer(scene)
     if kind in ("learned", "heat") and scene.solver.preconditioner == "amg":

@@ -102,6 +102,60 @@ def test_stall_on_failure_reaches_the_controller():
         assert int(controller.update(state, 0.5, failed=True).iterations) == expected
 
 
+def _refinement_step(controller, values):
+    """The first update after which ``controller`` has refined (None: never)."""
+    state = controller.init()
+    for step, value in enumerate(values, 1):
+        state = controller.update(state, value)
+        if int(state.refinements):
+            return step
+    return None
+
+
+INVERSE = {"inverse": {"truth": "x"}}
+
+
+@pytest.mark.parametrize("table, window", [
+    (INVERSE, 2),                                                    # L-BFGS watching its loss
+    ({**INVERSE, "optimizer": {"name": "newton_cg"}}, 2),
+    ({**INVERSE, "optimizer": {"name": "gauss_newton"}}, 2),
+    ({**INVERSE, "refinement": {"monitor": "gradient"}}, 6),         # not monotone
+    ({**INVERSE, "refinement": {"monitor": "validation"}}, 6),
+    ({**INVERSE, "optimizer": {"name": "adam"}}, 6),                 # no line search
+    ({**INVERSE, "optimizer": {"name": "hig"}}, 6),
+    ({**INVERSE, "refinement": {"ema_window": 6}}, 6),               # given: kept
+    ({**INVERSE, "optimizer": {"name": "adam"}, "refinement": {"ema_window": 2}}, 2),
+    ({}, 6),                                                         # a forward study
+])
+def test_ema_window_default_follows_the_monitored_signal(table, window):
+    """An inversion's loss under a line-search optimiser falls monotonically between
+    refinements: the moving average defaults to a window of 2 there, to the reference's 6
+    elsewhere; the built controller uses it (a window of 2 calls the stall sooner)."""
+    scene = parse_scene(table)
+    assert scene.refinement.ema_window == window
+    plateau = [1.0, 0.5, 0.25, 0.125] + [0.125] * 20
+    built = _refinement_step(build.controller(scene), plateau)
+    spec = scene.refinement
+    reference = _refinement_step(pf.prdp.prdp(spec.K0, spec.dK, restart=spec.restart,
+                                              ema_window=window), plateau)
+    assert built == reference
+    assert (built, _refinement_step(pf.prdp.prdp(spec.K0, spec.dK, restart=spec.restart),
+                                    plateau)) == ((10, 19) if window == 2 else (19, 19))
+
+
+def test_ema_window_default_per_study_run():
+    """Each run resolves its own default: mother's loss-monitored PRDP runs take 2, its
+    gradient-monitored run 6, and every run of a learned study 6 (its controller watches a
+    validation misfit epoch by epoch, whatever the optimiser)."""
+    mother = dict(load_scene("mother").runs())
+    assert mother["prdp"].refinement.ema_window == 2
+    assert mother["prdp K_adj0=20"].refinement.ema_window == 2
+    assert mother["prdp monitor=gradient"].refinement.ema_window == 6
+    learned = load_scene(ROOT / "examples" / "scenes" / "learned.toml").runs()
+    assert {run.optimizer.name for _, run in learned} >= {"adam", "lbfgs", "newton_cg"}
+    assert {run.refinement.ema_window for _, run in learned} == {6}
+
+
 def test_runs_merge_sections_and_replace_refinement():
     scene = parse_scene({
         "mesh": {"generator": "unit_square", "n": 16, "cell": "quad"},
