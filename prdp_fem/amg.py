@@ -69,24 +69,29 @@ import contextlib
 import dataclasses
 from collections.abc import Callable
 from functools import partial
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pyamg
 import scipy.linalg
 import scipy.sparse as sp
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jax.typing import ArrayLike
+from pyamg.aggregation.aggregate import standard_aggregation
+from pyamg.aggregation.tentative import fit_candidates
+from pyamg.relaxation import relaxation
+from pyamg.relaxation.smoothing import change_smoothers, rho_D_inv_A
+from pyamg.relaxation.utils import relaxation_as_linear_operator
+from pyamg.strength import symmetric_strength_of_connection
+from pyamg.util.utils import get_diagonal, scale_rows
 
 from .errors import DataError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, host_prepared
 from .prdp import _array_module  # NumPy for host values, jnp for JAX arrays
 from .validation import is_traced
-
-if TYPE_CHECKING:  # pyamg itself is imported where a hierarchy is built (_pyamg)
-    import pyamg
 
 __all__ = [
     "DEFAULT_IMPLEMENTATION",
@@ -153,27 +158,12 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
             # explicit per-level omega (withrho=False): AMGCycle reads back the exact values
             per_level = [("jacobi", {"omega": omega / rho, "withrho": False,
                                      "iterations": sweeps}) for rho in radii]
-            _smoothing().change_smoothers(ml, per_level or None, per_level or None)
+            change_smoothers(ml, per_level or None, per_level or None)
         else:
             symmetric_gs = ("gauss_seidel", {"sweep": "symmetric", "iterations": sweeps})
-            _smoothing().change_smoothers(ml, symmetric_gs, symmetric_gs)
+            change_smoothers(ml, symmetric_gs, symmetric_gs)
     _check_cycle(ml, f"kind={kind!r}")
     return ml
-
-
-def _pyamg():
-    """pyamg, imported on first use: it took 0.2-0.3 s of ``import prdp_fem`` (a quarter of
-    it) for every run, with or without an AMG hierarchy or a reference solve."""
-    import pyamg
-
-    return pyamg
-
-
-def _smoothing():
-    """pyamg's ``relaxation.smoothing`` module (imported with pyamg, on first use)."""
-    _pyamg()
-    from pyamg.relaxation import smoothing
-    return smoothing
 
 
 def _pyamg_solver(csr: sp.csr_matrix, kind: str, max_coarse: int,
@@ -183,7 +173,6 @@ def _pyamg_solver(csr: sp.csr_matrix, kind: str, max_coarse: int,
                                "postsmoother": None}
     if strength is not None:
         options["strength"] = strength
-    pyamg = _pyamg()
     if kind == "sa":
         return pyamg.smoothed_aggregation_solver(csr, symmetry="symmetric", **options)
     return pyamg.ruge_stuben_solver(csr, **options)
@@ -230,13 +219,6 @@ def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int,
     the same radii, the levels equal pyamg's to round-off (tested); this loop took 0.5-0.6x
     the time of pyamg's at 65k dofs.
     """
-    pyamg = _pyamg()
-    from pyamg.aggregation.aggregate import standard_aggregation
-    from pyamg.aggregation.tentative import fit_candidates
-    from pyamg.relaxation.utils import relaxation_as_linear_operator
-    from pyamg.strength import symmetric_strength_of_connection
-    from pyamg.util.utils import get_diagonal, scale_rows
-
     finest = pyamg.MultilevelSolver.Level()
     finest.A, finest.B = csr, np.ones((csr.shape[0], 1), dtype=csr.dtype)
     csr.symmetry = "symmetric"
@@ -350,7 +332,7 @@ def _rho_jacobi(matrix: sp.spmatrix) -> float:
     if not np.all(np.isfinite(diagonal)):
         return float("nan")
     if not np.all(diagonal > 0):
-        return float(_smoothing().rho_D_inv_A(csr))
+        return float(rho_D_inv_A(csr))
     scale = 1.0 / np.sqrt(diagonal)
     v = np.random.default_rng(0).standard_normal(csr.shape[0])
     v /= np.linalg.norm(v)
@@ -601,9 +583,6 @@ def _dense_map(levels, coarsest: np.ndarray, sweeps: int) -> np.ndarray:
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:
     """``(omega_l, sweeps)`` of a level whose pre- and post-smoothers are the same Jacobi."""
-    _pyamg()
-    from pyamg.relaxation import relaxation
-
     found = []
     for smoother in (level.presmoother, level.postsmoother):
         if getattr(smoother, "func", None) is not relaxation.jacobi:

@@ -26,8 +26,9 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pyamg
 
-from .amg import IMPLEMENTATIONS, _cycle_of_checked, _pyamg, amg_hierarchy
+from .amg import IMPLEMENTATIONS, _cycle_of_checked, amg_hierarchy
 from .bench import poisson_operator
 from .cg import ConvergedCG, solve
 from .errors import SolverConfigError
@@ -66,7 +67,7 @@ def _pyamg_setup(csr, smoother: str):
         relax = ("jacobi", {"omega": 4.0 / 3.0, "iterations": 1})
     else:
         relax = ("gauss_seidel", {"sweep": "symmetric", "iterations": 1})
-    return _pyamg().smoothed_aggregation_solver(csr, symmetry="symmetric", presmoother=relax,
+    return pyamg.smoothed_aggregation_solver(csr, symmetry="symmetric", presmoother=relax,
                                              postsmoother=relax)
 
 

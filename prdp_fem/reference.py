@@ -14,12 +14,13 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+import pyamg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
 
-from .amg import _pyamg, seeded_numpy_random
+from .amg import seeded_numpy_random
 from .discretization import Discretization
 
 __all__ = [
@@ -53,7 +54,7 @@ def amg_solve(matrix: sp.spmatrix, b: np.ndarray, *, rtol: float = 1e-12,
     matrix = sp.csr_matrix(matrix)
     b = np.asarray(b, dtype=float)
     with seeded_numpy_random():
-        hierarchy = _pyamg().smoothed_aggregation_solver(matrix, symmetry="symmetric")
+        hierarchy = pyamg.smoothed_aggregation_solver(matrix, symmetry="symmetric")
     residuals: list[float] = []
     x = hierarchy.solve(b, tol=rtol, accel="cg", maxiter=max_iterations, residuals=residuals)
     return ReferenceSolution(x, max(len(residuals) - 1, 0), float(np.linalg.norm(b - matrix @ x)))

@@ -684,16 +684,3 @@ def test_bench_amg_bad_options(capsys, args, message):
     error = capsys.readouterr().err
     assert error.startswith("prdp-fem: error: ") and error.count("\n") == 1
     assert re.search(message, error), error
-
-
-def test_pyamg_is_imported_where_a_hierarchy_is_built():
-    """``import prdp_fem`` leaves pyamg out (a run with neither an AMG preconditioner nor a
-    reference solve never needs it); the first hierarchy imports it, in a fresh process."""
-    code = ("import sys, numpy as np, scipy.sparse as sp, prdp_fem as pf\n"
-            "print('pyamg' in sys.modules)\n"
-            "A = sp.diags([-np.ones(49), 2 * np.ones(50), -np.ones(49)], [-1, 0, 1]).tocsr()\n"
-            "sol = pf.amg_solve(A, np.ones(50))\n"
-            "print('pyamg' in sys.modules, sol.residual_norm < 1e-9)\n")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                            check=True, timeout=120)
-    assert result.stdout.split() == ["False", "True", "True"]
