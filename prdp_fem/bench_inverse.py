@@ -347,7 +347,7 @@ class SavingRow(NamedTuple):
     repeats: int = 1            # studies whose medians these are (see median_row)
     time_saving_low: float = math.nan   # the lowest and highest time_saving among them
     time_saving_high: float = math.nan
-    seed: int | None = None     # the scene's inverse.seed where seed_variants set it
+    seed: int | None = None     # the scene's inverse.seed, where it draws the data (_seeded)
 
     @property
     def error_difference(self) -> float:
@@ -422,7 +422,9 @@ def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
             histories = inverse_histories(restricted, directory)
             per_study.append(saving_rows(scene.name, scene.study.reference, result.summary,
                                          histories, scene.study.band))
-    return [median_row(rows) for rows in zip(*per_study, strict=True)]
+    seed = scene.inverse.seed if _seeded(scene) else None
+    return [median_row([row._replace(seed=seed) for row in rows])
+            for rows in zip(*per_study, strict=True)]
 
 
 def median_row(rows) -> SavingRow:
@@ -491,16 +493,20 @@ def _seeded(scene) -> bool:
 
 def seed_variants(scene, seeds) -> list[tuple[int | None, Any]]:
     """``(seed, scene)`` for every seed in ``seeds``: the scene with ``inverse.seed = seed``
-    (other noise, other random sensors; everything else the scene's).
+    (other noise, other random sensors; everything else as the scene's file says: the
+    variants are parsed again from its table, so a scene edited in Python with
+    ``dataclasses.replace`` loses those edits).
 
     One ``(None, scene)`` where the scene's data do not depend on the seed (no noise and no
     random sensors: every seed would give the same study) or where ``seeds`` is empty.
     """
     from .scene import with_overrides
 
-    seeds = list(seeds or ())
-    if any(not isinstance(seed, int) or isinstance(seed, bool) or seed < 0 for seed in seeds):
+    seeds = [] if seeds is None else list(seeds)
+    if any(not isinstance(seed, int | np.integer) or isinstance(seed, bool) or seed < 0
+           for seed in seeds):
         raise SolverConfigError(f"seeds={seeds!r}: expected integers >= 0")
+    seeds = [int(seed) for seed in seeds]
     if len(set(seeds)) != len(seeds):
         raise SolverConfigError(f"seeds={seeds!r}: expected distinct seeds")
     if scene.inverse is None:

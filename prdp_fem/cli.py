@@ -658,13 +658,19 @@ def _bench_prdp(args) -> None:
         raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
     if args.repeats < 1:
         raise SolverConfigError(f"--repeats {args.repeats}: expected an integer >= 1")
+    if args.seeds is not None and (min(args.seeds) < 0 or len(set(args.seeds)) < len(args.seeds)):
+        raise SolverConfigError(f"--seeds {' '.join(map(str, args.seeds))}: expected distinct "
+                                "integers >= 0")
     scenes = [_scene(name, args.steps) for name in (args.scene or SAVING_SCENES)]
+    names = [scene.name for scene in scenes]
+    if len(set(names)) < len(names):  # the rows and the summary go by the scene's name
+        raise SolverConfigError(f"--scene {' '.join(args.scene)}: scenes named {names}; "
+                                "expected scenes of distinct names")
     instances = []
     for scene in scenes:  # every scene and seed checked before the first one runs
         saving_configurations(scene)
         instances += seed_variants(scene, args.seeds)
-    rows = [row._replace(seed=seed) for seed, scene in instances
-            for row in prdp_saving(scene, repeats=args.repeats)]
+    rows = [row for _, scene in instances for row in prdp_saving(scene, repeats=args.repeats)]
     seeded = args.seeds is not None
     cells = [_saving_cells(row, seeded) for row in rows]
     _print_table(cells, list(cells[0]))

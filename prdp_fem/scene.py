@@ -438,11 +438,24 @@ class Scene:
 
     @property
     def fingerprint(self) -> str:
-        """Hash of everything that changes results (not the name or the description)."""
+        """Hash of everything that changes results (not the name or the description).
+
+        The table and its directory, and the moving-average window of every PRDP run whose
+        table leaves it unset and whose default is not the reference's 6: a study written
+        before that default changed (to 2 for an inversion's loss under a line-search
+        optimiser) must not resume into a mixed one (its finished runs had 6). Studies
+        whose runs keep 6 or spell their window keep the fingerprint they had.
+        """
         table = json.loads(self.raw)
         for key in ("name", "description"):
             table.pop(key, None)
-        text = json.dumps([table, self.directory], sort_keys=True)
+        payload: list[Any] = [table, self.directory]
+        defaulted = {name: run.refinement.ema_window for name, run in self.runs()
+                     if run.refinement.kind == "prdp"
+                     and "ema_window" not in json.loads(run.raw).get("refinement", {})}
+        if any(window != REFERENCE_EMA_WINDOW for window in defaulted.values()):
+            payload.append({"ema_window": defaulted})
+        text = json.dumps(payload, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
     def mesh_path(self) -> Path | None:
@@ -644,7 +657,7 @@ LINE_SEARCH_OPTIMIZERS = ("lbfgs", "newton_cg", "gauss_newton")
 REFERENCE_EMA_WINDOW = 6
 #: The window where the monitored value is the loss of a line-search optimiser in an
 #: inversion: a monotone signal with no noise to smooth, whose stall the reference's window
-#: sees some ten steps late (see the README's "PRDP saving (measured)").
+#: sees some ten steps late (see the README's "PRDP saving on the built-in scenes").
 MONOTONE_EMA_WINDOW = 2
 
 

@@ -303,6 +303,7 @@ def test_saving_rows_are_the_study_summary(tmp_path):
         r.step for r in history if all(later.parameter_error <= 1.01 * row.converged_error
                                        for later in history[r.step - 1:]))
     assert row.goal_met == (row.time_saving >= 0.8 and abs(row.error_difference) <= 0.01)
+    assert row.seed is None  # given data: the seed draws nothing
 
 
 def test_saving_goal_needs_both_the_time_and_the_error():
@@ -370,17 +371,22 @@ def test_seed_variants_draw_other_noise_and_sensors():
 def test_seed_variants_run_once_where_the_data_draw_nothing(inverse):
     scene = parse_scene({"mesh": {"n": 8}, "inverse": inverse})
     assert seed_variants(scene, [1, 2, 3]) == [(None, scene)]
+
+
+def test_mother_runs_once_and_numpy_seeds_are_seeds():
     assert seed_variants(load_scene("mother"), [1, 2]) == [(None, load_scene("mother"))]
+    variants = seed_variants(parse_scene(NOISY_SENSORS), np.arange(2))
+    assert [(seed, type(seed)) for seed, _ in variants] == [(0, int), (1, int)]
 
 
-@pytest.mark.parametrize("seeds", [[-1], [1, 1], [True]])
+@pytest.mark.parametrize("seeds", [[-1], [1, 1], [True], [1.5]])
 def test_seed_variants_refuse_bad_seeds(seeds):
     with pytest.raises(SolverConfigError, match="seeds="):
         seed_variants(parse_scene(NOISY_SENSORS), seeds)
 
 
 def test_seed_summary_counts_the_instances_that_meet_the_goal():
-    from prdp_fem.bench_inverse import SavingRow
+    from prdp_fem.bench_inverse import SavingRow, median_row
 
     row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
     rows = [row._replace(seed=1),                                        # met, both readings
@@ -395,29 +401,35 @@ def test_seed_summary_counts_the_instances_that_meet_the_goal():
     assert first.below_time_saving == pytest.approx(0.9)
     assert first.error_difference == pytest.approx(0.005)  # median of 0.5 %, 0.5 %, -10 %
     assert (other.run, other.instances, other.met, other.met_below) == ("prdp unrolled", 1, 0, 0)
-    with pytest.raises(ValueError, match="different runs"):
-        from prdp_fem.bench_inverse import median_row
+    with pytest.raises(ValueError, match="different runs"):  # repeats of one instance only
         median_row([row._replace(seed=1), row._replace(seed=2)])
+
+
+def _stand_in_saving(seen):
+    """``prdp_saving`` without the studies: one row per scene, its seed stamped as the real
+    one stamps it, the goal missed in the band for seed 2."""
+    from prdp_fem.bench_inverse import SavingRow, _seeded
+
+    def stand_in(scene, *, repeats=1, out=None, progress=None):
+        seen.append((scene.name, scene.inverse.seed, repeats))
+        met = scene.inverse.seed != 2 or not _seeded(scene)
+        return [SavingRow(scene.name, "prdp", 10.0, 1000, 1.0, 100, 5, 0.9 if met else 0.5,
+                          0.9, 5, 0.9, 0.9, 1.0, 1.005,
+                          seed=scene.inverse.seed if _seeded(scene) else None)]
+    return stand_in
 
 
 def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, capsys):
     """The command runs every instance's study (here: stand-in rows) and prints the seed
     column and the per-run summary; a scene whose data draw nothing runs once."""
     from prdp_fem import bench_inverse
-    from prdp_fem.bench_inverse import SavingRow
 
     seen = []
-
-    def stand_in(scene, *, repeats=1, out=None, progress=None):
-        seen.append((scene.name, scene.inverse.seed, repeats))
-        met = scene.inverse.seed != 2 or scene.name == "mother"
-        return [SavingRow(scene.name, "prdp", 10.0, 1000, 1.0, 100, 5, 0.9 if met else 0.5,
-                          0.9, 5, 0.9, 0.9, 1.0, 1.005)]
-
-    monkeypatch.setattr(bench_inverse, "prdp_saving", stand_in)
-    assert main(["bench", "prdp", "--scene", "plate_hole", "mother", "--seeds", "1", "2"]) == 0
+    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen))
+    assert main(["bench", "prdp", "--scene", "plate_hole", "mother", "--seeds", "1", "2",
+                 "--repeats", "2"]) == 0
     mother_seed = load_scene("mother").inverse.seed  # its own: noise-free full-field data
-    assert seen == [("plate_hole", 1, 1), ("plate_hole", 2, 1), ("mother", mother_seed, 1)]
+    assert seen == [("plate_hole", 1, 2), ("plate_hole", 2, 2), ("mother", mother_seed, 2)]
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].split()[:3] == ["scene", "run", "seed"]
     assert [line.split()[:3] for line in lines[1:4]] == [
@@ -426,6 +438,18 @@ def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, c
     assert lines[5].split()[:5] == ["scene", "run", "band", "met", "met_below"]
     assert lines[6].split()[:5] == ["plate_hole", "prdp", "2/2", "1/2", "2/2"]
     assert lines[7].split()[:5] == ["mother", "prdp", "1/1", "1/1", "1/1"]
+
+
+def test_bench_prdp_without_seeds_has_no_seed_column_or_summary(monkeypatch, capsys):
+    from prdp_fem import bench_inverse
+
+    seen = []
+    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen))
+    assert main(["bench", "prdp", "--scene", "plate_hole"]) == 0
+    assert seen == [("plate_hole", load_scene("plate_hole").inverse.seed, 1)]
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:3] == ["scene", "run", "conv_s"]
+    assert len(lines) == 3 and lines[2].startswith("save: ")  # header, row, footnote
 
 
 # --------------------------------------------------------------------------------------
@@ -445,8 +469,9 @@ def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, c
     (["bench", "prdp", "--scene", "torus"], "scene 'torus': expected"),
     (["bench", "prdp", "--steps", "0"], "--steps 0: expected an integer >= 1"),
     (["bench", "prdp", "--repeats", "0"], "--repeats 0: expected an integer >= 1"),
-    (["bench", "prdp", "--seeds", "1", "1"], "expected distinct seeds"),
-    (["bench", "prdp", "--seeds", "-3"], "expected integers >= 0"),
+    (["bench", "prdp", "--seeds", "1", "1"], "--seeds 1 1: expected distinct integers >= 0"),
+    (["bench", "prdp", "--seeds", "-3"], "--seeds -3: expected distinct integers >= 0"),
+    (["bench", "prdp", "--scene", "cube", "cube"], "expected scenes of distinct names"),
     (["bench", "prdp", "--scene", "mother", "poisson_h"], "expected an inverse study"),
 ])
 def test_bench_bad_options_are_one_line_and_exit_2(argv, message, capsys):

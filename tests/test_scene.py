@@ -154,6 +154,8 @@ def test_ema_window_default_per_study_run():
     learned = load_scene(ROOT / "examples" / "scenes" / "learned.toml").runs()
     assert {run.optimizer.name for _, run in learned} >= {"adam", "lbfgs", "newton_cg"}
     assert {run.refinement.ema_window for _, run in learned} == {6}
+    heat = load_scene(ROOT / "examples" / "scenes" / "heat.toml").runs()
+    assert {run.refinement.ema_window for _, run in heat} == {6}
 
 
 def test_runs_merge_sections_and_replace_refinement():
@@ -181,6 +183,51 @@ def test_fingerprint_follows_settings_not_names():
     renamed = parse_scene({"name": "b", "description": "y", "mesh": {"n": 4}})
     assert scene.fingerprint == renamed.fingerprint
     assert with_overrides(scene, {"mesh": {"n": 5}}).fingerprint != scene.fingerprint
+
+
+def _table_only_fingerprint(scene) -> str:
+    """The fingerprint as it was before the window's default changed: table and directory."""
+    import hashlib
+    table = json.loads(scene.raw)
+    for key in ("name", "description"):
+        table.pop(key, None)
+    text = json.dumps([table, scene.directory], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def test_a_study_begun_under_the_old_window_does_not_resume_into_the_new_one(tmp_path):
+    """Runs whose unset window became 2 change the fingerprint (a study directory written
+    before, its finished runs with 6, is refused on --resume); studies whose runs all keep
+    the reference's 6 keep theirs and resume."""
+    changed = load_scene("plate_hole")             # L-BFGS watching its loss: now 2
+    assert changed.fingerprint != _table_only_fingerprint(changed)
+    for kept in (load_scene("poisson_h"),          # an h-study: no inversion
+                 parse_scene({**INVERSE, "refinement": {"monitor": "gradient"}}),
+                 parse_scene({**INVERSE, "refinement": {"ema_window": 2}}),  # spelled
+                 parse_scene({**INVERSE, "optimizer": {"name": "adam"}})):
+        assert kept.fingerprint == _table_only_fingerprint(kept)
+    # the study refuses a directory whose manifest has the old fingerprint
+    from prdp_fem import study
+    small = parse_scene({**INVERSE, "mesh": {"n": 4}, "optimizer": {"steps": 1},
+                         "refinement": {"K0": 2, "dK": 2}})
+    out = tmp_path / "study"
+    out.mkdir()
+    manifest = study._manifest(small)
+    (out / "study.json").write_text(json.dumps(
+        {**manifest, "fingerprint": _table_only_fingerprint(small)}))
+    with pytest.raises(study.StudyError, match="fingerprint"):
+        study.run_study(small, out, resume=True)
+
+
+def test_a_refinement_spec_built_by_hand_gets_the_default_window():
+    """``build.controller`` resolves a window left unset outside ``parse_scene``."""
+    import dataclasses
+    scene = parse_scene(INVERSE)
+    by_hand = dataclasses.replace(scene, refinement=dataclasses.replace(
+        scene.refinement, ema_window=None))
+    plateau = [1.0, 0.5, 0.25, 0.125] + [0.125] * 20
+    assert _refinement_step(build.controller(by_hand), plateau) == \
+        _refinement_step(build.controller(scene), plateau) == 10
 
 
 # -- errors ------------------------------------------------------------------------------
