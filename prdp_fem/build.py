@@ -59,7 +59,7 @@ from .scene import (
     SceneDataError,
     SceneDiscretizationError,
     SceneSensorError,
-    default_ema_window,
+    ema_window_of,
 )
 
 __all__ = [
@@ -345,11 +345,8 @@ def controller(scene: Scene) -> Refinement:
         return converged(spec.rtol)
     adjoint = None if spec.adjoint_K0 is None else (
         spec.adjoint_K0, spec.adjoint_dK, spec.adjoint_K_max, spec.adjoint_factor)
-    # a spec built by hand (not through parse_scene) may leave the window unset
-    ema_window = spec.ema_window if spec.ema_window is not None else default_ema_window(
-        scene.study.kind, spec.monitor, scene.optimizer.name)
     return prdp(spec.K0, spec.dK, spec.K_max, factor=spec.factor, adjoint=adjoint,
-                tau_step=spec.tau_step, tau_stop=spec.tau_stop, ema_window=ema_window,
+                tau_step=spec.tau_step, tau_stop=spec.tau_stop, ema_window=ema_window_of(scene),
                 delta=spec.delta, latch=spec.latch, restart=spec.restart,
                 stall_on_failure=spec.stall_on_failure, rtol=spec.rtol,
                 rtol_factor=spec.rtol_factor, rtol_min=spec.rtol_min)

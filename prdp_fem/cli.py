@@ -676,7 +676,7 @@ def _bench_prdp(args) -> None:
     _print_table(cells, list(cells[0]))
     if seeded:
         print()
-        summary = [_seed_cells(instance) for instance in seed_summary(rows)]
+        summary = [_seed_cells(per_run) for per_run in seed_summary(rows)]
         _print_table(summary, list(summary[0]))
     medians = (f"medians of {args.repeats} studies run one after another (save_t range: the "
                "lowest and highest time saving among them); " if args.repeats > 1 else "")

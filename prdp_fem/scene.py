@@ -99,6 +99,7 @@ __all__ = [
     "StudySpec",
     "builtin_scene_path",
     "default_ema_window",
+    "ema_window_of",
     "load_scene",
     "mesh_scene",
     "parse_scene",
@@ -676,12 +677,13 @@ def default_ema_window(study_kind: str, monitor: str, optimizer: str) -> int:
     return MONOTONE_EMA_WINDOW if monotone else REFERENCE_EMA_WINDOW
 
 
-def _with_ema_window(refinement: RefinementSpec, study_kind: str,
-                     optimizer: OptimizerSpec) -> RefinementSpec:
-    if refinement.ema_window is not None:
-        return refinement
-    return dataclasses.replace(refinement, ema_window=default_ema_window(
-        study_kind, refinement.monitor, optimizer.name))
+def ema_window_of(scene: Scene) -> int:
+    """The scene's moving-average window: the one its table gives, else
+    :func:`default_ema_window` (a :class:`RefinementSpec` built by hand leaves it unset)."""
+    spec = scene.refinement
+    if spec.ema_window is not None:
+        return spec.ema_window
+    return default_ema_window(scene.study.kind, spec.monitor, scene.optimizer.name)
 
 
 def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
@@ -875,8 +877,8 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         raw=json.dumps(table, sort_keys=True),
         learned=_learned(_Table(sections["learned"], "learned", source)) if learned else None,
         heat=_heat(_Table(sections["heat"], "heat", source)) if heat else None)
-    scene = dataclasses.replace(scene, refinement=_with_ema_window(
-        scene.refinement, kind, scene.optimizer))
+    scene = dataclasses.replace(scene, refinement=dataclasses.replace(
+        scene.refinement, ema_window=ema_window_of(scene)))
     if learned:
         _check_learned_optimizer(scene)
     if kind in ("learned", "heat") and scene.solver.preconditioner == "amg":
