@@ -70,7 +70,7 @@ class Observation:
     def clean(self, data: np.ndarray) -> Observation:
         """The same operator with other (noise-free) data."""
         return dataclasses.replace(self, data=jnp.asarray(data, jnp.float64),
-                                   noise_std=jnp.zeros(()))
+                                   noise_std=as_jax(0.0))
 
 
 def _observation(operator: sp.spmatrix, weight: sp.spmatrix, u_true: np.ndarray | None,
@@ -83,7 +83,7 @@ def _observation(operator: sp.spmatrix, weight: sp.spmatrix, u_true: np.ndarray 
         data = operator @ finite_vector(u_true, "u_true (nodal state, all dofs)", n_dofs)
     data = finite_vector(data, "data (observed values)", n_obs)
     return Observation(SparseMatrix.from_scipy(operator), SparseMatrix.from_scipy(weight),
-                       as_jax(data), jnp.zeros(()))
+                       as_jax(data), as_jax(0.0))
 
 
 def full_field(disc: Discretization, *, u_true: np.ndarray | None = None,

@@ -233,8 +233,9 @@ def _primitive_works() -> bool:
     probe = IterationCounter()
     try:
         with jax.ensure_compile_time_eval():  # a probe that runs, also mid-trace
-            jax.jit(lambda slot, k: _TAP_PRIMITIVE.bind(jnp.int32(1), slot, k,
-                                                        jnp.ones((), jnp.int32)))(probe.slot, 3)
+            # NumPy constants: a jnp constructor would compile a program of its own here
+            jax.jit(lambda slot, k: _TAP_PRIMITIVE.bind(np.int32(1), slot, k,
+                                                        np.int32(1)))(probe.slot, 3)
             jax.effects_barrier()
     except Exception as error:  # any failure means: use io_callback
         _LOG.debug("iteration_tap does not work here (%r); the tally uses io_callback", error)
