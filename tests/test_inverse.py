@@ -9,7 +9,7 @@ import numpy as np
 import optax
 import pytest
 import scipy.sparse.linalg as spla
-from conftest import shared_compiles_made
+from conftest import json_from_a_process, shared_compiles_made
 
 import prdp_fem as pf
 from prdp_fem.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
@@ -144,19 +144,38 @@ def test_noise_is_seeded_and_at_the_stated_level():
 
 
 
-def test_building_an_inverse_problem_compiles_no_program(backend_compiles):
-    # the setup puts host arrays on the device (device_put) instead of running jnp
-    # constructors, which compile a program per shape: about 0.05 s each on 2 CPU cores
-    disc = pf.discretize(pf.unit_square(6), element="P1", dirichlet=0.0)
-    data = disc.project(lambda x: x[0] * x[1])
-    jax.clear_caches()
-    backend_compiles.clear()
-    for observation in (full_field(disc, data=data), full_field(disc, data=data).clean(data)):
-        problem = inverse_problem(disc, observation, unknown="source", alpha=1e-6,
-                                  regularization="l2")
-    assert backend_compiles == []
-    assert problem.observation.noise_std.dtype == np.float64
-    assert not problem.observation.noise_std.weak_type
+_SETUP_COMPILES = """
+import json
+from jax._src import compiler
+compiled, original = [], compiler.backend_compile_and_load
+def counting(backend, module, *args):
+    compiled.append(str(module.operation.attributes["sym_name"]).strip('"'))
+    return original(backend, module, *args)
+compiler.backend_compile_and_load = counting
+import numpy as np
+import prdp_fem as pf
+from prdp_fem import tally
+disc = pf.discretize(pf.unit_square(6), element="P1", dirichlet=0.0)
+data = disc.project(lambda x: x[0] * x[1])
+observation = pf.full_field(disc, data=data)
+for obs in (observation, observation.clean(data)):
+    problem = pf.inverse_problem(disc, obs, unknown="source", alpha=1e-6, regularization="l2")
+setup = list(compiled)
+works = tally._primitive_works()
+print(json.dumps({"setup": setup, "probe": compiled[len(setup):], "works": works,
+                  "noise": [str(problem.observation.noise_std.dtype),
+                            problem.observation.noise_std.weak_type]}))
+"""
+
+
+def test_the_setup_compiles_no_program_and_the_tally_probe_only_its_own():
+    # jnp constructors (an observation's zero noise level, the probe's constants under
+    # ensure_compile_time_eval) compiled a program each per process, about 0.05 s apiece
+    # on 2 CPU cores; in a fresh process, since a program compiled once is cached after
+    child = json_from_a_process(_SETUP_COMPILES, "0")
+    assert child["setup"] == []
+    assert child["works"] and child["probe"] == ["jit__lambda"]
+    assert child["noise"] == ["float64", False]
 
 def test_h1_regularizer_equals_the_stiffness_quadratic_form():
     disc = pf.discretize(pf.unit_square(5), element="P2", dirichlet=0.0)
