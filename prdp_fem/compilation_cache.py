@@ -5,8 +5,9 @@ command, every script run) would compile it again. Importing :mod:`prdp_fem` poi
 persistent cache at a directory so that a second process loads the executables instead:
 
 ``PRDP_FEM_COMPILATION_CACHE``
-    unset: ``$XDG_CACHE_HOME/prdp_fem/jax`` (``~/.cache/prdp_fem/jax``); ``0``, ``off`` or
-    ``false``: leave the cache off; any other value: that directory.
+    unset, ``1``, ``on``, ``true`` or ``yes``: ``$XDG_CACHE_HOME/prdp_fem/jax``
+    (``~/.cache/prdp_fem/jax``); ``0``, ``off``, ``false`` or ``no``: leave the cache off; any
+    other value: that directory.
 
 An explicit ``jax.config.update("jax_compilation_cache_dir", ...)`` made before the import is
 left alone. Compilations under 0.2 s are not stored (loading would not pay); the directory is
@@ -20,6 +21,9 @@ tally's, in the subdirectory ``tally/`` (its 64 most recently used).
 >>> cache_directory({"PRDP_FEM_COMPILATION_CACHE": "off"}) is None
 True
 >>> cache_directory({"XDG_CACHE_HOME": "/tmp/c"}) == Path("/tmp/c/prdp_fem/jax")
+True
+>>> cache_directory({"PRDP_FEM_COMPILATION_CACHE": "on", "XDG_CACHE_HOME": "/tmp/c"}) == Path(
+...     "/tmp/c/prdp_fem/jax")
 True
 """
 
@@ -35,6 +39,7 @@ __all__ = ["cache_directory", "enable_compilation_cache"]
 
 ENVIRONMENT_VARIABLE = "PRDP_FEM_COMPILATION_CACHE"
 _OFF = ("0", "off", "false", "no")
+_ON = ("1", "on", "true", "yes")  # the default directory, not a directory named "1"
 MIN_COMPILE_SECONDS = 0.2
 
 
@@ -44,7 +49,8 @@ def cache_directory(environ: Mapping[str, str] = os.environ) -> Path | None:
     if setting is not None:
         if setting.strip().lower() in _OFF or not setting.strip():
             return None
-        return Path(setting).expanduser()
+        if setting.strip().lower() not in _ON:
+            return Path(setting).expanduser()
     base = environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "prdp_fem" / "jax"
 

@@ -31,6 +31,9 @@ def test_directory_from_the_environment(tmp_path):
     assert cache_directory({"PRDP_FEM_COMPILATION_CACHE": str(tmp_path / "c")}) == tmp_path / "c"
     for off in ("0", "off", "False", " "):
         assert cache_directory({"PRDP_FEM_COMPILATION_CACHE": off}) is None
+    for on in ("1", "on", "True", " yes"):  # the default directory, not one named "1"
+        assert cache_directory({"PRDP_FEM_COMPILATION_CACHE": on,
+                                "XDG_CACHE_HOME": str(tmp_path)}) == tmp_path / "prdp_fem" / "jax"
 
 
 def test_second_process_loads_the_compiled_solve(tmp_path):
