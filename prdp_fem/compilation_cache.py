@@ -47,9 +47,10 @@ def cache_directory(environ: Mapping[str, str] = os.environ) -> Path | None:
     """The directory the environment asks for, or ``None`` when the cache is switched off."""
     setting = environ.get(ENVIRONMENT_VARIABLE)
     if setting is not None:
-        if setting.strip().lower() in _OFF or not setting.strip():
+        word = setting.strip().lower()
+        if not word or word in _OFF:
             return None
-        if setting.strip().lower() not in _ON:
+        if word not in _ON:
             return Path(setting).expanduser()
     base = environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "prdp_fem" / "jax"

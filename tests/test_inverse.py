@@ -143,7 +143,6 @@ def test_noise_is_seeded_and_at_the_stated_level():
     assert np.linalg.norm(eta) == pytest.approx(float(a.noise_norm()), rel=0.1)
 
 
-
 _SETUP_COMPILES = """
 import json
 from jax._src import compiler
@@ -176,6 +175,7 @@ def test_the_setup_compiles_no_program_and_the_tally_probe_only_its_own():
     assert child["setup"] == []
     assert child["works"] and child["probe"] == ["jit__lambda"]
     assert child["noise"] == ["float64", False]
+
 
 def test_h1_regularizer_equals_the_stiffness_quadratic_form():
     disc = pf.discretize(pf.unit_square(5), element="P2", dirichlet=0.0)
