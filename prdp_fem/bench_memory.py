@@ -24,6 +24,17 @@ the mark cannot be reset, ``ru_maxrss`` is used and ``hwm_reset`` is ``False``: 
 then read as 0. XLA's own estimate of the gradient's scratch memory
 (``Compiled.memory_analysis``) is reported next to it, and a configuration whose estimate
 exceeds ``max_mb`` is compiled but not run (so one huge ``K`` cannot exhaust the machine).
+
+The allocator. XLA's CPU runtime takes a gradient's scratch as one block per evaluation
+(``posix_memalign`` from a worker thread) and frees it after. glibc serves a block that large
+with a fresh ``mmap`` (a thread's arena holds at most 64 MB, and above 32 MB the main arena
+maps too), so every evaluation faults its scratch in page by page. With
+``allocator="reuse"`` the child runs under :data:`REUSE_ENVIRONMENT` (one arena, no
+``mmap``, no trimming), so the block comes back from the heap already mapped;
+``faults_per_call`` (minor page faults per evaluation after the first) shows which happened.
+``"default"`` runs without those three variables. A reused heap also holds what compiling
+freed, so under ``"reuse"`` ``peak_mb`` counts only memory beyond it. glibc only (Linux);
+elsewhere the variables are ignored.
 """
 
 from __future__ import annotations
@@ -34,16 +45,24 @@ import resource
 import subprocess
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
 
 from .errors import SolverConfigError
 
-__all__ = ["MODES", "MemoryCost", "memory_cost"]
+__all__ = ["ALLOCATORS", "MODES", "REUSE_ENVIRONMENT", "MemoryCost", "memory_cost"]
 
 MODES = ("unrolled", "checkpointed", "implicit")
+ALLOCATORS = ("default", "reuse")
+#: glibc's allocator, told to keep freed memory mapped: every thread in the main arena (a
+#: thread's own arena cannot hold a block above 64 MB and maps it), no ``mmap`` for large
+#: blocks, and no trimming of the heap's top after a free (below 4 GiB)
+REUSE_ENVIRONMENT: Mapping[str, str] = MappingProxyType({
+    "MALLOC_ARENA_MAX": "1", "MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(2**32)})
 MB = 1e6  # bytes; the table is in decimal megabytes
 HIGH_WATER_RESET = "5"  # written to /proc/self/clear_refs: VmHWM := VmRSS (Linux >= 4.0)
 
@@ -62,31 +81,38 @@ class MemoryCost(NamedTuple):
     gradient_s: float  # median wall time of one gradient evaluation
     hwm_reset: bool  # the high-water mark was reset to the baseline before the run
     ran: bool  # False: xla_temp_mb exceeded max_mb, the gradient was only compiled
+    allocator: str = "default"  # "default" (glibc's settings) or "reuse" (REUSE_ENVIRONMENT)
+    faults_per_call: float = float("nan")  # minor page faults per evaluation after the first
 
 
 def memory_cost(side: int = 257, iterations: tuple[int, ...] = (10, 100, 1000), *,
                 modes: tuple[str, ...] = MODES, segment: int | None = None, repeats: int = 3,
-                max_mb: float = 4000.0, on_row=None) -> list[MemoryCost]:
-    """One :class:`MemoryCost` per ``(mode, K)``, each measured in a fresh subprocess.
+                max_mb: float = 4000.0, allocators: tuple[str, ...] = ("default",),
+                on_row=None) -> list[MemoryCost]:
+    """One :class:`MemoryCost` per ``(mode, K, allocator)``, each in a fresh subprocess.
 
     ``segment`` sets the checkpointed segment length (default ``ceil(sqrt(K))``);
     ``repeats`` gradient evaluations are timed (the first is the one whose memory is
     measured); a configuration whose XLA scratch estimate exceeds ``max_mb`` is not run.
-    ``on_row`` is called with each row as it lands.
+    ``allocators`` (some of :data:`ALLOCATORS`) run one after the other for each
+    configuration, so that a comparison is interleaved. ``on_row`` is called with each row as
+    it lands.
     """
-    _check_options(side, iterations, modes, segment, repeats, max_mb)
+    _check_options(side, iterations, modes, segment, repeats, max_mb, allocators)
     rows = []
     for mode in modes:
         for k in iterations:
-            row = _measure_in_subprocess(dict(side=side, iterations=k, mode=mode,
-                                              segment=segment, repeats=repeats, max_mb=max_mb))
-            rows.append(row)
-            if on_row is not None:
-                on_row(row)
+            for allocator in allocators:
+                row = _measure_in_subprocess(
+                    dict(side=side, iterations=k, mode=mode, segment=segment, repeats=repeats,
+                         max_mb=max_mb), allocator)
+                rows.append(row)
+                if on_row is not None:
+                    on_row(row)
     return rows
 
 
-def _check_options(side, iterations, modes, segment, repeats, max_mb) -> None:
+def _check_options(side, iterations, modes, segment, repeats, max_mb, allocators) -> None:
     def is_int(value) -> bool:
         return isinstance(value, int | np.integer) and not isinstance(value, bool)
 
@@ -104,20 +130,39 @@ def _check_options(side, iterations, modes, segment, repeats, max_mb) -> None:
         raise SolverConfigError(f"repeats={repeats!r}: expected an integer >= 1")
     if isinstance(max_mb, bool) or not isinstance(max_mb, int | float) or not max_mb > 0:
         raise SolverConfigError(f"max_mb={max_mb!r}: expected a number > 0")
+    bad_allocators = [a for a in allocators if a not in ALLOCATORS]
+    if not allocators or bad_allocators:
+        raise SolverConfigError(f"allocators={list(allocators)!r}: expected some of "
+                                f"{list(ALLOCATORS)}")
 
 
-def _measure_in_subprocess(config: dict) -> MemoryCost:
+def child_environment(allocator: str, environ: Mapping[str, str] = os.environ) -> dict:
+    """The child's environment: this package first on the path and the allocator's settings.
+
+    >>> env = child_environment("default", {"MALLOC_ARENA_MAX": "2", "HOME": "/h"})
+    >>> "MALLOC_ARENA_MAX" in env, env["HOME"]
+    (False, '/h')
+    >>> child_environment("reuse", {})["MALLOC_MMAP_MAX_"]
+    '0'
+    """
     # the child imports this very package, whichever one is installed
     package_parent = str(Path(__file__).resolve().parent.parent)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        [package_parent, *filter(None, [os.environ.get("PYTHONPATH")])])}
+    env = {key: value for key, value in environ.items() if key not in REUSE_ENVIRONMENT}
+    env["PYTHONPATH"] = os.pathsep.join([package_parent,
+                                         *filter(None, [environ.get("PYTHONPATH")])])
+    return {**env, **REUSE_ENVIRONMENT} if allocator == "reuse" else env
+
+
+def _measure_in_subprocess(config: dict, allocator: str = "default") -> MemoryCost:
+    env = child_environment(allocator)
     done = subprocess.run([sys.executable, "-m", "prdp_fem.bench_memory", json.dumps(config)],
                           capture_output=True, text=True, env=env, check=False)
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["(no output)"])[-1]
         raise RuntimeError(f"memory measurement {config} failed with exit status "
                            f"{done.returncode}: {last}")
-    return MemoryCost(**json.loads(done.stdout.strip().splitlines()[-1]))
+    return MemoryCost(**{**json.loads(done.stdout.strip().splitlines()[-1]),
+                         "allocator": allocator})
 
 
 # --------------------------------------------------------------------------------------
@@ -184,7 +229,7 @@ def measure(side: int, iterations: int, mode: str, segment: int | None, repeats:
     baseline_mb, _ = _resident_mb()
     hwm_reset = _reset_high_water_mark()
     ran = not xla_temp_mb > max_mb
-    peak_mb = gradient_s = float("nan")
+    peak_mb = gradient_s = faults_per_call = float("nan")
     if ran:
         times = []
         for _ in range(repeats):
@@ -193,9 +238,18 @@ def measure(side: int, iterations: int, mode: str, segment: int | None, repeats:
             times.append(time.perf_counter() - tic)
             if len(times) == 1:  # the timed repeats reuse the same buffers: read it once
                 peak_mb = max(_resident_mb()[1] - baseline_mb, 0.0)
+                faults_after_first = _minor_faults()
+        if repeats > 1:
+            faults_per_call = (_minor_faults() - faults_after_first) / (repeats - 1)
         gradient_s = float(np.median(times))
     return MemoryCost(mode, iterations, used_segment, n_dofs, 8 * n_dofs / MB, peak_mb,
-                      baseline_mb, xla_temp_mb, gradient_s, hwm_reset, ran)
+                      baseline_mb, xla_temp_mb, gradient_s, hwm_reset, ran,
+                      faults_per_call=faults_per_call)
+
+
+def _minor_faults() -> int:
+    """Minor page faults of this process so far, all threads (first touches of fresh pages)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def _main(argv: list[str]) -> int:

@@ -157,6 +157,11 @@ def _parser() -> argparse.ArgumentParser:
     memory.add_argument("--max-mb", type=float, default=4000.0,
                         help="skip running a configuration whose XLA scratch estimate exceeds "
                         "this (MB; it is still compiled and its estimate reported)")
+    memory.add_argument("--allocator", choices=["default", "reuse", "both"], default="default",
+                        help="glibc's allocator as it comes, or told to keep freed memory "
+                        "mapped (MALLOC_ARENA_MAX=1 MALLOC_MMAP_MAX_=0 "
+                        "MALLOC_TRIM_THRESHOLD_=4294967296); both: each configuration "
+                        "under both, interleaved, with the time ratio reuse / default")
     amg = bench_sub.add_parser("amg", help="AMG-PCG iterations and time / pyamg's own CG solve")
     amg.add_argument("--sides", type=int, nargs="*", default=[256, 512],
                      help="unit-square cells per side ((n-1)^2 dofs: 256 -> 65k, 512 -> 261k)")
@@ -551,9 +556,19 @@ def _bench_cg_device(args, sides: list[int]) -> None:
 def _bench_memory(args) -> None:
     from .bench_memory import memory_cost
 
-    columns = ["mode", "K", "segment", "peak MB", "n-vectors", "XLA temp MB", "grad [s]"]
-    widths = [12, 6, 8, 9, 10, 12, 9]
+    columns = ["mode", "K", "segment", "allocator", "peak MB", "n-vectors", "XLA temp MB",
+               "grad [s]", "faults/call", "ratio"]
+    widths = [12, 6, 8, 9, 9, 10, 12, 9, 11, 6]
+    allocators = ("default", "reuse") if args.allocator == "both" else (args.allocator,)
     header_printed = False
+    default_time = {}  # (mode, K) -> the default allocator's time, for the reuse row's ratio
+
+    def ratio(row) -> str:
+        if row.allocator == "default":
+            default_time[row.mode, row.iterations] = row.gradient_s
+            return "-"
+        base = default_time.get((row.mode, row.iterations))
+        return "-" if base is None or not row.ran else f"{row.gradient_s / base:.2f}"
 
     def emit(row):
         nonlocal header_printed
@@ -565,14 +580,17 @@ def _bench_memory(args) -> None:
             print("  ".join(c.rjust(w) for c, w in zip(columns, widths, strict=True)))
             header_printed = True
         cells = [row.mode, str(row.iterations), "-" if row.segment is None else str(row.segment),
-                 f"{row.peak_mb:.1f}" if row.ran else "skipped",
+                 row.allocator, f"{row.peak_mb:.1f}" if row.ran else "skipped",
                  f"{row.peak_mb / row.vector_mb:.1f}" if row.ran else "-",
-                 f"{row.xla_temp_mb:.1f}", f"{row.gradient_s:.3g}" if row.ran else "-"]
+                 f"{row.xla_temp_mb:.1f}", f"{row.gradient_s:.3g}" if row.ran else "-",
+                 "-" if math.isnan(row.faults_per_call) else f"{row.faults_per_call:.0f}",
+                 ratio(row)]
         print("  ".join(c.rjust(w) for c, w in zip(cells, widths, strict=True)), flush=True)
 
     try:
         memory_cost(args.side, tuple(args.iterations), modes=tuple(args.modes),
-                    segment=args.segment, repeats=args.repeats, max_mb=args.max_mb, on_row=emit)
+                    segment=args.segment, repeats=args.repeats, max_mb=args.max_mb,
+                    allocators=allocators, on_row=emit)
     except SolverConfigError as error:  # name the command-line option, not the keyword
         raise SolverConfigError(_as_option(str(error))) from None
 

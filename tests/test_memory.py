@@ -1,6 +1,9 @@
 """Checkpointed unrolled CG: the same K-iteration map in segments, its memory bound, and the
 ``bench memory`` command (structure and the checkpointed < plain ordering; never timings)."""
 
+import os
+import resource
+import sys
 from functools import partial
 
 import jax
@@ -9,7 +12,12 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.bench_memory import _gradient_problem, memory_cost
+from prdp_fem.bench_memory import (
+    REUSE_ENVIRONMENT,
+    _gradient_problem,
+    child_environment,
+    memory_cost,
+)
 from prdp_fem.cg import TruncatedCG, _scan_iterations, segment_length, solve
 from prdp_fem.cli import main
 
@@ -201,11 +209,43 @@ def test_bench_memory_table_and_checkpointed_peak_below_plain(capsys):
                  "unrolled", "checkpointed", "--repeats", "1"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("P1 Poisson on unit_square(65): 4096 dofs, one n-vector = ")
-    assert lines[2].split() == ["mode", "K", "segment", "peak", "MB", "n-vectors", "XLA",
-                                "temp", "MB", "grad", "[s]"]
+    assert lines[2].split() == ["mode", "K", "segment", "allocator", "peak", "MB", "n-vectors",
+                                "XLA", "temp", "MB", "grad", "[s]", "faults/call", "ratio"]
     rows = [line.split() for line in lines[3:]]
-    assert [row[:3] for row in rows] == [["unrolled", "400", "-"], ["checkpointed", "400", "20"]]
-    peak = {row[0]: float(row[3]) for row in rows}
+    assert [row[:4] for row in rows] == [["unrolled", "400", "-", "default"],
+                                         ["checkpointed", "400", "20", "default"]]
+    peak = {row[0]: float(row[4]) for row in rows}
     for row in rows:
-        assert all(float(cell) >= 0 for cell in row[3:])
+        assert all(float(cell) >= 0 for cell in row[4:8])
+        assert row[8:] == ["-", "-"]  # one evaluation: no faults after the first; no pair
     assert peak["checkpointed"] < peak["unrolled"] / 4
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator settings")
+def test_the_reuse_allocator_keeps_an_unrolled_gradient_s_scratch_mapped(capsys):
+    # 4096 dofs, K = 800: one 81 MB scratch block per evaluation, above what glibc keeps in
+    # a thread's arena (64 MB); under glibc's defaults each evaluation maps it afresh and
+    # faults it in (about 20 000 pages here), kept mapped it is reused
+    assert main(["bench", "memory", "--side", "65", "--iterations", "800", "--modes",
+                 "unrolled", "--repeats", "5", "--allocator", "both"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.strip().splitlines()[3:]]
+    assert [row[3] for row in rows] == ["default", "reuse"]
+    (default, reuse) = ({"scratch_mb": float(row[6]), "time": float(row[7]),
+                         "faults": float(row[8]), "ratio": row[9]} for row in rows)
+    page_mb = resource.getpagesize() / 1e6
+    assert default["scratch_mb"] > 64
+    assert reuse["faults"] * page_mb < 0.5 * reuse["scratch_mb"]
+    assert reuse["faults"] < default["faults"]
+    assert default["ratio"] == "-"
+    assert float(reuse["ratio"]) == pytest.approx(reuse["time"] / default["time"], abs=0.02)
+
+
+def test_a_child_runs_with_the_allocator_s_settings_and_only_then():
+    user = {"MALLOC_ARENA_MAX": "4", "MALLOC_TRIM_THRESHOLD_": "1", "PYTHONPATH": "/elsewhere"}
+    default, reuse = (child_environment(a, user) for a in ("default", "reuse"))
+    assert not set(REUSE_ENVIRONMENT) & set(default)  # glibc's own defaults, not the user's
+    assert {k: reuse[k] for k in REUSE_ENVIRONMENT} == dict(REUSE_ENVIRONMENT)
+    for env in (default, reuse):
+        assert env["PYTHONPATH"].split(os.pathsep)[1:] == ["/elsewhere"]
+    with pytest.raises(pf.SolverConfigError, match=r"allocators=\['tcmalloc'\]: expected some"):
+        memory_cost(side=8, iterations=(1,), allocators=("tcmalloc",))
