@@ -54,7 +54,8 @@ import numpy as np
 
 from .errors import SolverConfigError
 
-__all__ = ["ALLOCATORS", "MODES", "REUSE_ENVIRONMENT", "MemoryCost", "memory_cost"]
+__all__ = ["ALLOCATORS", "MODES", "REUSE_ENVIRONMENT", "MemoryCost", "child_environment",
+           "memory_cost"]
 
 MODES = ("unrolled", "checkpointed", "implicit")
 ALLOCATORS = ("default", "reuse")

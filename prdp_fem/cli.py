@@ -568,7 +568,9 @@ def _bench_memory(args) -> None:
             default_time[row.mode, row.iterations] = row.gradient_s
             return "-"
         base = default_time.get((row.mode, row.iterations))
-        return "-" if base is None or not row.ran else f"{row.gradient_s / base:.2f}"
+        if base is None or math.isnan(base) or not row.ran:  # no pair, or one side skipped
+            return "-"
+        return f"{row.gradient_s / base:.2f}"
 
     def emit(row):
         nonlocal header_printed
