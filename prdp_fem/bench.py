@@ -15,7 +15,10 @@ repeats. ``scaling_slope`` fits ``log t = slope log n + c`` over a size sweep (l
 
 from __future__ import annotations
 
+import os
 import time
+from collections.abc import Mapping
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -30,7 +33,20 @@ from .generators import unit_cube, unit_square
 from .operator import KERNELS, SparseMatrix, default_kernel, prepare
 
 __all__ = ["CGIterationCost", "DeviceIterationCost", "cg_iteration_cost",
-           "device_iteration_cost", "poisson_operator", "scaling_slope"]
+           "device_iteration_cost", "poisson_operator", "scaling_slope", "this_package_first"]
+
+
+def this_package_first(environ: Mapping[str, str] = os.environ) -> dict[str, str]:
+    """A copy of ``environ`` whose ``PYTHONPATH`` starts with this package's parent directory,
+    so that a benchmark's child process imports this very package, whichever is installed.
+
+    >>> env = this_package_first({"PYTHONPATH": "/elsewhere", "HOME": "/h"})
+    >>> env["PYTHONPATH"].split(os.pathsep)[1:], env["HOME"]
+    (['/elsewhere'], '/h')
+    """
+    package_parent = str(Path(__file__).resolve().parent.parent)
+    path = os.pathsep.join(filter(None, [package_parent, environ.get("PYTHONPATH")]))
+    return {**environ, "PYTHONPATH": path}
 
 
 class CGIterationCost(NamedTuple):

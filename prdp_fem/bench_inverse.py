@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import statistics
 import subprocess
 import sys
@@ -54,6 +53,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .bench import this_package_first
 from .comparison import settled
 from .compilation_cache import ENVIRONMENT_VARIABLE as CACHE_VARIABLE
 from .discretization import discretize
@@ -266,9 +266,7 @@ class MotherBench(NamedTuple):
 def _child_environment() -> dict[str, str]:
     """This package first on the path; no persistent compilation cache (a cold start: the
     package's own cache, on by default, is switched off too, not only JAX's)."""
-    package_root = str(Path(__file__).resolve().parent.parent)
-    path = os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")]))
-    environment = {**os.environ, "PYTHONPATH": path, CACHE_VARIABLE: "0"}
+    environment = {**this_package_first(), CACHE_VARIABLE: "0"}
     return {key: value for key, value in environment.items()
             if key != "JAX_COMPILATION_CACHE_DIR"}
 

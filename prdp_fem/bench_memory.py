@@ -52,6 +52,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .bench import this_package_first
 from .errors import SolverConfigError
 
 __all__ = ["ALLOCATORS", "MODES", "REUSE_ENVIRONMENT", "MemoryCost", "child_environment",
@@ -146,11 +147,8 @@ def child_environment(allocator: str, environ: Mapping[str, str] = os.environ) -
     >>> child_environment("reuse", {})["MALLOC_MMAP_MAX_"]
     '0'
     """
-    # the child imports this very package, whichever one is installed
-    package_parent = str(Path(__file__).resolve().parent.parent)
-    env = {key: value for key, value in environ.items() if key not in REUSE_ENVIRONMENT}
-    env["PYTHONPATH"] = os.pathsep.join([package_parent,
-                                         *filter(None, [environ.get("PYTHONPATH")])])
+    env = {key: value for key, value in this_package_first(environ).items()
+           if key not in REUSE_ENVIRONMENT}
     return {**env, **REUSE_ENVIRONMENT} if allocator == "reuse" else env
 
 
