@@ -6,6 +6,9 @@ runs and the saving figures against the study's own summary.
 
 import csv
 import dataclasses
+import importlib.util
+import struct
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -16,7 +19,7 @@ import scipy.sparse.linalg as spla
 from conftest import SMALL_STUDY
 
 import prdp_fem as pf
-from prdp_fem import study
+from prdp_fem import bench_inverse, reduced, study
 from prdp_fem.bench_inverse import (
     PEER,
     check_mother_options,
@@ -482,8 +485,25 @@ def test_bench_bad_options_are_one_line_and_exit_2(argv, message, capsys):
     assert captured.err.startswith("prdp-fem: error: ") and message in captured.err
 
 
+def _bytecode_is_current(module) -> bool:
+    """The module's cached bytecode exists and was compiled from its source as it is now."""
+    source = Path(module.__file__)
+    cached = Path(importlib.util.cache_from_source(str(source)))
+    if not cached.exists():
+        return False
+    header = cached.read_bytes()[8:16]  # PEP 552: source mtime and size, little-endian
+    stat = source.stat()
+    return header == struct.pack("<II", int(stat.st_mtime) & 0xFFFFFFFF,
+                                 stat.st_size & 0xFFFFFFFF)
+
+
 def test_bench_mother_prints_one_row_per_size(capsys):
+    # the children read the package's bytecode, as a user's process reads an install's, even
+    # where they may not write it (PYTHONDONTWRITEBYTECODE): the benchmark writes it first
+    Path(importlib.util.cache_from_source(bench_inverse.__file__)).unlink(missing_ok=True)
+    assert not _bytecode_is_current(bench_inverse)
     assert main(["bench", "mother", "--sizes", "8", "--target", "0.5", "--repeats", "1"]) == 0
+    assert _bytecode_is_current(bench_inverse) and _bytecode_is_current(reduced)
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("reduced-Hessian CG, inner jacobi-PCG: PRDP K0 = dK = 5")
     row = lines[2].split()
