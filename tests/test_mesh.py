@@ -10,7 +10,7 @@ import skfem
 from conftest import SHIPPED_MESHES
 
 import prdp_fem as pf
-from prdp_fem.mesh import save_mesh, with_names
+from prdp_fem.mesh import _build_facets, _distinct_columns, save_mesh, with_names
 
 EXPECTED_TAGS = {
     "square_tri.msh": ("MeshTri1", {"left", "right", "bottom", "top"}),
@@ -138,6 +138,54 @@ def test_named_boundaries_are_scikit_fems_and_keep_the_facets(cell, dim):
     assert named.facets is mesh.facets and named.t2f is mesh.t2f and named.f2t is mesh.f2t
     np.testing.assert_array_equal(named.facets, make().facets)
     assert "_facets" in vars(pf.unit_square(2)) and "_facets" in vars(pf.rectangle_with_hole(4))
+
+
+def _unstructured_meshes():
+    rng = np.random.default_rng(0)
+    circle = skfem.MeshTri1.init_circle(3)
+    ball = skfem.MeshTet1.init_ball(2)
+    yield circle
+    yield ball
+    # the same meshes with cells in random order: the facet numbering follows the vertices
+    for mesh in (circle, ball):
+        yield type(mesh)(mesh.p, mesh.t[:, rng.permutation(mesh.t.shape[1])])
+    yield from (pf.load_mesh(path) for path in SHIPPED_MESHES)
+
+
+@pytest.mark.parametrize("mesh", [
+    *(cell.init_tensor(*[np.linspace(0.0, 1.0, 5)] * dim)
+      for cell, dim in [(skfem.MeshTri1, 2), (skfem.MeshQuad1, 2), (skfem.MeshTet1, 3),
+                        (skfem.MeshHex1, 3)]),
+    *_unstructured_meshes()], ids=lambda mesh: f"{type(mesh).__name__}-{mesh.t.shape[1]}")
+def test_facets_are_built_as_scikit_fem_builds_them(mesh):
+    """The facets and cell-to-facet map the package builds up front are scikit-fem's own, to
+    the number and the dtype, and the same by either sort."""
+    expected, built = type(mesh)(mesh.p, mesh.t), type(mesh)(mesh.p, mesh.t)
+    _build_facets(built)
+    assert ("_facets" in vars(built)) is not isinstance(mesh, skfem.MeshHex1)  # its own rule
+    for name in ("facets", "t2f", "f2t"):
+        got, want = getattr(built, name), getattr(expected, name)
+        assert got.dtype == want.dtype and got.shape == want.shape
+        np.testing.assert_array_equal(got, want)
+    corners = np.sort(np.hstack([mesh.t[list(ix)] for ix in mesh.elem.refdom.facets]), axis=0)
+    facets, t2f = skfem.Mesh.build_entities(mesh.t, mesh.elem.refdom.facets)
+    by_lexsort, inverse = _distinct_columns(corners, packed=False)
+    np.testing.assert_array_equal(by_lexsort, facets)
+    np.testing.assert_array_equal(inverse, t2f.ravel())
+
+
+def test_distinct_columns_is_numpy_s_unique_along_columns():
+    rng = np.random.default_rng(1)
+    for rows, high, n in [(1, 5, 40), (2, 9, 300), (3, 4, 200), (4, 70000, 50), (2, 3, 0)]:
+        columns = rng.integers(0, high, size=(rows, n)).astype(np.int32)
+        expected, inverse = np.unique(columns, axis=1, return_inverse=True)
+        for packed in (None, True, False):
+            if packed and high ** rows >= 2 ** 62:
+                continue  # the packed key does not fit: None picks the lexsort for it
+            got, got_inverse = _distinct_columns(columns, packed=packed)
+            assert got.dtype == columns.dtype
+            np.testing.assert_array_equal(got, expected.reshape(rows, -1))
+            np.testing.assert_array_equal(got_inverse, inverse.ravel())
 
 
 def test_a_boundary_test_must_flag_each_facet():
