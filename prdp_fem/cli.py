@@ -27,6 +27,7 @@ import argparse
 import contextlib
 import dataclasses
 import gc
+import itertools
 import json
 import math
 import signal
@@ -189,6 +190,11 @@ def _parser() -> argparse.ArgumentParser:
                         help="instead: every inner solve to the relative residual R")
     mother.add_argument("--preconditioner", default="jacobi",
                         help="of the inner PCG: jacobi | identity")
+    mother.add_argument("--cache", choices=["cold", "warm", "both"], default="cold",
+                        help="cold: every process compiles its program (the goal's reading); "
+                        "warm: the processes load it from a compilation cache one untimed "
+                        "process filled, as a script does from its second run on; both: a "
+                        "row of each per size")
     saving = bench_sub.add_parser(
         "prdp", help="PRDP saving against the converged run, per built-in inverse scene",
         description="run each scene's converged reference and its PRDP configurations (a "
@@ -640,29 +646,34 @@ def _bench_amg(args) -> None:
 def _bench_mother(args) -> None:
     from .bench_inverse import check_mother_options, mother_whole_process
 
-    check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
-                         K=args.iterations, inner_rtol=args.inner_rtol,
-                         preconditioner=args.preconditioner)
+    caches = ("cold", "warm") if args.cache == "both" else (args.cache,)
+    for cache in caches:
+        check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
+                             K=args.iterations, inner_rtol=args.inner_rtol,
+                             preconditioner=args.preconditioner, cache=cache)
     inner = f"PRDP K0 = dK = {args.iterations}" if args.inner_rtol is None else \
         f"rtol {args.inner_rtol:g}"
     print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
     print(f"{'n':>5} {'dofs':>7} {'target':>8} {'error':>8} {'outer':>5} {'CG its':>6} "
           f"{'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} "
-          f"{'whole [s]':>9} {'peer [s]':>8} {'ratio':>6}  goal")
-    for n in args.sizes:
+          f"{'whole [s]':>9} {'peer [s]':>8} {'ratio':>6} {'cache':>5}  goal")
+    for n, cache in itertools.product(args.sizes, caches):
         b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=args.iterations,
-                                 inner_rtol=args.inner_rtol, preconditioner=args.preconditioner)
+                                 inner_rtol=args.inner_rtol, preconditioner=args.preconditioner,
+                                 cache=cache)
         goal = "-" if b.goal_met is None else (
             f"<= {b.peer.goal_ratio:g} {'met' if b.goal_met else 'NOT met'}")
         peer = f"{b.peer.seconds:>8.1f}" if b.peer else f"{'-':>8}"
         print(f"{b.n:>5} {b.dofs:>7} {b.target:>8.1e} {b.error:>8.2e} {b.outer_iterations:>5} "
               f"{b.cg_iterations:>6} {b.start_s:>6.2f} {b.import_s:>6.2f} {b.assembly_s:>6.2f} "
               f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.whole_s:>9.2f} {peer} "
-              f"{b.ratio:>6.2f}  {goal}", flush=True)
+              f"{b.ratio:>6.2f} {b.cache:>5}  {goal}", flush=True)
     print(f"whole: median wall time of {args.repeats} fresh process(es) per size (Python start, "
           "imports, mesh, assembly, compilation, optimisation); phases: medians inside the "
           "process, start = whole - phases; CG its: primal + adjoint state-solve iterations "
-          "(Riesz-map mass solves apart); error: relative L2 of f against the analytic optimum")
+          "(Riesz-map mass solves apart); error: relative L2 of f against the analytic optimum; "
+          "cache: cold = the program compiled in the process, warm = loaded from a cache one "
+          "untimed process filled (no goal: the goal's time includes compiling)")
 
 
 def _bench_prdp(args) -> None:

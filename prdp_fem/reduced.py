@@ -64,6 +64,7 @@ from .inverse import (
     _solver,
 )
 from .prdp import Refinement, fixed
+from .program_store import compile_lowered
 
 __all__ = ["ReducedCG", "homogeneous", "reduced_cg"]
 
@@ -111,12 +112,14 @@ def _check_quadratic(problem: InverseProblem) -> None:
             "(TV is not quadratic; use invert())")
 
 
-def _make_gradient(tolerance_mode: bool, preconditioner: Any, counter: IterationCounter):
-    """``(problem, f, K, K_adj, rtol[, cycle]) -> (J(f), grad J(f))`` through the inner
-    solves; a JAX AMG cycle comes as the last argument (an argument ran 30 % faster than the
-    same arrays closed over as constants: :func:`prdp_fem.inverse._preconditioner_key`)."""
+def _make_gradient(tolerance_mode: bool, preconditioner: Any):
+    """``(problem, f, K, K_adj, rtol, counter[, cycle]) -> (J(f), grad J(f))`` through the
+    inner solves; a JAX AMG cycle comes as the last argument (an argument ran 30 % faster than
+    the same arrays closed over as constants: :func:`prdp_fem.inverse._preconditioner_key`).
+    The counter is an argument too, so the program's text does not name it and a later
+    process loads the program (:func:`prdp_fem.program_store.compile_lowered`)."""
 
-    def gradient(problem, f, K, K_adj, rtol, cycle=None):
+    def gradient(problem, f, K, K_adj, rtol, counter, cycle=None):
         solver = _solver("implicit", tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle)
         return jax.value_and_grad(lambda z: problem.loss(z, solver, counter=counter)[0])(f)
@@ -143,9 +146,11 @@ class _Riesz:
 
 
 def _compile(fn: Callable, *example) -> tuple[Callable, float]:
-    """``fn`` compiled for arguments like ``example`` (traced values: no recompiles), timed."""
+    """``fn`` compiled for arguments like ``example`` (traced values: no recompiles), or loaded
+    from the store of programs with the tally's host calls, which JAX's persistent cache
+    refuses (on the mother problem at n = 256, 1.3-1.5 s of every process); timed."""
     start = time.perf_counter()
-    executable = jax.jit(fn).lower(*example).compile()
+    executable = compile_lowered(jax.jit(fn).lower(*example))
     return executable, time.perf_counter() - start
 
 
@@ -203,14 +208,17 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     f = np.asarray(_initial_params(problem, init))
     control = refinement.init()
     cycle = _cycle_argument(preconditioner)
+    # what a compiled function takes for a counter: a reference to its slot (a pytree map
+    # over a counter gives one), the same for the lowering and every call
+    counter_slot = jax.tree_util.tree_map(lambda slot: slot, counter)
     gradient, compile_time = _compile(
-        _make_gradient(refinement.tolerance_mode, _preconditioner_key(preconditioner), counter),
-        problem, f, *control.settings(), *cycle)
+        _make_gradient(refinement.tolerance_mode, _preconditioner_key(preconditioner)),
+        problem, f, *control.settings(), counter_slot, *cycle)
     linear_part, error = homogeneous(problem), _Relative(problem)
     riesz = _Riesz(problem, riesz_rtol)
 
     def evaluate(which: InverseProblem, point: np.ndarray, key) -> tuple[float, np.ndarray]:
-        value, grad = jax.block_until_ready(gradient(which, point, *key, *cycle))
+        value, grad = jax.block_until_ready(gradient(which, point, *key, counter_slot, *cycle))
         return float(value), np.asarray(grad)
 
     history, run_time, cg, solver_key = History(), 0.0, None, None

@@ -208,6 +208,29 @@ def test_mother_processes_start_cold_without_either_compilation_cache(monkeypatc
     environment = _child_environment()
     assert cache_directory(environment) is None
     assert "JAX_COMPILATION_CACHE_DIR" not in environment
+    warm = _child_environment("/a/primed/cache")
+    assert str(cache_directory(warm)) == "/a/primed/cache"
+    assert "JAX_COMPILATION_CACHE_DIR" not in warm
+
+
+def test_warm_mother_processes_load_what_an_untimed_process_stored(monkeypatch):
+    """cache="warm": one untimed process fills a cache of the benchmark's own, the timed ones
+    find the mother gradient stored there (the tally's store: JAX's cache refuses it), and
+    no goal is judged (its time includes compiling)."""
+    seen = []
+    run_child = bench_inverse._run_child
+
+    def spying(arguments, timeout, environment):
+        stored = Path(environment["PRDP_FEM_COMPILATION_CACHE"]) / "tally"
+        seen.append(sorted(path.suffix for path in stored.glob("*")))
+        return run_child(arguments, timeout, environment)
+
+    monkeypatch.setattr(bench_inverse, "_run_child", spying)
+    bench = mother_whole_process(8, repeats=1, target=0.5, cache="warm")
+    assert seen == [[], [".xla"]]  # the priming process stored the one program it compiled
+    assert bench.cache == "warm" and bench.error <= 0.5 and bench.goal_met is None
+    with pytest.raises(SolverConfigError, match="--cache 'hot': expected one of"):
+        mother_whole_process(8, cache="hot")
 
 
 def test_peer_figures_and_goals_are_the_benchmark_table():
@@ -507,7 +530,7 @@ def test_bench_mother_prints_one_row_per_size(capsys):
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("reduced-Hessian CG, inner jacobi-PCG: PRDP K0 = dK = 5")
     row = lines[2].split()
-    assert row[:2] == ["8", "81"] and float(row[3]) <= 0.5 and row[-1] == "-"
+    assert row[:2] == ["8", "81"] and float(row[3]) <= 0.5 and row[-2:] == ["cold", "-"]
     start, imports, assembly, compile_, solve, whole = map(float, row[6:12])
     assert min(start, imports, compile_) > 0  # whole = the phases + the rest, 2 decimals
     assert whole == pytest.approx(start + imports + assembly + compile_ + solve, abs=0.03)

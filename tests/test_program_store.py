@@ -218,3 +218,31 @@ def test_a_second_process_loads_the_inversion_step_with_its_own_tallies(tmp_path
     assert second["compiled"] == []  # the step (and the controller's update) loaded
     assert second["tallies"] == first["tallies"] and second["losses"] == first["losses"]
     assert second["tallies"][-1][0] > 0
+
+
+def test_the_reduced_hessian_cg_loads_its_gradient_and_counts_into_its_own_counter(
+        store, monkeypatch):
+    """reduced_cg's gradient holds the tally's host calls, which JAX's cache refuses: a
+    second run (here in the same process, with the store's file) loads it instead of
+    compiling, and its solves count into the second run's counter."""
+    from prdp_fem.bench_inverse import mother_problem
+    from prdp_fem.prdp import fixed
+    from prdp_fem.reduced import reduced_cg
+
+    directory, _ = store
+    compiled = []
+    original = jax_compiler.backend_compile_and_load
+
+    def counting(backend, module, devices, options, host_callbacks):
+        if "jit_gradient" in str(module.operation.attributes["sym_name"]):
+            compiled.append(module)
+        return original(backend, module, devices, options, host_callbacks)
+
+    monkeypatch.setattr(jax_compiler, "backend_compile_and_load", counting)
+    problem = mother_problem(8)
+    first, second = (reduced_cg(problem, refinement=fixed(7), iterations=3) for _ in range(2))
+    assert len(compiled) == 1 and len(list(directory.glob("*.xla"))) == 1
+    np.testing.assert_array_equal(first.field, second.field)
+    counts = [[(r.primal_iterations, r.adjoint_iterations_total) for r in run.history]
+              for run in (first, second)]
+    assert counts[0] == counts[1] and counts[0][-1] == (3 * 7, 4 * 7)
