@@ -19,8 +19,10 @@ controller). It stops at the first iterate whose relative L2 error against ``f*`
 (``||f - f*||_M / ||f*||_M`` with the P1 mass matrix and the nodal interpolant of ``f*``, as
 the study and the example measure it) reaches the peer's. Every run is a fresh Python process
 (:func:`mother_whole_process`): interpreter start, imports, mesh, assembly, compilation and the
-optimisation are all inside the wall time. No persistent compilation cache is used; the
-package's bytecode is written first (:func:`compile_package_bytecode`), as installing it does.
+optimisation are all inside the wall time. By default no persistent compilation cache is used
+(``cache="cold"``; ``"warm"`` times processes that load the program from a cache one untimed
+process filled); the package's bytecode is written first (:func:`compile_package_bytecode`),
+as installing it does.
 
 PRDP saving
 -----------
@@ -49,6 +51,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from types import MappingProxyType
@@ -288,13 +291,14 @@ def _child_environment(cache_directory: str | None = None) -> dict[str, str]:
 
 def compile_package_bytecode() -> bool:
     """Write the bytecode of this package's modules next to them, as ``pip install`` does for
-    an installed package; False where some module could not be written (a read-only tree).
+    an installed package, whatever ``PYTHONDONTWRITEBYTECODE`` says; False where some module
+    could not be written (a read-only tree).
 
     A process reads bytecode that exists even where it may not write any
     (``PYTHONDONTWRITEBYTECODE``, common in containers); without it every child of the
     mother benchmark compiled the 40 modules of the package it imports from source, 0.13 s of
-    its import (median, Intel Xeon) that a user's process does not spend. The dependencies'
-    bytecode came with their install.
+    its import (median paired difference, Intel Xeon) that a user's process does not spend.
+    The dependencies' bytecode came with their install.
     """
     return compileall.compile_dir(Path(__file__).resolve().parent, quiet=2)
 
@@ -326,10 +330,14 @@ def mother_whole_process(n: int, *, repeats: int = 3, target: float | None = Non
     target = _target(n, target)
     arguments = {"n": n, "target": target, "K": K, "inner_rtol": inner_rtol,
                  "preconditioner": preconditioner}
-    compile_package_bytecode()
+    if not compile_package_bytecode():
+        warnings.warn(f"the bytecode of {Path(__file__).parent} could not be written: each "
+                      "process compiles the package's modules (about 0.1 s more import)",
+                      RuntimeWarning, stacklevel=2)
     warm = cache == "warm"
-    with tempfile.TemporaryDirectory(prefix="prdp-fem-mother-cache-") if warm else \
-            contextlib.nullcontext() as directory:
+    own_cache = tempfile.TemporaryDirectory(prefix="prdp-fem-mother-cache-") if warm \
+        else contextlib.nullcontext()
+    with own_cache as directory:
         environment = _child_environment(directory)
         if warm:
             _run_child(arguments, timeout, environment)  # fills the cache

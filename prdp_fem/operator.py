@@ -56,6 +56,7 @@ from jax.experimental import sparse as jsparse
 
 from .errors import ShapeError
 from .products import paired_product, symmetric_product
+from .sorting import first_of_each
 
 __all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
            "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "host_prepared", "matvec",
@@ -192,7 +193,7 @@ def _diagonal_apart(rows: np.ndarray, cols: np.ndarray, n: int, nnz: int, counts
     if not square:
         return empty, None, empty
     on_diagonal = np.flatnonzero(rows == cols).astype(np.int32)
-    first = _first_of_each(rows[on_diagonal])
+    first = first_of_each(rows[on_diagonal])
     kept = on_diagonal[first]
     diagonal = np.full(n, nnz, dtype=np.int32)
     diagonal[rows[kept]] = kept
@@ -211,14 +212,6 @@ def _spilled(counts: np.ndarray, starts: np.ndarray,
     within = np.arange(spill_rows.size, dtype=np.int32) - np.repeat(
         (np.cumsum(extra) - extra).astype(np.int32), extra)
     return spill_rows, starts[spill_rows] + width + within
-
-
-def _first_of_each(values: np.ndarray) -> np.ndarray:
-    """Mask of each value's first occurrence; ``values`` are sorted (rows of a row-sorted
-    pattern), so no ``np.unique`` sort: a third of an AMG level's layout time went there."""
-    first = np.ones(values.size, dtype=bool)
-    first[1:] = values[1:] != values[:-1]
-    return first
 
 
 def _ell_width(counts: np.ndarray) -> int:

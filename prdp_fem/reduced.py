@@ -208,17 +208,18 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     f = np.asarray(_initial_params(problem, init))
     control = refinement.init()
     cycle = _cycle_argument(preconditioner)
-    # what a compiled function takes for a counter: a reference to its slot (a pytree map
-    # over a counter gives one), the same for the lowering and every call
-    counter_slot = jax.tree_util.tree_map(lambda slot: slot, counter)
+    # A compiled function records its arguments' structure as traced, and a counter traces as
+    # a reference to its slot: called with the counter itself it raises a pytree mismatch. So
+    # the lowering and every call take that reference (a pytree map over a counter gives it).
+    counter_ref = jax.tree_util.tree_map(lambda slot: slot, counter)
     gradient, compile_time = _compile(
         _make_gradient(refinement.tolerance_mode, _preconditioner_key(preconditioner)),
-        problem, f, *control.settings(), counter_slot, *cycle)
+        problem, f, *control.settings(), counter_ref, *cycle)
     linear_part, error = homogeneous(problem), _Relative(problem)
     riesz = _Riesz(problem, riesz_rtol)
 
     def evaluate(which: InverseProblem, point: np.ndarray, key) -> tuple[float, np.ndarray]:
-        value, grad = jax.block_until_ready(gradient(which, point, *key, counter_slot, *cycle))
+        value, grad = jax.block_until_ready(gradient(which, point, *key, counter_ref, *cycle))
         return float(value), np.asarray(grad)
 
     history, run_time, cg, solver_key = History(), 0.0, None, None

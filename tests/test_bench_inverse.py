@@ -7,6 +7,7 @@ runs and the saving figures against the study's own summary.
 import csv
 import dataclasses
 import importlib.util
+import os
 import struct
 from pathlib import Path
 
@@ -214,23 +215,65 @@ def test_mother_processes_start_cold_without_either_compilation_cache(monkeypatc
 
 
 def test_warm_mother_processes_load_what_an_untimed_process_stored(monkeypatch):
-    """cache="warm": one untimed process fills a cache of the benchmark's own, the timed ones
-    find the mother gradient stored there (the tally's store: JAX's cache refuses it), and
-    no goal is judged (its time includes compiling)."""
-    seen = []
+    """cache="warm": one untimed process fills a cache of the benchmark's own, and the timed
+    one loads the mother gradient stored there (the tally's store: JAX's cache refuses it) --
+    the file is the same one, touched as used, not compiled again and replaced -- and no goal
+    is judged (its time includes compiling)."""
+    stored_files = []
     run_child = bench_inverse._run_child
 
     def spying(arguments, timeout, environment):
-        stored = Path(environment["PRDP_FEM_COMPILATION_CACHE"]) / "tally"
-        seen.append(sorted(path.suffix for path in stored.glob("*")))
-        return run_child(arguments, timeout, environment)
+        store = Path(environment["PRDP_FEM_COMPILATION_CACHE"]) / "tally"
+        for path in store.glob("*.xla"):
+            os.utime(path, ns=(0, 0))  # a load marks it used again
+        result = run_child(arguments, timeout, environment)
+        stored_files.append([(path.stat().st_ino, path.stat().st_mtime_ns)
+                             for path in store.glob("*.xla")])
+        return result
 
     monkeypatch.setattr(bench_inverse, "_run_child", spying)
     bench = mother_whole_process(8, repeats=1, target=0.5, cache="warm")
-    assert seen == [[], [".xla"]]  # the priming process stored the one program it compiled
+    (primed,), (timed,) = stored_files  # one program stored by the priming process
+    assert timed[0] == primed[0] and timed[1] > 0  # the same file, loaded
     assert bench.cache == "warm" and bench.error <= 0.5 and bench.goal_met is None
     with pytest.raises(SolverConfigError, match="--cache 'hot': expected one of"):
         mother_whole_process(8, cache="hot")
+
+
+def test_bench_mother_prints_a_cold_and_a_warm_row_per_size_and_judges_the_cold(
+        capsys, monkeypatch):
+    """--cache both: per size a cold row, then a warm one; only the cold row has a goal."""
+    calls = []
+
+    def fake(n, *, cache, **settings):
+        calls.append((n, cache))
+        return bench_inverse.MotherBench(
+            n=n, dofs=(n + 1) ** 2, target=PEER[n].error, error=0.5 * PEER[n].error,
+            outer_iterations=1, cg_iterations=15, riesz_iterations=9, start_s=0.4,
+            import_s=1.0, assembly_s=0.8, compile_s=1.0 if cache == "cold" else 0.4,
+            solve_s=0.1, whole_s=3.3 if cache == "cold" else 2.7, runs=1, peer=PEER[n],
+            cache=cache)
+
+    monkeypatch.setattr(bench_inverse, "mother_whole_process", fake)
+    assert main(["bench", "mother", "--sizes", "256", "512", "--cache", "both"]) == 0
+    assert calls == [(256, "cold"), (256, "warm"), (512, "cold"), (512, "warm")]
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:6]]
+    assert [row[14:] for row in rows] == [["cold", "<=", "0.5", "NOT", "met"], ["warm", "-"],
+                                          ["cold", "<=", "0.33", "met"], ["warm", "-"]]
+    assert [float(row[9]) for row in rows] == [1.0, 0.4, 1.0, 0.4]  # the compile column
+    with pytest.raises(SystemExit):
+        main(["bench", "mother", "--cache", "hot"])
+
+
+def test_a_tree_without_bytecode_is_said_once_and_the_benchmark_runs(monkeypatch):
+    monkeypatch.setattr(bench_inverse, "compile_package_bytecode", lambda: False)
+    monkeypatch.setattr(bench_inverse, "_run_child", lambda arguments, timeout, environment: (
+        {"dofs": 81, "error": 0.1, "outer_iterations": 1, "cg_iterations": 3,
+         "riesz_iterations": 2, "import_s": 1.0, "assembly_s": 0.1, "compile_s": 0.5,
+         "solve_s": 0.1}, 2.0))
+    with pytest.warns(RuntimeWarning, match="bytecode of .*prdp_fem could not be written"):
+        bench = mother_whole_process(8, repeats=1, target=0.5)
+    assert bench.whole_s == 2.0 and bench.start_s == pytest.approx(0.3)
 
 
 def test_peer_figures_and_goals_are_the_benchmark_table():
@@ -514,17 +557,21 @@ def _bytecode_is_current(module) -> bool:
     cached = Path(importlib.util.cache_from_source(str(source)))
     if not cached.exists():
         return False
-    header = cached.read_bytes()[8:16]  # PEP 552: source mtime and size, little-endian
+    header = cached.read_bytes()[:16]  # PEP 552: magic, flags, then a time stamp or a hash
+    if int.from_bytes(header[4:8], "little") & 1:  # hash-based (SOURCE_DATE_EPOCH set)
+        return header[8:16] == importlib.util.source_hash(source.read_bytes())
     stat = source.stat()
-    return header == struct.pack("<II", int(stat.st_mtime) & 0xFFFFFFFF,
-                                 stat.st_size & 0xFFFFFFFF)
+    return header[8:16] == struct.pack("<II", int(stat.st_mtime) & 0xFFFFFFFF,
+                                       stat.st_size & 0xFFFFFFFF)
 
 
-def test_bench_mother_prints_one_row_per_size(capsys):
+def test_bench_mother_prints_one_row_per_size(capsys, monkeypatch):
     # the children read the package's bytecode, as a user's process reads an install's, even
     # where they may not write it (PYTHONDONTWRITEBYTECODE): the benchmark writes it first
-    Path(importlib.util.cache_from_source(bench_inverse.__file__)).unlink(missing_ok=True)
-    assert not _bytecode_is_current(bench_inverse)
+    monkeypatch.setenv("PYTHONDONTWRITEBYTECODE", "1")
+    for module in (bench_inverse, reduced):
+        Path(importlib.util.cache_from_source(module.__file__)).unlink(missing_ok=True)
+        assert not _bytecode_is_current(module)
     assert main(["bench", "mother", "--sizes", "8", "--target", "0.5", "--repeats", "1"]) == 0
     assert _bytecode_is_current(bench_inverse) and _bytecode_is_current(reduced)
     lines = capsys.readouterr().out.strip().splitlines()

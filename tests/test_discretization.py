@@ -9,6 +9,7 @@ from conftest import MESH_DIR
 from skfem.helpers import dot, grad
 
 import prdp_fem as pf
+from prdp_fem.sorting import unique_with_inverse
 
 
 def skfem_reference(disc, kappa):
@@ -63,7 +64,7 @@ def test_the_assembly_keys_dedupe_as_numpy_unique(size):
     rng = np.random.default_rng(size)
     runs = np.sort(rng.integers(0, max(size // 3, 1), size))
     for keys in (runs, rng.permutation(runs), rng.integers(-50, 50, size)):
-        unique, inverse = pf.discretization._unique_with_inverse(keys.astype(np.int64))
+        unique, inverse = unique_with_inverse(keys.astype(np.int64))
         expected, expected_inverse = np.unique(keys, return_inverse=True)
         np.testing.assert_array_equal(unique, expected)
         np.testing.assert_array_equal(inverse, expected_inverse.ravel())

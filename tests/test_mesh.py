@@ -176,8 +176,11 @@ def test_facets_are_built_as_scikit_fem_builds_them(mesh):
 
 def test_distinct_columns_is_numpy_s_unique_along_columns():
     rng = np.random.default_rng(1)
-    for rows, high, n in [(1, 5, 40), (2, 9, 300), (3, 4, 200), (4, 70000, 50), (2, 3, 0)]:
-        columns = rng.integers(0, high, size=(rows, n)).astype(np.int32)
+    cases = [(1, 5, 40, np.int32), (2, 9, 300, np.int32), (3, 4, 200, np.int64),
+             (4, 70000, 50, np.int32), (2, 3, 0, np.int32), (3, 2 ** 30, 60, np.uint64)]
+    for rows, high, n, dtype in cases:
+        columns = rng.integers(0, high, size=(rows, n)).astype(dtype)
+        columns[:, n // 2:] = columns[:, : n - n // 2]  # repeated columns in every case
         expected, inverse = np.unique(columns, axis=1, return_inverse=True)
         for packed in (None, True, False):
             if packed and high ** rows >= 2 ** 62:
@@ -186,6 +189,18 @@ def test_distinct_columns_is_numpy_s_unique_along_columns():
             assert got.dtype == columns.dtype
             np.testing.assert_array_equal(got, expected.reshape(rows, -1))
             np.testing.assert_array_equal(got_inverse, inverse.ravel())
+
+
+def test_facet_cells_are_built_for_facets_scikit_fem_built():
+    """A mesh whose facets scikit-fem built already gets only its f2t, from those facets."""
+    x = np.linspace(0.0, 1.0, 6)
+    mesh, expected = skfem.MeshTri1.init_tensor(x, x), skfem.MeshTri1.init_tensor(x, x)
+    facets, t2f = mesh.facets, mesh.t2f  # scikit-fem builds them; not f2t yet
+    assert "_f2t" not in vars(mesh)
+    _build_facets(mesh)
+    assert mesh.facets is facets and mesh.t2f is t2f
+    assert mesh.f2t.dtype == expected.f2t.dtype
+    np.testing.assert_array_equal(mesh.f2t, expected.f2t)
 
 
 def test_a_boundary_test_must_flag_each_facet():
