@@ -670,16 +670,19 @@ def _check_not_folded(mesh: skfem.Mesh, source: str) -> None:
 
 
 def _match_rows(reference: np.ndarray, query: np.ndarray) -> np.ndarray:
-    """Index of each query row (as a node set) among reference rows, -1 if absent."""
+    """Index of each query row (as a node set) among reference rows, -1 if absent.
+
+    >>> _match_rows(np.array([[0, 1], [1, 2], [2, 0]]), np.array([[0, 2], [1, 0], [3, 1]]))
+    array([ 2,  0, -1])
+    """
     if len(query) == 0:
         return np.zeros(0, dtype=np.int64)
-    ref = np.sort(reference, axis=1)
-    qry = np.sort(query, axis=1)
-    _, inverse = np.unique(np.vstack([ref, qry]), axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    # the node sets as sorted columns, numbered together (np.unique(axis=0) took 0.7 s for
+    # the tagged boundary of a 512 x 512 mesh: a sort of records)
+    _, inverse = _distinct_columns(_sort_each_column(np.hstack([reference.T, query.T])))
     lookup = np.full(inverse.max() + 1, -1, dtype=np.int64)
-    lookup[inverse[: len(ref)]] = np.arange(len(ref))
-    return lookup[inverse[len(ref):]]
+    lookup[inverse[: len(reference)]] = np.arange(len(reference))
+    return lookup[inverse[len(reference):]]
 
 
 def _tag_name(tag: int, field_data: dict, dim: int) -> str:

@@ -191,6 +191,22 @@ def test_distinct_columns_is_numpy_s_unique_along_columns():
             np.testing.assert_array_equal(got_inverse, inverse.ravel())
 
 
+def test_tagged_node_sets_are_found_among_the_facets_in_any_node_order():
+    """_match_rows (a file's tagged facets among the mesh's) against a dictionary lookup of
+    the node sets: any node order in either, absent sets -1, one or three nodes."""
+    rng = np.random.default_rng(3)
+    for width in (1, 2, 3):
+        reference = np.unique(np.sort(rng.integers(0, 40, (300, width)), axis=1), axis=0)
+        reference = rng.permuted(reference[rng.permutation(len(reference))], axis=1)
+        present = reference[rng.integers(0, len(reference), 150)]
+        query = rng.permuted(np.vstack([present, rng.integers(0, 45, (50, width))]),
+                             axis=1).astype(np.int64)
+        where = {frozenset(row): i for i, row in enumerate(reference.tolist())}
+        expected = [where.get(frozenset(row), -1) for row in query.tolist()]
+        got = pf.mesh._match_rows(reference.astype(np.int32), query)
+        assert got.tolist() == expected and -1 in expected and len(set(expected)) > 20
+
+
 def test_facet_cells_are_built_for_facets_scikit_fem_built():
     """A mesh whose facets scikit-fem built already gets only its f2t, from those facets."""
     x = np.linspace(0.0, 1.0, 6)
