@@ -85,6 +85,9 @@ class MemoryCost(NamedTuple):
     ran: bool  # False: xla_temp_mb exceeded max_mb, the gradient was only compiled
     allocator: str = "default"  # "default" (glibc's settings) or "reuse" (REUSE_ENVIRONMENT)
     faults_per_call: float = float("nan")  # minor page faults per evaluation after the first
+    # the fewest of those in one evaluation: 0 where the scratch was reused even once (its
+    # release may still be on its way when the next evaluation allocates, which then faults)
+    fewest_faults: float = float("nan")
 
 
 def memory_cost(side: int = 257, iterations: tuple[int, ...] = (10, 100, 1000), *,
@@ -228,22 +231,22 @@ def measure(side: int, iterations: int, mode: str, segment: int | None, repeats:
     baseline_mb, _ = _resident_mb()
     hwm_reset = _reset_high_water_mark()
     ran = not xla_temp_mb > max_mb
-    peak_mb = gradient_s = faults_per_call = float("nan")
+    peak_mb = gradient_s = faults_per_call = fewest_faults = float("nan")
     if ran:
-        times = []
+        times, faults = [], []
         for _ in range(repeats):
-            tic = time.perf_counter()
+            faults_before, tic = _minor_faults(), time.perf_counter()
             jax.block_until_ready(compiled(kappa))
             times.append(time.perf_counter() - tic)
+            faults.append(_minor_faults() - faults_before)
             if len(times) == 1:  # the timed repeats reuse the same buffers: read it once
                 peak_mb = max(_resident_mb()[1] - baseline_mb, 0.0)
-                faults_after_first = _minor_faults()
         if repeats > 1:
-            faults_per_call = (_minor_faults() - faults_after_first) / (repeats - 1)
+            faults_per_call, fewest_faults = float(np.mean(faults[1:])), float(min(faults[1:]))
         gradient_s = float(np.median(times))
     return MemoryCost(mode, iterations, used_segment, n_dofs, 8 * n_dofs / MB, peak_mb,
                       baseline_mb, xla_temp_mb, gradient_s, hwm_reset, ran,
-                      faults_per_call=faults_per_call)
+                      faults_per_call=faults_per_call, fewest_faults=fewest_faults)
 
 
 def _minor_faults() -> int:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
+from prdp_fem import bench_memory
 from prdp_fem.bench_memory import (
     REUSE_ENVIRONMENT,
     _gradient_problem,
@@ -222,22 +223,34 @@ def test_bench_memory_table_and_checkpointed_peak_below_plain(capsys):
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator settings")
-def test_the_reuse_allocator_keeps_an_unrolled_gradient_s_scratch_mapped(capsys):
+def test_the_reuse_allocator_keeps_an_unrolled_gradient_s_scratch_mapped(capsys, monkeypatch):
     # 4096 dofs, K = 800: one 81 MB scratch block per evaluation, above what glibc keeps in
     # a thread's arena (64 MB); under glibc's defaults each evaluation maps it afresh and
     # faults it in (about 20 000 pages here), kept mapped it is reused
+    # faults it in (about 20 000 pages here), kept mapped it is reused. Under load the
+    # scratch's release can still be on its way when the next evaluation allocates, which
+    # then maps a block of its own (the average over 4 evaluations once read 3 of them), so
+    # "reused" is read as: at least one evaluation after the first faults almost nothing.
+    measured = []
+
+    def measuring(*args, **kwargs):
+        measured.extend(memory_cost(*args, **kwargs))
+        return measured
+
+    monkeypatch.setattr(bench_memory, "memory_cost", measuring)
     assert main(["bench", "memory", "--side", "65", "--iterations", "800", "--modes",
                  "unrolled", "--repeats", "5", "--allocator", "both"]) == 0
     rows = [line.split() for line in capsys.readouterr().out.strip().splitlines()[3:]]
-    assert [row[3] for row in rows] == ["default", "reuse"]
-    (default, reuse) = ({"scratch_mb": float(row[6]), "time": float(row[7]),
-                         "faults": float(row[8]), "ratio": row[9]} for row in rows)
-    page_mb = resource.getpagesize() / 1e6
-    assert default["scratch_mb"] > 64
-    assert reuse["faults"] * page_mb < 0.5 * reuse["scratch_mb"]
-    assert reuse["faults"] < default["faults"]
-    assert default["ratio"] == "-"
-    assert float(reuse["ratio"]) == pytest.approx(reuse["time"] / default["time"], abs=0.02)
+    assert [row[3] for row in rows] == ["default", "reuse"] == [m.allocator for m in measured]
+    default, reuse = measured
+    scratch_pages = default.xla_temp_mb / (resource.getpagesize() / 1e6)
+    assert default.xla_temp_mb > 64
+    assert default.fewest_faults > 0.5 * scratch_pages  # every evaluation maps it afresh
+    assert reuse.fewest_faults < 0.05 * scratch_pages   # kept mapped and reused
+    assert reuse.faults_per_call <= default.faults_per_call
+    assert [float(row[8]) for row in rows] == [round(m.faults_per_call) for m in measured]
+    assert rows[0][9] == "-"
+    assert float(rows[1][9]) == pytest.approx(reuse.gradient_s / default.gradient_s, abs=0.01)
 
 
 def test_a_child_runs_with_the_allocator_s_settings_and_only_then():
