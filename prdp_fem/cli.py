@@ -560,12 +560,12 @@ def _bench_cg_device(args, sides: list[int]) -> None:
 
 
 def _bench_memory(args) -> None:
-    from .bench_memory import memory_cost
+    from .bench_memory import ALLOCATORS, memory_cost
 
     columns = ["mode", "K", "segment", "allocator", "peak MB", "n-vectors", "XLA temp MB",
                "grad [s]", "faults/call", "ratio"]
     widths = [12, 6, 8, 9, 9, 10, 12, 9, 11, 6]
-    allocators = ("default", "reuse") if args.allocator == "both" else (args.allocator,)
+    allocators = ALLOCATORS if args.allocator == "both" else (args.allocator,)
     header_printed = False
     default_time = {}  # (mode, K) -> the default allocator's time, for the reuse row's ratio
 
@@ -644,13 +644,12 @@ def _bench_amg(args) -> None:
 
 
 def _bench_mother(args) -> None:
-    from .bench_inverse import check_mother_options, mother_whole_process
+    from .bench_inverse import CACHES, check_mother_options, mother_whole_process
 
-    caches = ("cold", "warm") if args.cache == "both" else (args.cache,)
-    for cache in caches:
-        check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
-                             K=args.iterations, inner_rtol=args.inner_rtol,
-                             preconditioner=args.preconditioner, cache=cache)
+    caches = CACHES if args.cache == "both" else (args.cache,)  # argparse checked the name
+    check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
+                         K=args.iterations, inner_rtol=args.inner_rtol,
+                         preconditioner=args.preconditioner)
     inner = f"PRDP K0 = dK = {args.iterations}" if args.inner_rtol is None else \
         f"rtol {args.inner_rtol:g}"
     print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
