@@ -69,29 +69,26 @@ import contextlib
 import dataclasses
 from collections.abc import Callable
 from functools import partial
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pyamg
-import scipy.linalg
 import scipy.sparse as sp
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jax.typing import ArrayLike
-from pyamg.aggregation.aggregate import standard_aggregation
-from pyamg.aggregation.tentative import fit_candidates
-from pyamg.relaxation import relaxation
-from pyamg.relaxation.smoothing import change_smoothers, rho_D_inv_A
-from pyamg.relaxation.utils import relaxation_as_linear_operator
-from pyamg.strength import symmetric_strength_of_connection
-from pyamg.util.utils import get_diagonal, scale_rows
 
 from .errors import DataError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, host_prepared
 from .prdp import _array_module  # NumPy for host values, jnp for JAX arrays
 from .validation import is_traced
+
+if TYPE_CHECKING:
+    import pyamg
+
+# pyamg and scipy.linalg are imported where a hierarchy is built or read, not here: pyamg
+# took 0.07-0.09 s of every import of this package, which solves without AMG never use
 
 __all__ = [
     "DEFAULT_IMPLEMENTATION",
@@ -138,6 +135,8 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
     >>> len(ml.levels) > 1 and ml.symmetric_smoothing
     True
     """
+    from pyamg.relaxation.smoothing import change_smoothers
+
     _check_options(kind, smoother, omega, sweeps, max_coarse)
     csr = _host_matrix(matrix)
     theta = _symmetric_theta(strength) if kind == "sa" else None
@@ -169,6 +168,8 @@ def amg_hierarchy(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind: str 
 def _pyamg_solver(csr: sp.csr_matrix, kind: str, max_coarse: int,
                   strength: Any) -> pyamg.MultilevelSolver:
     """pyamg's own setup (its smoothers unset: :func:`amg_hierarchy` sets them)."""
+    import pyamg
+
     options: dict[str, Any] = {"max_coarse": max_coarse, "presmoother": None,
                                "postsmoother": None}
     if strength is not None:
@@ -219,6 +220,13 @@ def _smoothed_aggregation(csr: sp.csr_matrix, max_coarse: int,
     the same radii, the levels equal pyamg's to round-off (tested); this loop took 0.5-0.6x
     the time of pyamg's at 65k dofs.
     """
+    import pyamg
+    from pyamg.aggregation.aggregate import standard_aggregation
+    from pyamg.aggregation.tentative import fit_candidates
+    from pyamg.relaxation.utils import relaxation_as_linear_operator
+    from pyamg.strength import symmetric_strength_of_connection
+    from pyamg.util.utils import get_diagonal, scale_rows
+
     finest = pyamg.MultilevelSolver.Level()
     finest.A, finest.B = csr, np.ones((csr.shape[0], 1), dtype=csr.dtype)
     csr.symmetry = "symmetric"
@@ -332,6 +340,8 @@ def _rho_jacobi(matrix: sp.spmatrix) -> float:
     if not np.all(np.isfinite(diagonal)):
         return float("nan")
     if not np.all(diagonal > 0):
+        from pyamg.relaxation.smoothing import rho_D_inv_A
+
         return float(rho_D_inv_A(csr))
     scale = 1.0 / np.sqrt(diagonal)
     v = np.random.default_rng(0).standard_normal(csr.shape[0])
@@ -508,6 +518,8 @@ class AMGCycle:
             product = _sparse if depth < cut else _HostProduct
             (levels if depth < cut else tail).append(AMGLevel(
                 product(a), product(level.P), product(level.P.T), omega / a.diagonal()))
+        import scipy.linalg
+
         coarsest = scipy.linalg.pinv(sp.csr_matrix(ml.levels[-1].A).toarray())
         # every level's arrays in one transfer: one call per matrix was a tenth of the build
         levels, coarse_map = jax.device_put((tuple(levels), _dense_map(tail, coarsest, sweeps)))
@@ -583,6 +595,8 @@ def _dense_map(levels, coarsest: np.ndarray, sweeps: int) -> np.ndarray:
 
 def _jacobi_parameters(level, depth: int) -> tuple[float, int]:
     """``(omega_l, sweeps)`` of a level whose pre- and post-smoothers are the same Jacobi."""
+    from pyamg.relaxation import relaxation
+
     found = []
     for smoother in (level.presmoother, level.postsmoother):
         if getattr(smoother, "func", None) is not relaxation.jacobi:

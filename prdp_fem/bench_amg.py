@@ -26,7 +26,6 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pyamg
 
 from .amg import IMPLEMENTATIONS, _cycle_of_checked, amg_hierarchy
 from .bench import poisson_operator
@@ -63,6 +62,8 @@ class AMGCost(NamedTuple):
 
 def _pyamg_setup(csr, smoother: str):
     """pyamg's own setup with the smoother our cycle uses (withrho: pyamg estimates rho)."""
+    import pyamg  # here: importing this module must not import pyamg (see prdp_fem.amg)
+
     if smoother == "jacobi":
         relax = ("jacobi", {"omega": 4.0 / 3.0, "iterations": 1})
     else:

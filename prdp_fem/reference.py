@@ -14,7 +14,6 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
-import pyamg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import skfem
@@ -51,6 +50,8 @@ def amg_solve(matrix: sp.spmatrix, b: np.ndarray, *, rtol: float = 1e-12,
     spectral-radius estimates moved the synthetic data of a learned study in its last bits
     from run to run, and Newton-CG trainings on it ended at different errors.
     """
+    import pyamg  # here: only reference solves need it (see prdp_fem.amg)
+
     matrix = sp.csr_matrix(matrix)
     b = np.asarray(b, dtype=float)
     with seeded_numpy_random():
