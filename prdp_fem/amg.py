@@ -83,6 +83,7 @@ from .errors import DataError, ShapeError, SolverConfigError
 from .operator import SparseMatrix, host_prepared
 from .prdp import _array_module  # NumPy for host values, jnp for JAX arrays
 from .validation import is_traced
+from .xla_options import AMG_CYCLE
 
 if TYPE_CHECKING:
     import pyamg
@@ -388,7 +389,8 @@ def _check_cycle(ml: pyamg.MultilevelSolver, where: str) -> None:
 # one primitive for a fixed symmetric linear map, with exact linear rules
 # --------------------------------------------------------------------------------------
 
-_symmetric_map_p = Primitive("amg_v_cycle")
+# its name keeps a program that applies it off XLA's classic CPU emitters (xla_options)
+_symmetric_map_p = Primitive(AMG_CYCLE)
 
 
 def _apply_impl(r, *leaves, cycle):

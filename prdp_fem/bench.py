@@ -3,12 +3,15 @@
 ``cg_iteration_cost``: time of one Jacobi-PCG iteration inside the jitted loop divided by the
 time of one SciPy CSR SpMV of the same matrix (an iteration can never cost less than its SpMV
 on one core). Each repeat interleaves ``[SciPy: m SpMVs] [JAX: K iterations] [JAX: 0
-iterations]`` for the ELL kernel and for the COO segment-sum kernel it replaced; an
-iteration's time is ``(t_K - t_0) / K`` so that call overhead cancels; ratios are medians over
-repeats. ``scaling_slope`` fits ``log t = slope log n + c`` over a size sweep (linear: 1).
+iterations]`` for three programs: the ELL kernel compiled as the package compiles its own
+programs (:mod:`prdp_fem.xla_options`), the same compiled with XLA's own fusion emitters (what
+a user's ``jax.jit`` gets), and the COO segment-sum kernel the ELL kernel replaced (the
+package's options). An iteration's time is ``(t_K - t_0) / K`` so that call overhead cancels;
+ratios are medians over repeats. ``scaling_slope`` fits ``log t = slope log n + c`` over a
+size sweep (linear: 1).
 
->>> costs = [CGIterationCost(n, 5 * n, 1e-9 * n, 2e-9 * n, 2.0, 3e-9 * n, 3.0, 0.1)
-...          for n in (1000, 8000)]
+>>> costs = [CGIterationCost(n, 5 * n, 1e-9 * n, 2e-9 * n, 2.0, 2e-9 * n, 2.0, 3e-9 * n, 3.0,
+...                          0.1) for n in (1000, 8000)]
 >>> round(scaling_slope(costs), 6)
 1.0
 """
@@ -31,6 +34,7 @@ from .cg import TruncatedCG, solve
 from .errors import SolverConfigError
 from .generators import unit_cube, unit_square
 from .operator import KERNELS, SparseMatrix, default_kernel, prepare
+from .xla_options import FUSION_EMITTERS, compiler_options
 
 __all__ = ["CGIterationCost", "DeviceIterationCost", "cg_iteration_cost",
            "device_iteration_cost", "poisson_operator", "scaling_slope", "this_package_first"]
@@ -53,11 +57,13 @@ class CGIterationCost(NamedTuple):
     n_dofs: int
     nnz: int
     spmv_s: float  # median SciPy CSR SpMV
-    iteration_s: float  # median JAX PCG iteration, ELL kernel (the default)
+    iteration_s: float  # median JAX PCG iteration, ELL kernel (the default), package's options
     ratio: float  # median of the per-repeat ratios iteration / SpMV
-    coo_iteration_s: float  # the same with the COO segment-sum kernel (no layout)
+    xla_iteration_s: float  # the same program compiled with XLA's own fusion emitters
+    xla_ratio: float
+    coo_iteration_s: float  # the COO segment-sum kernel (no layout), package's options
     coo_ratio: float
-    compile_s: float  # first call of the jitted solve, compile included, minus a steady call
+    compile_s: float  # trace, lower and compile of the first program (ELL, package's options)
 
 
 def poisson_operator(n_side: int, dim: int = 2) -> tuple[SparseMatrix, np.ndarray]:
@@ -88,36 +94,44 @@ def cg_iteration_cost(n_side: int, *, dim: int = 2, iterations: int = 100,
     csr = ell.to_scipy()
     b = jnp.asarray(b)
 
-    @jax.jit
     def run(op, b, k):
         return solve(op, b, TruncatedCG(k, gradient="implicit")).x
 
-    def timed(op, k) -> float:
+    def compiled(op, options=None):
+        """``run`` for ``op`` (``K`` traced): with ``options``, else the package's choice."""
+        traced = jax.jit(run).trace(op, b, iterations)
+        chosen = compiler_options(traced.jaxpr) if options is None else dict(options)
+        return traced.lower().compile(compiler_options=chosen)
+
+    tic = time.perf_counter()
+    programs = {"ell": compiled(ell)}
+    compile_s = time.perf_counter() - tic
+    programs |= {"xla": compiled(ell, FUSION_EMITTERS), "coo": compiled(coo)}
+
+    operands = {"ell": ell, "xla": ell, "coo": coo}
+
+    def timed(name: str, k: int) -> float:
         tic = time.perf_counter()
-        jax.block_until_ready(run(op, b, k))
+        jax.block_until_ready(programs[name](operands[name], b, k))
         return time.perf_counter() - tic
 
-    first = timed(ell, iterations)
-    timed(coo, iterations)  # compile
     x = np.asarray(b)
-    spmv, ell_it, coo_it, ell_ratio, coo_ratio, steady = ([] for _ in range(6))
+    spmv, per_iteration = [], {name: [] for name in programs}
     for _ in range(repeats):
         tic = time.perf_counter()
         for _ in range(iterations):
             csr @ x
-        t_spmv = (time.perf_counter() - tic) / iterations
-        t_ell = max(timed(ell, iterations) - timed(ell, 0), 0.0) / iterations
-        t_coo = max(timed(coo, iterations) - timed(coo, 0), 0.0) / iterations
-        spmv.append(t_spmv)
-        ell_it.append(t_ell)
-        coo_it.append(t_coo)
-        ell_ratio.append(t_ell / t_spmv)
-        coo_ratio.append(t_coo / t_spmv)
-        steady.append(timed(ell, iterations))
+        spmv.append((time.perf_counter() - tic) / iterations)
+        for name, times in per_iteration.items():
+            times.append(max(timed(name, iterations) - timed(name, 0), 0.0) / iterations)
     median = lambda values: float(np.median(values))  # noqa: E731
-    return CGIterationCost(csr.shape[0], csr.nnz, median(spmv), median(ell_it),
-                           median(ell_ratio), median(coo_it), median(coo_ratio),
-                           max(first - median(steady), 0.0))
+
+    def ratio(name: str) -> float:
+        return median([t / s for t, s in zip(per_iteration[name], spmv, strict=True)])
+
+    return CGIterationCost(csr.shape[0], csr.nnz, median(spmv), median(per_iteration["ell"]),
+                           ratio("ell"), median(per_iteration["xla"]), ratio("xla"),
+                           median(per_iteration["coo"]), ratio("coo"), compile_s)
 
 
 class DeviceIterationCost(NamedTuple):

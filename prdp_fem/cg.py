@@ -113,6 +113,7 @@ from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
 from .products import symmetric_product
 from .tally import IterationCounter, tap
 from .validation import is_traced
+from .xla_options import CLASSIC_EMITTERS, classic_emitters_apply
 
 __all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve",
            "unrolled_length"]
@@ -361,7 +362,7 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     if nullspace is not None:
         _check_nullspace(nullspace, b)  # inside the compiled solve it is traced
     if counter is None and _compilable(dynamic):
-        sol = _compiled_solve(matrix, b, x0, nullspace, _typed(dynamic), static)
+        sol = _compiled_program(dynamic)(matrix, b, x0, nullspace, _typed(dynamic), static)
     else:  # a counter's host calls, or a preconditioner's Python numbers: op by op
         sol = _solve_traced(matrix, b, x0, solver, nullspace, counter)
     _raise_on_status(sol)
@@ -409,12 +410,23 @@ def _typed(dynamic: dict) -> dict:
             for name, value in dynamic.items()}
 
 
-@partial(jax.jit, static_argnames=("static",))
 def _compiled_solve(matrix, b, x0, nullspace, dynamic, static) -> Solution:
     """An eager :func:`solve` as one program: run op by op, a solve on a new shape compiled
     some 35 small programs (1.0-1.5 s on 2 CPU cores) where this compiles one (0.3-0.4 s)."""
     kind, fields = static
     return _solve_traced(matrix, b, x0, kind(**dict(fields), **dynamic), nullspace, None)
+
+
+_COMPILED_SOLVE = jax.jit(_compiled_solve, static_argnames=("static",))
+# a named preconditioner (identity, Jacobi) applies no AMG cycle: XLA's classic CPU emitters
+# compile and run it faster (prdp_fem.xla_options); a preconditioner pytree may be a cycle
+_COMPILED_SOLVE_CLASSIC = jax.jit(_compiled_solve, static_argnames=("static",),
+                                  compiler_options=dict(CLASSIC_EMITTERS))
+
+
+def _compiled_program(dynamic: dict):
+    named = "preconditioner" not in dynamic
+    return _COMPILED_SOLVE_CLASSIC if named and classic_emitters_apply() else _COMPILED_SOLVE
 
 
 def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:

@@ -46,6 +46,7 @@ import numpy as np
 
 from .program_store import compile_lowered
 from .tally import is_tally_host_call
+from .xla_options import compiler_options
 
 __all__ = ["SharedCompile", "kept_programs"]
 
@@ -298,8 +299,9 @@ class SharedCompile:
             return out_leaves
 
         arguments = packing.buffer_types() + [_strong(leaves[i]) for i in kept]
-        lowered = jax.jit(flat).lower(*arguments)
-        executable = self._executable(lowered, arguments)
+        traced = jax.jit(flat).trace(*arguments)
+        executable = self._executable(traced.lower(), arguments,
+                                      compiler_options(traced.jaxpr))
         return _Entry(treedefs, executable, _runner(executable), out_tree, _selector(kept),
                       packing)
 
@@ -308,18 +310,19 @@ class SharedCompile:
         static = self._static_argnum
         return [n - (static is not None and n > static) for n in self._packed_argnums]
 
-    def _executable(self, lowered, leaves):
-        """An executable of the same program compiled earlier in the process, else a new one."""
-        key = _program_key(lowered, leaves)
+    def _executable(self, lowered, leaves, options: dict):
+        """An executable of the same program compiled earlier in the process, else a new one
+        (compiled with the XLA ``options``)."""
+        key = _program_key(lowered, leaves, options)
         if key is None:
-            return compile_lowered(lowered)
+            return compile_lowered(lowered, options)
         with _TABLE_LOCK:
             executable = _EXECUTABLES.get(key)
             if executable is not None:
                 _EXECUTABLES.move_to_end(key)
                 self.shared += 1
                 return executable
-        executable = compile_lowered(lowered)
+        executable = compile_lowered(lowered, options)
         with _TABLE_LOCK:
             _EXECUTABLES[key] = executable
             while len(_EXECUTABLES) > _LIMIT:
@@ -350,7 +353,7 @@ def kept_programs(build: Callable[..., SharedCompile],
     return program
 
 
-def _program_key(lowered, leaves) -> tuple | None:
+def _program_key(lowered, leaves, options: dict) -> tuple | None:
     """What identifies the program (see the module docstring); ``None``: do not share."""
     lowering = getattr(lowered, "_lowering", None)
     constants = getattr(lowering, "const_args", None)
@@ -366,7 +369,7 @@ def _program_key(lowered, leaves) -> tuple | None:
         return None  # which arguments the text's parameters are: unknown
     digest = hashlib.sha256(lowered.as_text().encode()).hexdigest()
     return (digest, tuple(sorted(read)), tuple(map(_argument_type, leaves)), backend.platform,
-            compile_args.get("num_devices"))
+            compile_args.get("num_devices"), tuple(sorted(options.items())))
 
 
 def _runner(compiled) -> Callable:

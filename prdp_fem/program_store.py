@@ -65,19 +65,20 @@ def _tally_directory(cache_directory: str | None, enabled: bool) -> Path | None:
     return Path(cache_directory) / "tally"
 
 
-def compile_lowered(lowered):
-    """``lowered.compile()``; a program whose only host callbacks are the tally's is loaded
-    from the store when it is there and stored once compiled (see the module docstring)."""
+def compile_lowered(lowered, compiler_options: dict | None = None):
+    """``lowered.compile(compiler_options)``; a program whose only host callbacks are the
+    tally's is loaded from the store when it is there and stored once compiled (see the module
+    docstring; the options are part of JAX's key)."""
     directory = store_directory()
     if directory is None or not hasattr(_jax_compiler, "compile_or_get_cached") or \
             not hasattr(_jax_cache, "get_cache_key"):
-        return lowered.compile()
+        return lowered.compile(compiler_options=compiler_options)
     with _LOCK:  # read JAX's function under the lock: another compile may have swapped it
         original = _jax_compiler.compile_or_get_cached
         _jax_compiler.compile_or_get_cached = _serving(original, directory,
                                                        threading.get_ident())
         try:
-            return lowered.compile()
+            return lowered.compile(compiler_options=compiler_options)
         finally:
             _jax_compiler.compile_or_get_cached = original
 

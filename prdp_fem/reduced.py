@@ -65,6 +65,7 @@ from .inverse import (
 )
 from .prdp import Refinement, fixed
 from .program_store import compile_lowered
+from .xla_options import compiler_options
 
 __all__ = ["ReducedCG", "homogeneous", "reduced_cg"]
 
@@ -150,7 +151,8 @@ def _compile(fn: Callable, *example) -> tuple[Callable, float]:
     from the store of programs with the tally's host calls, which JAX's persistent cache
     refuses (on the mother problem at n = 256, 1.3-1.5 s of every process); timed."""
     start = time.perf_counter()
-    executable = compile_lowered(jax.jit(fn).lower(*example))
+    traced = jax.jit(fn).trace(*example)
+    executable = compile_lowered(traced.lower(), compiler_options(traced.jaxpr))
     return executable, time.perf_counter() - start
 
 

@@ -41,7 +41,7 @@ def test_cost_fields_and_slope():
     cost = cg_iteration_cost(9, iterations=3, repeats=1)
     assert cost.n_dofs == 64 and cost.nnz == poisson_operator(9)[0].nnz
     assert all(value >= 0 and math.isfinite(value) for value in cost[2:])
-    line = [CGIterationCost(n, 5 * n, 0.0, 3e-9 * n ** 1.5, 0.0, 0.0, 0.0, 0.0)
+    line = [CGIterationCost(n, 5 * n, 0.0, 3e-9 * n ** 1.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             for n in (100, 1000, 10000)]
     assert abs(scaling_slope(line) - 1.5) < 1e-12
     assert math.isnan(scaling_slope(line[:1]))
@@ -53,7 +53,7 @@ def test_bench_cg_prints_one_row_per_size_and_the_slope():
                          capture_output=True, text=True, timeout=300, check=True).stdout
     rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
     assert [int(row[0]) for row in rows] == [49, 121]
-    assert all(len(row) == 8 and all(math.isfinite(float(v)) for v in row) for row in rows)
+    assert all(len(row) == 10 and all(math.isfinite(float(v)) for v in row) for row in rows)
     assert "log-log slope" in out.splitlines()[-1]
 
 

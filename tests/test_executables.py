@@ -97,10 +97,10 @@ def test_a_lowering_with_hidden_constants_or_of_an_unknown_shape_is_never_shared
     """JAX may pass large constants as arguments apart from the text (its simplified-constants
     mode): the text no longer says everything, so such a program gets its own executable."""
     hidden = SimpleNamespace(_lowering=SimpleNamespace(const_args=[np.ones(3)]))
-    assert executables._program_key(hidden, []) is None
-    assert executables._program_key(SimpleNamespace(), []) is None  # a JAX that does not say
+    assert executables._program_key(hidden, [], {}) is None
+    assert executables._program_key(SimpleNamespace(), [], {}) is None  # a JAX that does not say
     lowered = jax.jit(lambda x: 2 * x).lower(jnp.ones(2))
-    assert executables._program_key(lowered, [jnp.ones(2)]) is not None
+    assert executables._program_key(lowered, [jnp.ones(2)], {}) is not None
 
 
 def test_a_shared_solve_counts_into_each_callers_counter():

@@ -151,13 +151,13 @@ def test_concurrent_compiles_leave_jax_s_function_in_place_and_others_programs_a
     holding, release = threading.Event(), threading.Event()
 
     class Waiting:  # a lowering whose compile waits until released
-        def compile(self):
+        def compile(self, compiler_options=None):
             holding.set()
             release.wait(timeout=60)
             return "compiled"
 
     class Quick:
-        def compile(self):
+        def compile(self, compiler_options=None):
             return "quick"
 
     results = {}

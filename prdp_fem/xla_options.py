@@ -1,0 +1,91 @@
+"""The XLA options this package compiles its own programs with, chosen per program.
+
+On the CPU, XLA's classic fusion emitters (``xla_cpu_use_fusion_emitters=False``) compile this
+package's programs faster than its default emitters and run their PCG iterations faster: a
+Jacobi-PCG iteration took 0.71-0.78x as long at 16k-261k unknowns in 2-D, and the mother
+problem's gradient compiled in 0.90-1.01 s against 1.04-1.44 s (``docs/performance-log.md``).
+They round the same: the mother gradient is the same to the bit.
+
+One kind of program must not get them: the classic emitters fuse a chain of gathers into one
+loop that recomputes every coarser level per fine entry, so a JAX AMG V-cycle at 261k unknowns
+took 142 ms instead of 5.3 ms. Options are per executable (``Lowered.compile``'s
+``compiler_options``, ``jax.jit``'s), so each program is compiled with the classic emitters
+unless
+
+* it applies an AMG cycle (the primitive :data:`AMG_CYCLE`, found by walking its jaxpr),
+* it compiles for another backend than the CPU, or
+* the caller's ``XLA_FLAGS`` name the emitters: that choice wins, for every program
+  (``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` restores XLA's default everywhere).
+
+Programs a user compiles with ``jax.jit`` around this package's functions get JAX's options:
+only the programs this package compiles itself are chosen here (inversion and training steps,
+the reduced-space gradient, an eager :func:`~prdp_fem.cg.solve`).
+
+>>> import jax, jax.numpy as jnp
+>>> traced = jax.jit(lambda x: jnp.sin(x) @ x).trace(jnp.ones(3))
+>>> applies_amg_cycle(traced.jaxpr)
+False
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from types import MappingProxyType
+from typing import Any
+
+import jax
+from jax.extend.core import ClosedJaxpr, Jaxpr
+
+__all__ = ["AMG_CYCLE", "CLASSIC_EMITTERS", "FUSION_EMITTERS", "applies_amg_cycle",
+           "classic_emitters_apply", "compiler_options"]
+
+#: The name of the primitive that applies an AMG V-cycle (:mod:`prdp_fem.amg` binds it).
+AMG_CYCLE = "amg_v_cycle"
+_EMITTERS_FLAG = "xla_cpu_use_fusion_emitters"
+#: The options of a program that applies no AMG cycle, on the CPU.
+CLASSIC_EMITTERS = MappingProxyType({_EMITTERS_FLAG: False})
+#: XLA's own fusion emitters, asked for by name (a benchmark's side-by-side column).
+FUSION_EMITTERS = MappingProxyType({_EMITTERS_FLAG: True})
+
+
+def classic_emitters_apply() -> bool:
+    """Whether programs compile for the CPU and the caller's ``XLA_FLAGS`` leave the fusion
+    emitters to this package."""
+    return jax.default_backend() == "cpu" and _EMITTERS_FLAG not in os.environ.get("XLA_FLAGS",
+                                                                                   "")
+
+
+def compiler_options(jaxpr: ClosedJaxpr | Jaxpr) -> dict[str, Any]:
+    """The options to compile the program of ``jaxpr`` with (see the module docstring)."""
+    if not classic_emitters_apply() or applies_amg_cycle(jaxpr):
+        return {}
+    return dict(CLASSIC_EMITTERS)
+
+
+def applies_amg_cycle(jaxpr: ClosedJaxpr | Jaxpr) -> bool:
+    """Whether ``jaxpr`` or any jaxpr nested in it (loop bodies, branches, custom rules' calls)
+    binds :data:`AMG_CYCLE`."""
+    pending = list(_jaxprs_in(jaxpr))
+    seen: set[int] = set()
+    while pending:
+        inner = pending.pop()
+        if id(inner) in seen:
+            continue
+        seen.add(id(inner))
+        for equation in inner.eqns:
+            if equation.primitive.name == AMG_CYCLE:
+                return True
+            for parameter in equation.params.values():
+                pending.extend(_jaxprs_in(parameter))
+    return False
+
+
+def _jaxprs_in(value) -> Iterator[Jaxpr]:
+    if isinstance(value, ClosedJaxpr):
+        yield value.jaxpr
+    elif isinstance(value, Jaxpr):
+        yield value
+    elif isinstance(value, tuple | list):
+        for item in value:
+            yield from _jaxprs_in(item)
