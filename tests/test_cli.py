@@ -61,7 +61,8 @@ def test_bench_cg_reports_the_operator(capsys):
     row = capsys.readouterr().out.strip().splitlines()[-1].split()
     assert int(row[0]) == 15 * 15  # interior dofs of a 16 x 16 square
     assert int(row[1]) == 15 * 15 + 4 * 15 * 14  # five-point pattern of P1 on right triangles
-    assert len(row) == 8  # dofs, nnz, SpMV, iteration, ratio, COO iteration, COO ratio, compile
+    assert len(row) == 10  # dofs, nnz, SpMV, iteration, ratio, XLA iteration and ratio, COO
+    # iteration and ratio, compile
 
 
 def test_ctrl_c_inside_a_jax_host_callback_counts_as_an_interrupt():
