@@ -129,7 +129,13 @@ def test_from_coo_sorts_and_sums(random_spd):
     np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
 
 
-@settings(max_examples=8, deadline=None)  # each shape compiles: ~1 s an example
+@jax.jit
+def _products(A, x):
+    return pf.matvec(A, x), pf.rmatvec(A, x), pf.diagonal(A)
+
+
+# each shape compiles: one program an example (the three run op by op took ~1 s an example)
+@settings(max_examples=8, deadline=None)
 @given(n=st.integers(1, 12), nnz=st.integers(0, 60), seed=st.integers(0, 2**31 - 1))
 def test_matvec_matches_scipy_for_any_coo(n, nnz, seed):
     """Duplicates, empty rows, any order: matvec, rmatvec and diagonal equal SciPy's."""
@@ -139,9 +145,10 @@ def test_matvec_matches_scipy_for_any_coo(n, nnz, seed):
     reference = sp.csr_matrix((values, (rows, cols)), shape=(n, n))
     A = pf.SparseMatrix.from_coo(rows, cols, values, (n, n))
     x = rng.normal(size=n)
-    np.testing.assert_allclose(pf.matvec(A, x), reference @ x, atol=1e-12)
-    np.testing.assert_allclose(pf.rmatvec(A, x), reference.T @ x, atol=1e-12)
-    np.testing.assert_allclose(pf.diagonal(A), reference.diagonal(), atol=1e-12)
+    product, transposed, diagonal = _products(A, jnp.asarray(x))
+    np.testing.assert_allclose(product, reference @ x, atol=1e-12)
+    np.testing.assert_allclose(transposed, reference.T @ x, atol=1e-12)
+    np.testing.assert_allclose(diagonal, reference.diagonal(), atol=1e-12)
 
 
 # ------------------------------------------------------------------------------------------
@@ -288,8 +295,14 @@ def test_scaled_kernel_is_S_A_S(n, nnz, seed):
     s, x = rng.uniform(0.5, 2.0, n), rng.normal(size=n)
     scaled = sp.diags(s) @ reference @ sp.diags(s)
     coo = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
-    for kernel in (pf.prepare(A), pf.prepare(coo), pf.prepare(A.with_kernel("csr"))):
-        np.testing.assert_allclose(kernel.scaled(jnp.asarray(s))(x), scaled @ x, atol=1e-12)
+    kernels = (pf.prepare(A), pf.prepare(coo), pf.prepare(A.with_kernel("csr")))
+    for product in _scaled_products(kernels, jnp.asarray(s), jnp.asarray(x)):
+        np.testing.assert_allclose(product, scaled @ x, atol=1e-12)
+
+
+@jax.jit
+def _scaled_products(kernels, s, x):  # one program an example, not each operation's
+    return [kernel.scaled(s)(x) for kernel in kernels]
 
 
 @pytest.mark.parametrize("shape", [(7, 30), (30, 7)])
