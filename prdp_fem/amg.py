@@ -74,6 +74,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
@@ -88,8 +89,8 @@ from .xla_options import AMG_CYCLE
 if TYPE_CHECKING:
     import pyamg
 
-# pyamg and scipy.linalg are imported where a hierarchy is built or read, not here: pyamg
-# took 0.07-0.09 s of every import of this package, which solves without AMG never use
+# pyamg is imported where a hierarchy is built or read, not here: it took 0.07-0.09 s of every
+# import of this package, which solves without AMG never use
 
 __all__ = [
     "DEFAULT_IMPLEMENTATION",
@@ -520,8 +521,6 @@ class AMGCycle:
             product = _sparse if depth < cut else _HostProduct
             (levels if depth < cut else tail).append(AMGLevel(
                 product(a), product(level.P), product(level.P.T), omega / a.diagonal()))
-        import scipy.linalg
-
         coarsest = scipy.linalg.pinv(sp.csr_matrix(ml.levels[-1].A).toarray())
         # every level's arrays in one transfer: one call per matrix was a tenth of the build
         levels, coarse_map = jax.device_put((tuple(levels), _dense_map(tail, coarsest, sweeps)))

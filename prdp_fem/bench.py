@@ -4,11 +4,11 @@
 time of one SciPy CSR SpMV of the same matrix (an iteration can never cost less than its SpMV
 on one core). Each repeat interleaves ``[SciPy: m SpMVs] [JAX: K iterations] [JAX: 0
 iterations]`` for three programs: the ELL kernel compiled as the package compiles its own
-programs (:mod:`prdp_fem.xla_options`), the same compiled with XLA's own fusion emitters (what
-a user's ``jax.jit`` gets), and the COO segment-sum kernel the ELL kernel replaced (the
-package's options). An iteration's time is ``(t_K - t_0) / K`` so that call overhead cancels;
-ratios are medians over repeats. ``scaling_slope`` fits ``log t = slope log n + c`` over a
-size sweep (linear: 1).
+programs (:mod:`prdp_fem.xla_options`), the same compiled with XLA's own fusion emitters forced
+(what a user's ``jax.jit`` gets where ``XLA_FLAGS`` are silent), and the COO segment-sum kernel
+the ELL kernel replaced (the package's options). An iteration's time is ``(t_K - t_0) / K``
+so that call overhead cancels; ratios are medians over repeats. ``scaling_slope`` fits
+``log t = slope log n + c`` over a size sweep (linear: 1).
 
 >>> costs = [CGIterationCost(n, 5 * n, 1e-9 * n, 2e-9 * n, 2.0, 2e-9 * n, 2.0, 3e-9 * n, 3.0,
 ...                          0.1) for n in (1000, 8000)]

@@ -425,6 +425,8 @@ _COMPILED_SOLVE_CLASSIC = jax.jit(_compiled_solve, static_argnames=("static",),
 
 
 def _compiled_program(dynamic: dict):
+    """The eager solve's jitted program: XLA's classic CPU emitters for a named preconditioner
+    where :func:`~prdp_fem.xla_options.classic_emitters_apply`, else JAX's options."""
     named = "preconditioner" not in dynamic
     return _COMPILED_SOLVE_CLASSIC if named and classic_emitters_apply() else _COMPILED_SOLVE
 

@@ -517,7 +517,7 @@ def _bench_cg(args) -> None:
         return _bench_cg_device(args, sides)
     print(f"P1 Laplacian, {args.dim}-D; Jacobi-PCG iteration inside the jitted loop / one SciPy "
           f"CSR SpMV (median of {args.repeats} interleaved repeats); PCG: as the package "
-          "compiles it, XLA: with XLA's own fusion emitters, COO: the segment-sum kernel")
+          "compiles it, XLA: XLA's own fusion emitters forced, COO: the segment-sum kernel")
     print(f"{'dofs':>9} {'nnz':>9} {'SpMV [ms]':>10} {'PCG it [ms]':>12} {'ratio':>7} "
           f"{'XLA it [ms]':>12} {'XLA ratio':>10} {'COO it [ms]':>12} {'COO ratio':>10} "
           f"{'compile [s]':>12}")

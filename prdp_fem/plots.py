@@ -8,14 +8,17 @@ Forward studies: error against K and time. h-studies: error against h and agains
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import meshio
 import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.tri import Triangulation
 
 from .atomic import atomic_path
 from .history import History
+
+if TYPE_CHECKING:
+    import meshio
 
 __all__ = ["forward_figures", "h_figures", "inverse_figures"]
 
@@ -117,6 +120,8 @@ def _values(mesh: meshio.Mesh, name: str) -> np.ndarray:
 
 def fields_figure(vtu_files: dict[str, Path], path: Path) -> Path | None:
     """Truth (from the first file that has one) and each run's recovered field, one scale."""
+    import meshio  # here: see prdp_fem.mesh
+
     meshes = {name: meshio.read(file) for name, file in vtu_files.items() if file.exists()}
     if not meshes:
         return None

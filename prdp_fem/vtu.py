@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Mapping
 from pathlib import Path
 
-import meshio
 import numpy as np
 import skfem
 
@@ -49,6 +48,8 @@ def write_vtu(mesh: skfem.Mesh, path: str | Path,
     points = mesh.p.T
     if points.shape[1] == 2:
         points = np.column_stack([points, np.zeros(n_vertices)])
+    import meshio  # here: see prdp_fem.mesh
+
     out = meshio.Mesh(points, [(cell_type, cells.astype(np.int64))], point_data=point_data,
                       cell_data=cell_data)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -2,9 +2,11 @@
 
 On the CPU, XLA's classic fusion emitters (``xla_cpu_use_fusion_emitters=False``) compile this
 package's programs faster than its default emitters and run their PCG iterations faster: a
-Jacobi-PCG iteration took 0.71-0.78x as long at 16k-261k unknowns in 2-D, and the mother
-problem's gradient compiled in 0.90-1.01 s against 1.04-1.44 s (``docs/performance-log.md``).
-They round the same: the mother gradient is the same to the bit.
+Jacobi-PCG iteration took 0.66-0.80x as long from 65k to 261k unknowns in 2-D (about the same
+at 2k-16k, within the noise), and the mother problem's gradient compiled in 0.90-1.19 s
+against 1.02-1.44 s (Intel Xeon, 2 cores; ``docs/performance-log.md``). They round the same:
+the mother problem's error and the inclusion scene's losses agreed to every digit compared
+(seven and eleven).
 
 One kind of program must not get them: the classic emitters fuse a chain of gathers into one
 loop that recomputes every coarser level per fine entry, so a JAX AMG V-cycle at 261k unknowns
@@ -15,11 +17,17 @@ unless
 * it applies an AMG cycle (the primitive :data:`AMG_CYCLE`, found by walking its jaxpr),
 * it compiles for another backend than the CPU, or
 * the caller's ``XLA_FLAGS`` name the emitters: that choice wins, for every program
-  (``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` restores XLA's default everywhere).
+  (``XLA_FLAGS=--xla_cpu_use_fusion_emitters=true`` restores XLA's default everywhere). XLA
+  reads the variable once, when JAX starts its backend, and this module when it compiles a
+  program: set it before the first JAX computation (a ``--flagfile`` is not looked into).
 
-Programs a user compiles with ``jax.jit`` around this package's functions get JAX's options:
-only the programs this package compiles itself are chosen here (inversion and training steps,
-the reduced-space gradient, an eager :func:`~prdp_fem.cg.solve`).
+Chosen here: inversion and training steps (:class:`~prdp_fem.executables.SharedCompile`), the
+reduced-space CG's gradient and an eager :func:`~prdp_fem.cg.solve` with a named
+preconditioner (a preconditioner pytree may be a cycle, so it keeps XLA's emitters without
+looking). Every other program keeps JAX's options: a ``jax.jit`` of the user's own around
+this package's functions, and the package's smaller jitted helpers (a forward study's timed
+solves, validation passes). A program with pyamg's callback cycle keeps XLA's emitters too
+(the primitive is the same), although it has no chain of gathers.
 
 >>> import jax, jax.numpy as jnp
 >>> traced = jax.jit(lambda x: jnp.sin(x) @ x).trace(jnp.ones(3))
@@ -45,13 +53,13 @@ AMG_CYCLE = "amg_v_cycle"
 _EMITTERS_FLAG = "xla_cpu_use_fusion_emitters"
 #: The options of a program that applies no AMG cycle, on the CPU.
 CLASSIC_EMITTERS = MappingProxyType({_EMITTERS_FLAG: False})
-#: XLA's own fusion emitters, asked for by name (a benchmark's side-by-side column).
+#: XLA's own fusion emitters, forced (a benchmark's side-by-side column; a caller's flags lose).
 FUSION_EMITTERS = MappingProxyType({_EMITTERS_FLAG: True})
 
 
 def classic_emitters_apply() -> bool:
-    """Whether programs compile for the CPU and the caller's ``XLA_FLAGS`` leave the fusion
-    emitters to this package."""
+    """Whether programs compile for the CPU and the caller's ``XLA_FLAGS`` (read now; XLA
+    read them when its backend started) leave the fusion emitters to this package."""
     return jax.default_backend() == "cpu" and _EMITTERS_FLAG not in os.environ.get("XLA_FLAGS",
                                                                                    "")
 

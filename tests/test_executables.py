@@ -101,6 +101,10 @@ def test_a_lowering_with_hidden_constants_or_of_an_unknown_shape_is_never_shared
     assert executables._program_key(SimpleNamespace(), [], {}) is None  # a JAX that does not say
     lowered = jax.jit(lambda x: 2 * x).lower(jnp.ones(2))
     assert executables._program_key(lowered, [jnp.ones(2)], {}) is not None
+    # the same text compiled with other XLA options is another executable
+    classic = {"xla_cpu_use_fusion_emitters": False}
+    assert executables._program_key(lowered, [jnp.ones(2)], classic) != \
+        executables._program_key(lowered, [jnp.ones(2)], {})
 
 
 def test_a_shared_solve_counts_into_each_callers_counter():

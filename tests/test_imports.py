@@ -11,6 +11,7 @@ _CHILD = """
 import json, sys
 import numpy as np
 import prdp_fem as pf
+import prdp_fem.cli, prdp_fem.study  # what `prdp-fem study` imports before a scene's needs
 from prdp_fem.bench_inverse import solve_mother
 
 def loaded():

@@ -118,26 +118,38 @@ def test_an_eager_solve_takes_the_classic_program_for_a_named_preconditioner(
 
 
 # what XLA builds: the classic emitters expand a scatter into a loop (tests/test_products.py)
-_SCATTERS = """
+_BUILT = """
 import json, jax, jax.numpy as jnp
-from prdp_fem import executables
 import numpy as np
+import prdp_fem as pf
+from prdp_fem import cg, executables
 index = np.array([0, 2, 2, 1])
 step = executables.SharedCompile(jax.grad(lambda x: jnp.sum(x[index] ** 2)))
 gradient = step(jnp.arange(3.0))
 compiled = list(executables._EXECUTABLES.values())[-1]
+# the eager solve's two programs: the classic one must carry its option into XLA
+disc = pf.discretize(pf.unit_square(4), element="P1", dirichlet=0.0)
+A, b = disc.system.operator(jnp.ones(disc.n_kappa)), jnp.ones(disc.n_free)
+dynamic, static = cg._split_solver(pf.ConvergedCG(), A.shape[0])
+texts = [program.lower(A, b, None, None, cg._typed(dynamic), static=static).compile().as_text()
+         for program in (cg._COMPILED_SOLVE_CLASSIC, cg._COMPILED_SOLVE)]
 print(json.dumps({"scatters": compiled.as_text().count(" scatter("),
-                  "gradient": [float(g) for g in gradient]}))
+                  "gradient": [float(g) for g in gradient],
+                  "eager classic": cg._compiled_program(dynamic) is cg._COMPILED_SOLVE_CLASSIC,
+                  "eager programs differ": texts[0] != texts[1]}))
 """
 
 
-@pytest.mark.parametrize("flags, scatters", [("", 0), ("--xla_cpu_use_fusion_emitters=true", 1)])
-def test_a_step_compiled_in_a_fresh_process_has_the_emitters_chosen(flags, scatters):
-    """With XLA_FLAGS silent the step is compiled with the classic emitters (no scatter left);
-    a user who asks for XLA's emitters gets them (the scatter stays)."""
+@pytest.mark.parametrize("flags, chosen", [("", True),
+                                           ("--xla_cpu_use_fusion_emitters=true", False)])
+def test_programs_compiled_in_a_fresh_process_have_the_emitters_chosen(flags, chosen):
+    """With XLA_FLAGS silent a step is compiled with the classic emitters (no scatter left) and
+    an eager Jacobi solve takes its classic program; a user who asks for XLA's emitters gets
+    them (the scatter stays, the other program). The classic program is another program."""
     environment = {**os.environ, "XLA_FLAGS": flags}
-    done = subprocess.run([sys.executable, "-c", _SCATTERS], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-c", _BUILT], capture_output=True, text=True,
                           env=environment, timeout=300, check=True)
     out = json.loads(done.stdout.strip().splitlines()[-1])
     assert out["gradient"] == [0.0, 2.0, 8.0]
-    assert (out["scatters"] > 0) == bool(scatters)
+    assert (out["scatters"] == 0) == chosen and out["eager classic"] == chosen
+    assert out["eager programs differ"]
