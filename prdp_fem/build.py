@@ -61,6 +61,7 @@ from .scene import (
     SceneSensorError,
     ema_window_of,
 )
+from .xla_options import solver_options
 
 __all__ = [
     "ForwardResult",
@@ -153,7 +154,8 @@ def forward_solve(scene: Scene, *, reference: bool = False,
     preconditioner = solver_preconditioner(scene, A)
     solver = TruncatedCG(spec.iterations[0], preconditioner, gradient="implicit") \
         if spec.iterations else ConvergedCG(rtol=spec.rtol, preconditioner=preconditioner)
-    run = jax.jit(lambda A, b: solve(A, b, solver))
+    run = jax.jit(lambda A, b: solve(A, b, solver),
+                  compiler_options=solver_options(preconditioner))
     A_jax, b_jax = SparseMatrix.from_scipy(A), jnp.asarray(b)
     jax.block_until_ready(run(A_jax, b_jax))  # compile
     start = time.perf_counter()

@@ -113,7 +113,7 @@ from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
 from .products import symmetric_product
 from .tally import IterationCounter, tap
 from .validation import is_traced
-from .xla_options import CLASSIC_EMITTERS, classic_emitters_apply
+from .xla_options import CLASSIC_EMITTERS, solver_options
 
 __all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve",
            "unrolled_length"]
@@ -426,9 +426,9 @@ _COMPILED_SOLVE_CLASSIC = jax.jit(_compiled_solve, static_argnames=("static",),
 
 def _compiled_program(dynamic: dict):
     """The eager solve's jitted program: XLA's classic CPU emitters for a named preconditioner
-    where :func:`~prdp_fem.xla_options.classic_emitters_apply`, else JAX's options."""
-    named = "preconditioner" not in dynamic
-    return _COMPILED_SOLVE_CLASSIC if named and classic_emitters_apply() else _COMPILED_SOLVE
+    where they apply (:func:`~prdp_fem.xla_options.solver_options`), else JAX's options."""
+    preconditioner = dynamic.get("preconditioner", "named")  # a name is static, not dynamic
+    return _COMPILED_SOLVE_CLASSIC if solver_options(preconditioner) else _COMPILED_SOLVE
 
 
 def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:

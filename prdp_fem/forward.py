@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any, NamedTuple
 
 import jax
@@ -24,6 +25,7 @@ from .errors import SceneError, SolverConfigError
 from .generators import l_shape, rectangle_with_hole, unit_cube, unit_square
 from .mesh import load_mesh
 from .reference import amg_solve
+from .xla_options import solver_options
 
 __all__ = ["SCENES", "ForwardRecord", "ForwardStudy", "build_scene", "forward_convergence"]
 
@@ -111,7 +113,7 @@ def forward_convergence(scene: Scene, iterations: Sequence[int], *,
     b = system.rhs(kappa, jnp.asarray(scene.source))
     setup = time.perf_counter() - start
 
-    @jax.jit
+    @partial(jax.jit, compiler_options=solver_options(preconditioner))
     def run(op, b, k):
         return solve(op, b, TruncatedCG(k, preconditioner, gradient="implicit"))
 

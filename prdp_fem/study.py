@@ -68,6 +68,7 @@ from .operator import SparseMatrix
 from .reference import amg_solve, l2_error
 from .scene import Scene
 from .vtu import write_vtu
+from .xla_options import solver_options
 
 __all__ = [
     "DEFAULT_FORWARD_ITERATIONS",
@@ -333,7 +334,8 @@ def _run_level(name, config, attempt, log, progress, out: Path, scene: Scene) ->
     (A_jax, preconditioner), setup_time = _timed(
         lambda: (SparseMatrix.from_scipy(A), solver_preconditioner(scene, A)))
     solver = ConvergedCG(rtol=scene.solver.rtol, preconditioner=preconditioner)
-    run = jax.jit(lambda A, b: solve(A, b, solver))
+    run = jax.jit(lambda A, b: solve(A, b, solver),
+                  compiler_options=solver_options(preconditioner))
     b_jax = jnp.asarray(b)
     _, compile_time = _timed(run, A_jax, b_jax)
     solution, cg_time = _timed(run, A_jax, b_jax)

@@ -21,12 +21,13 @@ unless
   reads the variable once, when JAX starts its backend, and this module when it compiles a
   program: set it before the first JAX computation (a ``--flagfile`` is not looked into).
 
-Chosen here: inversion and training steps (:class:`~prdp_fem.executables.SharedCompile`), the
-reduced-space CG's gradient and an eager :func:`~prdp_fem.cg.solve` with a named
-preconditioner (a preconditioner pytree may be a cycle, so it keeps XLA's emitters without
-looking). Every other program keeps JAX's options: a ``jax.jit`` of the user's own around
-this package's functions, and the package's smaller jitted helpers (a forward study's timed
-solves, validation passes). A program with pyamg's callback cycle keeps XLA's emitters too
+Chosen here: inversion and training steps (:class:`~prdp_fem.executables.SharedCompile`) and
+the reduced-space CG's gradient from their jaxprs (:func:`compiler_options`); an eager
+:func:`~prdp_fem.cg.solve` and the timed solves of forward, h- and scene studies from their
+preconditioner (:func:`solver_options`: a preconditioner pytree may be a cycle, so it keeps
+XLA's emitters without looking). Every other program keeps JAX's options: a ``jax.jit`` of
+the user's own around this package's functions, and the package's smaller jitted helpers
+(validation passes, assembly). A program with pyamg's callback cycle keeps XLA's emitters too
 (the primitive is the same), although it has no chain of gathers.
 
 >>> import jax, jax.numpy as jnp
@@ -46,7 +47,7 @@ import jax
 from jax.extend.core import ClosedJaxpr, Jaxpr
 
 __all__ = ["AMG_CYCLE", "CLASSIC_EMITTERS", "FUSION_EMITTERS", "applies_amg_cycle",
-           "classic_emitters_apply", "compiler_options"]
+           "classic_emitters_apply", "compiler_options", "solver_options"]
 
 #: The name of the primitive that applies an AMG V-cycle (:mod:`prdp_fem.amg` binds it).
 AMG_CYCLE = "amg_v_cycle"
@@ -62,6 +63,19 @@ def classic_emitters_apply() -> bool:
     read them when its backend started) leave the fusion emitters to this package."""
     return jax.default_backend() == "cpu" and _EMITTERS_FLAG not in os.environ.get("XLA_FLAGS",
                                                                                    "")
+
+
+def solver_options(preconditioner: Any) -> dict[str, Any]:
+    """The options of a solve's program known before tracing it: the classic emitters for a
+    named preconditioner (``"identity"``, ``"jacobi"``: no AMG cycle) where they apply; a
+    preconditioner pytree may be a cycle, so it keeps XLA's emitters without looking.
+
+    >>> solver_options(object())
+    {}
+    """
+    if isinstance(preconditioner, str) and classic_emitters_apply():
+        return dict(CLASSIC_EMITTERS)
+    return {}
 
 
 def compiler_options(jaxpr: ClosedJaxpr | Jaxpr) -> dict[str, Any]:

@@ -21,7 +21,12 @@ from prdp_fem import cg, executables, reduced
 from prdp_fem.bench_inverse import mother_problem
 from prdp_fem.inverse import invert
 from prdp_fem.prdp import fixed
-from prdp_fem.xla_options import CLASSIC_EMITTERS, applies_amg_cycle, compiler_options
+from prdp_fem.xla_options import (
+    CLASSIC_EMITTERS,
+    applies_amg_cycle,
+    compiler_options,
+    solver_options,
+)
 
 
 @pytest.fixture
@@ -61,14 +66,19 @@ def test_only_programs_that_apply_an_amg_cycle_keep_xla_s_emitters(
 
 
 def test_the_caller_s_xla_flags_choose_the_emitters_for_every_program(poisson, monkeypatch):
-    disc, kappa, _, _ = poisson
+    disc, kappa, operator, _ = poisson
     jacobi = _gradient_jaxpr(disc, kappa, pf.TruncatedCG(5, "jacobi"))
     for flags in ("--xla_cpu_use_fusion_emitters=true",
                   "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"):
         monkeypatch.setenv("XLA_FLAGS", flags)
-        assert compiler_options(jacobi) == {}
+        assert compiler_options(jacobi) == {} and solver_options("jacobi") == {}
     monkeypatch.delenv("XLA_FLAGS")
     assert compiler_options(jacobi) == dict(CLASSIC_EMITTERS)
+    # before tracing, a solve's program is judged by its preconditioner: a name, or a pytree
+    # that may be a cycle (a Jacobi pytree too: not looked into)
+    assert solver_options("identity") == solver_options("jacobi") == dict(CLASSIC_EMITTERS)
+    assert solver_options(pf.amg_preconditioner(operator)) == {}
+    assert solver_options(pf.jacobi(operator)) == {}
 
 
 def _recorded(monkeypatch, module) -> list:
