@@ -362,7 +362,8 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     if nullspace is not None:
         _check_nullspace(nullspace, b)  # inside the compiled solve it is traced
     if counter is None and _compilable(dynamic):
-        sol = _compiled_program(dynamic)(matrix, b, x0, nullspace, _typed(dynamic), static)
+        program = _compiled_program(solver.preconditioner)
+        sol = program(matrix, b, x0, nullspace, _typed(dynamic), static)
     else:  # a counter's host calls, or a preconditioner's Python numbers: op by op
         sol = _solve_traced(matrix, b, x0, solver, nullspace, counter)
     _raise_on_status(sol)
@@ -424,10 +425,9 @@ _COMPILED_SOLVE_CLASSIC = jax.jit(_compiled_solve, static_argnames=("static",),
                                   compiler_options=dict(CLASSIC_EMITTERS))
 
 
-def _compiled_program(dynamic: dict):
+def _compiled_program(preconditioner):
     """The eager solve's jitted program: XLA's classic CPU emitters for a named preconditioner
     where they apply (:func:`~prdp_fem.xla_options.solver_options`), else JAX's options."""
-    preconditioner = dynamic.get("preconditioner", "named")  # a name is static, not dynamic
     return _COMPILED_SOLVE_CLASSIC if solver_options(preconditioner) else _COMPILED_SOLVE
 
 
