@@ -83,9 +83,12 @@ class LossParts(NamedTuple):
 class InverseProblem:
     """Everything the objective needs, as a pytree (pass it to jitted code as an argument).
 
-    ``known`` is the other coefficient: ``kappa`` when the source is unknown, ``f`` (nodal in
-    the solution space) when log-kappa is. ``truth`` is the parameter *field* to measure errors
-    against (``None`` when unknown). ``alpha`` is a leaf: sweeping it does not recompile.
+    ``known`` is the other coefficient: ``f`` (nodal in the solution space) when log-kappa is
+    unknown. When the source is, ``kappa`` never changes, and :func:`inverse_problem` freezes
+    the system at it (:meth:`~prdp_fem.discretization.Discretization.system_at`): ``known``
+    is then that system's one coefficient, the scale ``ones(1)``. ``truth`` is the parameter
+    *field* to measure errors against (``None`` when unknown). ``alpha`` is a leaf: sweeping it
+    does not recompile.
     ``residual_factors`` (:mod:`prdp_fem.residuals`, from :meth:`with_residual`) let
     :meth:`residual` write ``J`` as a sum of squares for Gauss-Newton-type optimisers.
     """
@@ -218,7 +221,9 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     """Assemble an :class:`InverseProblem` on ``disc`` (checks sizes at the edge).
 
     ``unknown="source"``: ``f`` nodal in the solution space, ``known`` is ``kappa`` in the
-    kappa space (default 1, the identity for a tensor ``kappa``). ``unknown="log_kappa"``:
+    kappa space (default 1, the identity for a tensor ``kappa``); the problem's system is
+    frozen at it, so no map ``kappa -> A`` is built (see :class:`InverseProblem`).
+    ``unknown="log_kappa"``:
     ``m = log kappa`` in the kappa space, ``known`` is the nodal source ``f`` (default 0).
     ``residual=True`` also factors the misfit weight and the regulariser, for
     :meth:`InverseProblem.residual` (needed by :func:`prdp_fem.hig.hig`; a sparse factor of
@@ -249,8 +254,11 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
         if known is None:
             known = 1.0 if disc.kappa_kind == "scalar" else disc.interpolate_kappa(
                 lambda x: np.eye(disc.mesh.dim()))
-        known = disc.check_kappa(known, "known (kappa of a source inversion)")
+        # kappa never changes: the system frozen at it, whose one coefficient is a scale
+        system = disc.system_at(disc.check_kappa(known, "known (kappa of a source inversion)"))
+        known = np.ones(1)
     else:
+        system = disc.system
         known = finite_vector(0.0 if known is None else known,
                               "known (nodal source f of a log_kappa inversion)", disc.n_dofs)
     if truth is not None:
@@ -265,7 +273,7 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     if regularization.reference.shape != (n_param,):
         raise ShapeError(f"regularization: built for {regularization.reference.shape[0]} "
                          f"parameters, expected {n_param}")
-    problem = InverseProblem(disc.system, parameterization, observation, regularization,
+    problem = InverseProblem(system, parameterization, observation, regularization,
                              as_jax(float(alpha)), as_jax(known), truth,
                              SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
     return problem.with_residual() if residual else problem

@@ -583,6 +583,18 @@ class FixedMatrix:
         forward, transpose = jax.device_put((host_prepared(csr), host_prepared(csr.T)))
         return cls(forward, transpose, tuple(int(s) for s in csr.shape))
 
+    @classmethod
+    def column(cls, values: np.ndarray) -> FixedMatrix:
+        """The ``n x 1`` matrix ``values`` (``x -> values * x[0]``; host values). Its
+        transpose is one row of ``n`` entries: a COO sum, where an ELL layout would be one
+        row ``n`` slots wide."""
+        values = np.asarray(values, dtype=np.float64)
+        column = sp.csr_matrix((values, (np.arange(values.size), np.zeros(values.size, int))),
+                               shape=(values.size, 1))
+        forward, transpose = jax.device_put(
+            (host_prepared(column), prepare(_numpy_matrix(column.T, layout=False))))
+        return cls(forward, transpose, (values.size, 1))
+
     def to_scipy(self) -> sp.csr_matrix:
         """The matrix as SciPy CSR, read back from the forward kernel (host; the layout's
         padding and any stored zeros are dropped)."""

@@ -1,5 +1,7 @@
 """Discretisation: the assembly map against scikit-fem, boundary data, convergence rates."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,6 +45,93 @@ def test_assembly_map_equals_scikit_fem(make, element, kappa_space):
     op = disc.system.operator(kappa)
     assert abs(op.to_scipy() - disc.stiffness_matrix(kappa)).max() < 1e-13
     np.testing.assert_allclose(disc.system.rhs(kappa), disc.rhs(kappa), atol=1e-13)
+
+
+def _frozen_gap(frozen, disc, kappa):
+    """Largest entry gap of the frozen system (at scale 1) against the kappa map's, relative
+    to the largest entry, for the operator and the right-hand side with a source."""
+    one = jnp.ones(1)
+    A, reference = frozen.operator(one).to_scipy(), disc.stiffness_matrix(kappa)
+    f = np.cos(np.arange(disc.n_dofs))
+    b, b_ref = frozen.rhs(one, jnp.asarray(f)), disc.rhs(kappa, f)
+    return (abs(A - reference).max() / abs(reference).max(),
+            np.abs(b - b_ref).max() / np.abs(b_ref).max())
+
+
+@pytest.mark.parametrize("kappa_space", ["P0", "P1"])
+@pytest.mark.parametrize(("make", "element"), CASES)
+def test_system_at_kappa_equals_the_kappa_map_there(make, element, kappa_space):
+    """The frozen system (assembled at kappa in one pass) has the kappa map's operator and
+    right-hand side at kappa, Dirichlet data and the source included, and scales with s."""
+    def g(x):
+        return 1.0 + x[0] ** 2 - x[1]
+
+    disc = pf.discretize(make(), element=element, kappa_space=kappa_space, dirichlet=g)
+    kappa = np.random.default_rng(1).uniform(0.5, 2.0, disc.n_kappa)
+    frozen = disc.system_at(kappa)
+    assert frozen.n_kappa == 1 and frozen.n_free == disc.n_free
+    assert max(_frozen_gap(frozen, disc, kappa)) < 1e-14
+    # linear in the scale: A(s) = s A(kappa), and b's lifting term scales with it
+    s = jnp.asarray([3.0])
+    scaled = frozen.operator(s).to_scipy() - 3.0 * disc.stiffness_matrix(kappa)
+    assert abs(scaled).max() < 1e-13 * abs(disc.stiffness_matrix(kappa)).max()
+    np.testing.assert_allclose(frozen.rhs(s), disc.rhs(3.0 * kappa), rtol=1e-13,
+                               atol=1e-13 * np.abs(disc.rhs(kappa)).max())
+
+
+def test_system_at_a_tensor_kappa_and_neumann_data():
+    disc = pf.discretize(pf.unit_square(4), element="P2", kappa_space="P1",
+                         kappa_kind="tensor", dirichlet={"left": 1.0},
+                         neumann={"top": lambda x: x[0]})
+    kappa = disc.interpolate_kappa(lambda x: np.array(
+        [[2.0 + x[0], 0.5 * x[1]], [0.5 * x[1], 1.0 + 0 * x[0]]]))
+    assert max(_frozen_gap(disc.system_at(kappa), disc, kappa)) < 1e-14
+
+
+def test_system_at_keeps_the_couplings_of_a_high_contrast_kappa():
+    """Geometric zeros are dropped relative to each entry's own diagonals, not to the
+    largest entry: at a contrast of 1e-20 the weak region's couplings stay (relative to
+    the largest entry they would all be 'zero'), and the right triangles' cancellations go,
+    as the kappa map drops them."""
+    disc = pf.discretize(pf.unit_square(8), element="P1", kappa_space="P0")
+    centroids = disc.mesh.p[:, disc.mesh.t].mean(axis=1)
+    kappa = np.where(centroids[0] < 0.5, 1.0, 1e-20)
+    A = disc.system_at(kappa).operator(jnp.ones(1)).to_scipy()
+    reference = disc.stiffness_matrix(kappa)
+    assert A.nnz == reference.nnz == len(disc.pattern[0])
+    weak = np.flatnonzero(disc.basis.doflocs[0, disc.free_dofs] > 0.6)
+    block, expected = A[weak][:, weak].toarray(), reference[weak][:, weak].toarray()
+    assert np.count_nonzero(block) > 3 * len(weak)  # the weak region's off-diagonals
+    np.testing.assert_allclose(block, expected, rtol=1e-13, atol=0.0)
+
+
+def test_a_source_inversion_builds_no_kappa_map():
+    """A source inversion freezes the system at its kappa: the map G is never built, and the
+    loss and gradient are the kappa map's."""
+    disc = pf.discretize(pf.unit_square(6), element="P1", kappa_space="P1",
+                         dirichlet=lambda x: x[0])
+    kappa = 1.0 + disc.kappa_basis.doflocs[1]
+    obs = pf.full_field(disc, u_true=disc.interpolate(lambda x: np.sin(3 * x[0]) * x[1]))
+    problem = pf.inverse_problem(disc, obs, unknown="source", alpha=1e-4, known=kappa)
+    assert "_maps" not in disc.__dict__ and problem.known.shape == (1,)
+    solver = pf.TruncatedCG(7, "jacobi")
+    z = jnp.asarray(np.cos(np.arange(problem.n_parameters)))
+
+    def value_and_grad(p):
+        return jax.value_and_grad(lambda z: p.loss(z, solver)[0])(z)
+
+    mapped = dataclasses.replace(problem, system=disc.system, known=jnp.asarray(kappa))
+    (value, grad), (value_ref, grad_ref) = value_and_grad(problem), value_and_grad(mapped)
+    assert abs(value - value_ref) <= 1e-13 * abs(value_ref)
+    np.testing.assert_allclose(grad, grad_ref, rtol=0, atol=1e-12 * np.abs(grad_ref).max())
+
+
+def test_system_at_refuses_a_traced_or_bad_kappa():
+    disc = pf.discretize(pf.unit_square(3), element="P1")
+    with pytest.raises(pf.CoefficientError, match="system_at: kappa is traced"):
+        jax.jit(disc.system_at)(jnp.ones(disc.n_kappa))
+    with pytest.raises(pf.CoefficientError, match=r"kappa: .*> 0"):
+        disc.system_at(-np.ones(disc.n_kappa))
 
 
 def test_the_system_first_read_inside_jit_is_built_eagerly():
