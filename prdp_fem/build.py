@@ -148,8 +148,8 @@ def forward_solve(scene: Scene, *, reference: bool = False,
     kappa = coefficient(scene, disc)
     load = disc.load_vector(field_function(scene, "pde.source", scene.pde.source,
                                            disc.mesh.dim()))
-    A = disc.stiffness_matrix(kappa)
-    b = disc.rhs(kappa) + load
+    A, b = disc.host_system_at(kappa)  # one kappa: no map kappa -> A
+    b = b + load
     spec = scene.solver
     preconditioner = solver_preconditioner(scene, A)
     solver = TruncatedCG(spec.iterations[0], preconditioner, gradient="implicit") \
@@ -170,7 +170,7 @@ def forward_solve(scene: Scene, *, reference: bool = False,
 
 
 def _true_state(disc: Discretization, kappa: np.ndarray, f: np.ndarray) -> np.ndarray:
-    A, b = disc.stiffness_matrix(kappa), disc.rhs(kappa, f)
+    A, b = disc.host_system_at(kappa, f)  # a source scene builds no map kappa -> A
     x = direct_solve(A, b).x if disc.n_free <= DIRECT_SOLVE_LIMIT else amg_solve(A, b).x
     return disc.expand(x)
 

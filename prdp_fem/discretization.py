@@ -267,15 +267,32 @@ class Discretization:
         >>> bool(abs(gap).max() < 1e-14)
         True
         """
-        if is_traced(kappa):
-            raise CoefficientError("system_at: kappa is traced; expected concrete values "
-                                   "(the system is assembled on the host)")
-        kappa = self.check_kappa(kappa)
-        values, pattern, lifting_values, lifting_pattern = _frozen_blocks(
-            self.basis, self.kappa_basis, self.free_dofs, self._forms, kappa)
+        operator, lifting = self._blocks_at(kappa)
+        values, pattern = _csr_entries(operator)
+        lifting_values, lifting_pattern = _csr_entries(lifting)
         with jax.ensure_compile_time_eval():
             return self._linear_system(FixedMatrix.column(values), pattern,
                                        FixedMatrix.column(lifting_values), lifting_pattern)
+
+    def host_system_at(self, kappa, f: np.ndarray | None = None
+                       ) -> tuple[sp.csr_matrix, np.ndarray]:
+        """``(A, b)`` at ``kappa`` on the host: the condensed operator (SciPy CSR) and the
+        right-hand side ``S f + h - A_ID g`` (``f`` nodal; ``None``: 0), as
+        :meth:`stiffness_matrix` and :meth:`rhs` give them, assembled in one pass as
+        :meth:`system_at` is, without the map ``G``."""
+        operator, lifting = self._blocks_at(kappa)
+        b = self.neumann - lifting @ self.dirichlet_values
+        if f is not None:
+            b = b + self.source_matrix @ finite_vector(f, "f", self.n_dofs)
+        return operator, b
+
+    def _blocks_at(self, kappa) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """``(A, A_ID)`` at ``kappa``: the operator and its Dirichlet columns."""
+        if is_traced(kappa):
+            raise CoefficientError("kappa is traced; expected concrete values (the system "
+                                   "at one kappa is assembled on the host)")
+        return _frozen_blocks(self.basis, self.kappa_basis, self.free_dofs, self._forms,
+                              self.check_kappa(kappa))
 
     def _linear_system(self, assembly: FixedMatrix, pattern, lifting: FixedMatrix,
                        lifting_pattern) -> LinearSystem:
@@ -569,9 +586,9 @@ def _assembled_entries(basis, kappa_basis, forms):
 
 
 def _frozen_blocks(basis, kappa_basis, free, forms, kappa):
-    """Values and pattern of the condensed operator at ``kappa`` and of its Dirichlet columns
-    (see :meth:`Discretization.system_at`): one scikit-fem assembly per coefficient
-    component (a summed CSR matrix, columns sorted), then its free rows split by column."""
+    """The condensed operator at ``kappa`` and its Dirichlet columns, SciPy CSR with sorted
+    columns (see :meth:`Discretization.system_at`): one scikit-fem assembly per coefficient
+    component (summed CSR), its free rows split by column, geometric zeros dropped."""
     n_basis = kappa_basis.N
     full = sum(form.assemble(basis, kappa=_at_quadrature(
         kappa_basis, kappa[component * n_basis:(component + 1) * n_basis]))
@@ -589,8 +606,15 @@ def _frozen_blocks(basis, kappa_basis, free, forms, kappa):
         kept = np.abs(block.data) > bound
         if column_dofs is free:
             kept |= block.row == block.col
-        blocks += [block.data[kept], (block.row[kept], block.col[kept])]
+        blocks.append(sp.csr_matrix((block.data[kept], (block.row[kept], block.col[kept])),
+                                    shape=block.shape))
     return tuple(blocks)
+
+
+def _csr_entries(matrix: sp.csr_matrix) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Values and ``(rows, cols)`` of a canonical CSR matrix, row by row."""
+    coo = matrix.tocoo()
+    return coo.data, (coo.row, coo.col)
 
 
 def _at_quadrature(kappa_basis, values: np.ndarray) -> np.ndarray:

@@ -196,6 +196,8 @@ class LearnedFactors(NamedTuple):
 class LearnedInverse:
     """The fixed physics of a learned source inversion (a pytree: a jit argument).
 
+    ``system`` is frozen at the coefficient (``Discretization.system_at``) and ``kappa`` is
+    its one coefficient, the scale ``ones(1)``;
     ``observation`` gives ``B`` and ``W`` (its data is not used: each sample has its own);
     ``mass`` is the nodal mass matrix (source errors and the supervised term);
     ``supervised`` is the weight ``beta`` of the supervised term (0: observations only);
@@ -252,14 +254,16 @@ class LearnedInverse:
 
 def learned_inverse(disc: Discretization, observation: Observation, *, kappa=1.0,
                     supervised: float = 0.0) -> LearnedInverse:
-    """A :class:`LearnedInverse` on ``disc`` with coefficient ``kappa`` (checked here)."""
+    """A :class:`LearnedInverse` on ``disc`` with coefficient ``kappa`` (checked here; the
+    system is frozen at it, so no map ``kappa -> A`` is built)."""
     if not (math.isfinite(supervised) and supervised >= 0):
         raise SolverConfigError(f"supervised={supervised!r}: expected a finite number >= 0")
     if observation.operator.shape[1] != disc.n_dofs:
         raise ShapeError(f"observation: operator acts on {observation.operator.shape[1]} "
                          f"dofs, expected {disc.n_dofs} (built on another discretisation?)")
-    kappa = jnp.asarray(disc.check_kappa(kappa, "kappa"))
-    return LearnedInverse(disc.system, kappa, observation,
+    # kappa never changes: the system frozen at it, whose one coefficient is a scale
+    system = disc.system_at(disc.check_kappa(kappa, "kappa"))
+    return LearnedInverse(system, jnp.ones(1), observation,
                           SparseMatrix.from_scipy(disc.mass_matrix),
                           jnp.asarray(float(supervised)))
 

@@ -309,7 +309,7 @@ def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setup
                     "dofs": disc.n_free, **r._asdict()})
         progress.step()
 
-    preconditioner = solver_preconditioner(variant, disc.stiffness_matrix(scene.kappa))
+    preconditioner = solver_preconditioner(variant, disc.host_system_at(scene.kappa)[0])
     forward_convergence(scene, iterations, preconditioner=preconditioner, on_record=record)
 
 
@@ -326,10 +326,8 @@ def _run_level(name, config, attempt, log, progress, out: Path, scene: Scene) ->
     disc = build_discretization(scene, mesh, element)
     dim = mesh.dim()
     exact = field_function(scene, "pde.exact", scene.pde.exact, dim)
-    kappa = coefficient(scene, disc)
-    A = disc.stiffness_matrix(kappa)
-    b = disc.rhs(kappa) + disc.load_vector(
-        field_function(scene, "pde.source", scene.pde.source, dim))
+    A, b = disc.host_system_at(coefficient(scene, disc))  # one kappa: no map kappa -> A
+    b = b + disc.load_vector(field_function(scene, "pde.source", scene.pde.source, dim))
     # our setup (the operator's layout, an AMG hierarchy) is timed as pyamg's is in amg_time
     (A_jax, preconditioner), setup_time = _timed(
         lambda: (SparseMatrix.from_scipy(A), solver_preconditioner(scene, A)))

@@ -374,6 +374,44 @@ def test_forward_solve_builds_no_mass_matrix_amg_reference_or_adjoint(no_amg):
     np.testing.assert_allclose(result.u[disc.free_dofs], reference, rtol=1e-8, atol=1e-12)
 
 
+@pytest.fixture
+def no_kappa_map(monkeypatch):
+    """Building the map kappa -> A (Discretization.system, stiffness_matrix) raises."""
+    from prdp_fem import discretization
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the map kappa -> A was built")
+
+    monkeypatch.setattr(discretization, "_assembly_maps", forbidden)
+
+
+def test_scenes_with_a_fixed_kappa_build_no_kappa_map(no_kappa_map, tmp_path):
+    """Source inversions (data synthetic from the truth, or given), learned inverses, forward
+    and h-studies never change kappa: they assemble at it and never build G (an inversion
+    reads only its problem)."""
+    from prdp_fem.learned import learned_inverse
+    from prdp_fem.study import run_study
+
+    source = {"mesh": {"n": 6}, "pde": {"kappa": "1 + x"},
+              "inverse": {"truth": "sin(pi*x)*sin(pi*y)", "alpha": 1e-4,
+                          "observations": "sensors", "sensors": 12}}
+    for inverse in (source["inverse"], {"data": "x*y", "alpha": 1e-4}):
+        setup = build.build_inverse(parse_scene({**source, "inverse": inverse}))
+        assert setup.problem.system.n_kappa == 1
+    disc = pf.discretize(pf.unit_square(4))
+    learned = learned_inverse(disc, pf.full_field(disc, data=np.zeros(disc.n_dofs)),
+                              kappa=2.0)
+    assert learned.system.n_kappa == 1
+    forward = run_study(parse_scene({"mesh": {"n": 8}, "pde": {"kappa": "1 + x"}}),
+                        tmp_path / "forward").summary
+    h = run_study(parse_scene({
+        "mesh": {"n": 2}, "pde": {"exact": "sin(pi*x)*sin(pi*y)",
+                                  "source": "2*pi**2*sin(pi*x)*sin(pi*y)"},
+        "solver": {"rtol": 1e-10}, "study": {"kind": "h", "levels": [2, 4],
+                                             "elements": ["P1"]}}), tmp_path / "h").summary
+    assert forward and len(h) == 2
+
+
 def test_forward_solve_reference_uses_pyamg_only_when_asked():
     scene = parse_scene({"mesh": {"n": 12}, "solver": {"iterations": [3]}})
     truncated = build.forward_solve(scene, reference=True)
