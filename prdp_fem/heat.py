@@ -166,9 +166,10 @@ def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
         source = finite_vector(source, "source", disc.n_dofs)
     free = disc.free_dofs
     mass = disc.mass_matrix[free][:, free].tocsr()
-    matrix = (mass + dt * disc.stiffness_matrix(kappa)).tocsr()
+    stiffness, b = disc.host_system_at(kappa, source)  # one kappa: no map kappa -> A
+    matrix = (mass + dt * stiffness).tocsr()
     return HeatProblem(SparseMatrix.from_scipy(matrix), SparseMatrix.from_scipy(mass),
-                       jnp.asarray(dt * disc.rhs(kappa, source)), jnp.asarray(dt))
+                       jnp.asarray(dt * b), jnp.asarray(dt))
 
 
 def heat_step(problem: HeatProblem, u: jax.Array, solver, *,

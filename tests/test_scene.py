@@ -386,9 +386,10 @@ def no_kappa_map(monkeypatch):
 
 
 def test_scenes_with_a_fixed_kappa_build_no_kappa_map(no_kappa_map, tmp_path):
-    """Source inversions (data synthetic from the truth, or given), learned inverses, forward
-    and h-studies never change kappa: they assemble at it and never build G (an inversion
-    reads only its problem)."""
+    """Source inversions (data synthetic from the truth, or given), learned inverses, the heat
+    problem, forward and h-studies never change kappa: they assemble at it and never build G
+    (an inversion reads only its problem)."""
+    from prdp_fem.heat import heat_problem
     from prdp_fem.learned import learned_inverse
     from prdp_fem.study import run_study
 
@@ -402,6 +403,7 @@ def test_scenes_with_a_fixed_kappa_build_no_kappa_map(no_kappa_map, tmp_path):
     learned = learned_inverse(disc, pf.full_field(disc, data=np.zeros(disc.n_dofs)),
                               kappa=2.0)
     assert learned.system.n_kappa == 1
+    heat_problem(disc, 0.1, kappa=2.0, source=np.ones(disc.n_dofs))
     forward = run_study(parse_scene({"mesh": {"n": 8}, "pde": {"kappa": "1 + x"}}),
                         tmp_path / "forward").summary
     h = run_study(parse_scene({
