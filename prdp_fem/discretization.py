@@ -3,13 +3,15 @@
 :func:`discretize` picks the element (P1/P2 on triangles and tetrahedra, Q1/Q2 on quads and
 hexahedra), the coefficient space (``"P0"`` per cell or ``"P1"`` nodal), Dirichlet data
 (constant, callable ``g(x)`` with ``x`` of shape ``(dim, n)``, or a dict per boundary tag) and
-Neumann data ``kappa du/dn = h`` (dict per tag), and builds the maps of
-:class:`~prdp_fem.system.LinearSystem` once, in NumPy/SciPy.
+Neumann data ``kappa du/dn = h`` (dict per tag); the maps of
+:class:`~prdp_fem.system.LinearSystem` are built on first use, once, in NumPy/SciPy.
 
 The assembly map comes from scikit-fem's unsummed element data (``BilinearForm.coo_data``):
 for the coefficient basis function ``psi_a`` of a cell, ``coo_data`` of
 ``psi_a grad u . grad v`` gives that cell's entries per unit ``kappa_a``; summing duplicates once
 yields ``G`` with ``values(A) = G @ kappa`` exactly (the quadrature integrates the product).
+A problem whose ``kappa`` never changes needs no ``G``: :meth:`Discretization.system_at` and
+:meth:`Discretization.host_system_at` assemble the operator at that ``kappa`` in one pass.
 
 A tensor coefficient is stored component-major in Voigt order, ``kappa = [K_xx, K_yy, K_xy]``
 in 2-D and ``[K_xx, K_yy, K_zz, K_yz, K_xz, K_xy]`` in 3-D, each block one field of the
@@ -102,8 +104,10 @@ def _laplace(u, v, _):
 class Discretization:
     """A discretised problem: bases, dof split and the :class:`LinearSystem` maps.
 
-    Use :func:`discretize` to build one. ``system`` is the JAX side; the SciPy matrices
-    (``mass_matrix``, ``laplace_matrix``, ``stiffness_matrix(kappa)``) are built on demand.
+    Use :func:`discretize` to build one. ``system`` is the JAX side (``kappa -> A``),
+    ``system_at(kappa)`` the same at one fixed ``kappa``; the SciPy matrices (``mass_matrix``,
+    ``laplace_matrix``, ``stiffness_matrix(kappa)``, ``host_system_at(kappa)``) and the map
+    ``G`` (``assembly``, ``pattern``) are built on demand.
     """
 
     mesh: skfem.Mesh
