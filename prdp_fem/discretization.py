@@ -29,6 +29,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Mapping
 from functools import cached_property
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -70,6 +71,15 @@ VOIGT = {2: ((0, 0), (1, 1), (0, 1)), 3: ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2)
 _STRUCTURAL_ZERO = 1e-14
 # relative residual of the mass-matrix solve in Discretization.project (round-off: cond <= ~4)
 PROJECTION_RTOL = 1e-14
+
+
+class AssemblyMaps(NamedTuple):
+    """The maps ``kappa -> A`` of a discretisation (see :func:`_assembly_maps`)."""
+
+    assembly: sp.csr_matrix                         # G: nnz x n_kappa
+    pattern: tuple[np.ndarray, np.ndarray]          # (rows, cols) of A, row-sorted
+    lifting_assembly: sp.csr_matrix                 # G_D: the Dirichlet columns per kappa
+    lifting_pattern: tuple[np.ndarray, np.ndarray]  # (free row, index into dirichlet_dofs)
 
 
 @skfem.BilinearForm
@@ -126,29 +136,29 @@ class Discretization:
         return int(self.basis.N)
 
     @cached_property
-    def _maps(self) -> tuple:
+    def _maps(self) -> AssemblyMaps:
         # built on first use: a problem at one fixed kappa (system_at) never needs them
         return _assembly_maps(self.basis, self.kappa_basis, self.free_dofs, self._forms)
 
     @property
     def assembly(self) -> sp.csr_matrix:
         """``G`` (nnz x n_kappa): the values of the condensed operator are ``G kappa``."""
-        return self._maps[0]
+        return self._maps.assembly
 
     @property
     def pattern(self) -> tuple[np.ndarray, np.ndarray]:
         """``(rows, cols)`` of the condensed operator (row-sorted)."""
-        return self._maps[1]
+        return self._maps.pattern
 
     @property
     def lifting_assembly(self) -> sp.csr_matrix:
         """``G_D``: the values of the (free, Dirichlet) block per ``kappa``."""
-        return self._maps[2]
+        return self._maps.lifting_assembly
 
     @property
     def lifting_pattern(self) -> tuple[np.ndarray, np.ndarray]:
         """``(free row, index into dirichlet_dofs)`` of the Dirichlet columns."""
-        return self._maps[3]
+        return self._maps.lifting_pattern
 
     @property
     def _forms(self) -> list:
@@ -243,7 +253,7 @@ class Discretization:
                                    FixedMatrix.from_scipy(self.lifting_assembly),
                                    self.lifting_pattern)
 
-    def system_at(self, kappa) -> LinearSystem:
+    def system_at(self, kappa, name: str = "kappa") -> LinearSystem:
         r"""The condensed system frozen at one coefficient ``kappa``, for problems that never
         change it (a source inversion): the one-parameter family
 
@@ -271,32 +281,33 @@ class Discretization:
         >>> bool(abs(gap).max() < 1e-14)
         True
         """
-        operator, lifting = self._blocks_at(kappa)
+        operator, lifting = self._blocks_at(kappa, name)
         values, pattern = _csr_entries(operator)
         lifting_values, lifting_pattern = _csr_entries(lifting)
         with jax.ensure_compile_time_eval():
             return self._linear_system(FixedMatrix.column(values), pattern,
                                        FixedMatrix.column(lifting_values), lifting_pattern)
 
-    def host_system_at(self, kappa, f: np.ndarray | None = None
+    def host_system_at(self, kappa, f: np.ndarray | None = None, name: str = "kappa"
                        ) -> tuple[sp.csr_matrix, np.ndarray]:
         """``(A, b)`` at ``kappa`` on the host: the condensed operator (SciPy CSR) and the
         right-hand side ``S f + h - A_ID g`` (``f`` nodal; ``None``: 0), as
         :meth:`stiffness_matrix` and :meth:`rhs` give them, assembled in one pass as
-        :meth:`system_at` is, without the map ``G``."""
-        operator, lifting = self._blocks_at(kappa)
+        :meth:`system_at` is, without the map ``G``. ``name`` names ``kappa`` in errors."""
+        operator, lifting = self._blocks_at(kappa, name)
         b = self.neumann - lifting @ self.dirichlet_values
         if f is not None:
             b = b + self.source_matrix @ finite_vector(f, "f", self.n_dofs)
         return operator, b
 
-    def _blocks_at(self, kappa) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    def _blocks_at(self, kappa, name: str) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """``(A, A_ID)`` at ``kappa``: the operator and its Dirichlet columns."""
         if is_traced(kappa):
-            raise CoefficientError("kappa is traced; expected concrete values (the system "
-                                   "at one kappa is assembled on the host)")
-        return _frozen_blocks(self.basis, self.kappa_basis, self.free_dofs, self._forms,
-                              self.check_kappa(kappa))
+            raise CoefficientError(f"{name}: traced; expected concrete values (the system at "
+                                   "one kappa is assembled on the host)")
+        full = _assembled_at(self.basis, self.kappa_basis, self._forms,
+                             self.check_kappa(kappa, name))
+        return _condensed(full, self.free_dofs, self.dirichlet_dofs)
 
     def _linear_system(self, assembly: FixedMatrix, pattern, lifting: FixedMatrix,
                        lifting_pattern) -> LinearSystem:
@@ -323,12 +334,14 @@ class Discretization:
         return np.ones(self.n_free) if len(self.dirichlet_dofs) == 0 else None
 
     def stiffness_matrix(self, kappa: np.ndarray) -> sp.csr_matrix:
-        """Condensed ``A(kappa)`` as SciPy CSR (reference path, no JAX)."""
+        """Condensed ``A(kappa)`` as SciPy CSR (reference path, no JAX): ``G kappa``, which
+        builds ``G`` on first use; for one ``kappa`` only, :meth:`host_system_at` does not."""
         values = self.assembly @ self.check_kappa(kappa)
         return sp.csr_matrix((values, self.pattern), shape=(self.n_free, self.n_free))
 
     def rhs(self, kappa: np.ndarray, f: np.ndarray | None = None) -> np.ndarray:
-        """Condensed right-hand side ``S f + h - L kappa`` (NumPy reference path)."""
+        """Condensed right-hand side ``S f + h - L kappa`` (NumPy reference path; builds ``G``
+        on first use, as :meth:`stiffness_matrix` does)."""
         b = self.neumann - self.lifting @ self.check_kappa(kappa)
         if f is not None:
             b = b + self.source_matrix @ finite_vector(f, "f", self.n_dofs)
@@ -568,7 +581,7 @@ def _assembly_maps(basis, kappa_basis, free, forms):
     # condensed pattern: entries keyed by (row, col) in free numbering, sorted by row then col
     assembly, pattern = _summed_map(free_row[on_free], free_col[on_free], n_free,
                                     kappa_idx[on_free], data[on_free], n_kappa)
-    return assembly, pattern, lifting_assembly, lifting_pattern
+    return AssemblyMaps(assembly, pattern, lifting_assembly, lifting_pattern)
 
 
 def _assembled_entries(basis, kappa_basis, forms):
@@ -589,30 +602,37 @@ def _assembled_entries(basis, kappa_basis, forms):
                  for parts in (rows, cols, kappa_idx, data))
 
 
-def _frozen_blocks(basis, kappa_basis, free, forms, kappa):
-    """The condensed operator at ``kappa`` and its Dirichlet columns, SciPy CSR with sorted
-    columns (see :meth:`Discretization.system_at`): one scikit-fem assembly per coefficient
-    component (summed CSR), its free rows split by column, geometric zeros dropped."""
+def _assembled_at(basis, kappa_basis, forms, kappa: np.ndarray) -> sp.csr_matrix:
+    """The operator on all dofs at ``kappa``: one scikit-fem assembly per coefficient
+    component, summed (SciPy CSR, duplicates summed)."""
     n_basis = kappa_basis.N
-    full = sum(form.assemble(basis, kappa=_at_quadrature(
+    return sum(form.assemble(basis, kappa=_at_quadrature(
         kappa_basis, kappa[component * n_basis:(component + 1) * n_basis]))
         for component, form in enumerate(forms)).tocsr()
+
+
+def _condensed(full: sp.csr_matrix, free: np.ndarray,
+               dirichlet: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """The free rows of ``full`` split into ``(A, A_ID)``: free columns, and the Dirichlet
+    columns in ``dirichlet``'s order (that of ``dirichlet_values``). Geometric zeros are
+    dropped (see :meth:`Discretization.system_at`), the diagonal of ``A`` kept; columns
+    sorted within each row."""
     scale = np.sqrt(np.abs(full.diagonal()))
-    dirichlet = np.ones(basis.N, dtype=bool)
-    dirichlet[free] = False
     free_rows = full[free]
-    blocks = []
-    for column_dofs in (free, np.flatnonzero(dirichlet)):
-        block = free_rows[:, column_dofs]
-        block.sort_indices()
-        block = block.tocoo()  # row by row, columns sorted
-        bound = _STRUCTURAL_ZERO * scale[free[block.row]] * scale[column_dofs[block.col]]
-        kept = np.abs(block.data) > bound
-        if column_dofs is free:
-            kept |= block.row == block.col
-        blocks.append(sp.csr_matrix((block.data[kept], (block.row[kept], block.col[kept])),
-                                    shape=block.shape))
-    return tuple(blocks)
+    return (_dropped_zeros(free_rows[:, free], scale[free], scale[free], keep_diagonal=True),
+            _dropped_zeros(free_rows[:, dirichlet], scale[free], scale[dirichlet],
+                           keep_diagonal=False))
+
+
+def _dropped_zeros(block: sp.csr_matrix, row_scale: np.ndarray, col_scale: np.ndarray, *,
+                   keep_diagonal: bool) -> sp.csr_matrix:
+    """``block`` without entries ``|a_ij| <= 1e-14 row_scale_i col_scale_j``."""
+    block.sort_indices()
+    coo = block.tocoo()  # row by row, columns sorted
+    kept = np.abs(coo.data) > _STRUCTURAL_ZERO * row_scale[coo.row] * col_scale[coo.col]
+    if keep_diagonal:
+        kept |= coo.row == coo.col
+    return sp.csr_matrix((coo.data[kept], (coo.row[kept], coo.col[kept])), shape=block.shape)
 
 
 def _csr_entries(matrix: sp.csr_matrix) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:

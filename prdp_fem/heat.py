@@ -161,7 +161,6 @@ def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
     Neumann data, held constant in time), coefficient ``kappa``, nodal ``source`` (``None``:
     zero)."""
     dt = _positive(dt, "dt")
-    kappa = disc.check_kappa(kappa, "kappa")
     if source is not None:
         source = finite_vector(source, "source", disc.n_dofs)
     free = disc.free_dofs

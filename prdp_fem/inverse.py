@@ -86,7 +86,9 @@ class InverseProblem:
     ``known`` is the other coefficient: ``f`` (nodal in the solution space) when log-kappa is
     unknown. When the source is, ``kappa`` never changes, and :func:`inverse_problem` freezes
     the system at it (:meth:`~prdp_fem.discretization.Discretization.system_at`): ``known``
-    is then that system's one coefficient, the scale ``ones(1)``. ``truth`` is the parameter
+    is then that system's one coefficient, the scale ``ones(1)`` (to differentiate in
+    ``kappa``, or to change it, use ``dataclasses.replace(problem, system=disc.system,
+    known=kappa)``). ``truth`` is the parameter
     *field* to measure errors against (``None`` when unknown). ``alpha`` is a leaf: sweeping it
     does not recompile.
     ``residual_factors`` (:mod:`prdp_fem.residuals`, from :meth:`with_residual`) let
@@ -98,7 +100,7 @@ class InverseProblem:
     observation: Observation
     regularizer: Regularizer
     alpha: jax.Array
-    known: jax.Array
+    known: jax.Array  # f, or a source inversion's system scale ones(1) (see above)
     truth: jax.Array | None
     parameter_mass: SparseMatrix
     residual_factors: ResidualFactors | None = None
@@ -255,7 +257,7 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
             known = 1.0 if disc.kappa_kind == "scalar" else disc.interpolate_kappa(
                 lambda x: np.eye(disc.mesh.dim()))
         # kappa never changes: the system frozen at it, whose one coefficient is a scale
-        system = disc.system_at(disc.check_kappa(known, "known (kappa of a source inversion)"))
+        system = disc.system_at(known, "known (kappa of a source inversion)")
         known = np.ones(1)
     else:
         system = disc.system
@@ -761,8 +763,9 @@ def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
 
 
 def _coefficient(problem: InverseProblem, z: jax.Array) -> np.ndarray:
-    """``kappa(z)`` on the host: what a :class:`~prdp_fem.amg.RebuiltAMG` policy watches
-    (its update is then NumPy work, no dispatch)."""
+    """``kappa(z)`` on the host (a source inversion's frozen scale, which never moves): what
+    a :class:`~prdp_fem.amg.RebuiltAMG` policy watches (its update is then NumPy work, no
+    dispatch)."""
     return np.asarray(problem.parameterization.coefficients(z, problem.known)[0])
 
 

@@ -206,7 +206,7 @@ class LearnedInverse:
     """
 
     system: LinearSystem
-    kappa: jax.Array
+    kappa: jax.Array  # the system's coefficient: the scale ones(1) of a frozen system
     observation: Observation
     mass: SparseMatrix
     supervised: jax.Array
@@ -262,7 +262,7 @@ def learned_inverse(disc: Discretization, observation: Observation, *, kappa=1.0
         raise ShapeError(f"observation: operator acts on {observation.operator.shape[1]} "
                          f"dofs, expected {disc.n_dofs} (built on another discretisation?)")
     # kappa never changes: the system frozen at it, whose one coefficient is a scale
-    system = disc.system_at(disc.check_kappa(kappa, "kappa"))
+    system = disc.system_at(kappa)
     return LearnedInverse(system, jnp.ones(1), observation,
                           SparseMatrix.from_scipy(disc.mass_matrix),
                           jnp.asarray(float(supervised)))

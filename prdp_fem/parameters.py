@@ -74,7 +74,9 @@ class Parameterization:
         return jnp.log(t) - jnp.log1p(-t)
 
     def coefficients(self, z: jax.Array, known: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """``(kappa, f)`` for the PDE: the unknown from ``z``, the other one ``known``."""
+        """``(kappa, f)`` for the PDE's system: the unknown from ``z``, the other one
+        ``known`` (for a source inversion the coefficient of its frozen system, the scale
+        ``ones(1)``: see :class:`~prdp_fem.inverse.InverseProblem`)."""
         field = self.field(z)
         if self.unknown == "source":
             return known, field

@@ -309,7 +309,9 @@ def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setup
                     "dofs": disc.n_free, **r._asdict()})
         progress.step()
 
-    preconditioner = solver_preconditioner(variant, disc.host_system_at(scene.kappa)[0])
+    matrix = disc.host_system_at(scene.kappa)[0] if variant.solver.preconditioner == "amg" \
+        else None  # only an AMG hierarchy is built from the matrix
+    preconditioner = solver_preconditioner(variant, matrix)
     forward_convergence(scene, iterations, preconditioner=preconditioner, on_record=record)
 
 

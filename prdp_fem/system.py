@@ -12,7 +12,10 @@ with the assembly map ``G`` (nnz x n_kappa), the lifting ``L kappa = A_ID(kappa)
 Dirichlet columns, assembled by their own map ``G_D``, applied to the Dirichlet data ``g``,
 which is a pytree leaf: ``b`` is differentiable in it too), the source map ``S`` (free rows
 of the mass matrix) and the Neumann load ``h``. All are built once by
-:mod:`prdp_fem.discretization`; here they are pytree leaves, so a :class:`LinearSystem` is
+:mod:`prdp_fem.discretization` (``Discretization.system``). A system frozen at one ``kappa``
+(``Discretization.system_at``) is the same class with one coefficient, a scale ``s``:
+``G`` is then the ``nnz x 1`` column of ``A(kappa)``'s values, and ``G_D`` that of its
+Dirichlet columns. Here they are pytree leaves, so a :class:`LinearSystem` is
 passed to jitted functions as an argument. ``G``, ``G_D`` and ``S`` are
 :class:`~prdp_fem.operator.FixedMatrix` pairs, laid out for their transposes too: the
 gradient in ``kappa`` is ``G^T`` applied as a gather loop, not a scatter-add over ``G``'s
@@ -28,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from . import cg
-from .errors import CoefficientError
+from .errors import CoefficientError, ShapeError
 from .operator import EllLayout, FixedMatrix, SparseMatrix
 from .validation import finite_vector, is_traced
 
@@ -44,7 +47,8 @@ __all__ = ["LinearSystem"]
 class LinearSystem:
     """Maps ``kappa -> A(kappa)`` and ``(kappa, f) -> b`` on the free dofs.
 
-    ``rows``/``cols`` are the (row-sorted) sparsity pattern of ``A``; ``assembly`` is ``G``;
+    ``rows``/``cols`` are the (row-sorted) sparsity pattern of ``A``; ``assembly`` is ``G``
+    (``nnz x 1`` for a system frozen at one ``kappa``: ``n_kappa`` is 1, the scale ``s``);
     ``lifting`` is ``G_D`` on the pattern ``(lifting_rows, lifting_cols)`` of the Dirichlet
     columns (``lifting_cols`` index ``dirichlet_values``). ``nullspace`` is ``None``, or the
     constants when there is no Dirichlet boundary (pure Neumann: pass it to
@@ -76,6 +80,7 @@ class LinearSystem:
 
     def operator(self, kappa: jax.Array) -> SparseMatrix:
         """``A(kappa)`` on the free dofs (linear in ``kappa``)."""
+        self._check_size(kappa)
         values = self.assembly(kappa)
         return SparseMatrix(self.rows, self.cols, values, (self.n_free, self.n_free),
                             self.layout)
@@ -85,6 +90,7 @@ class LinearSystem:
 
         Differentiable in ``kappa``, ``f`` and the Dirichlet data ``g = dirichlet_values``.
         """
+        self._check_size(kappa)
         coupling = self.lifting(kappa)  # values of A_ID(kappa)
         lifted = jax.ops.segment_sum(coupling * self.dirichlet_values[self.lifting_cols],
                                      self.lifting_rows, num_segments=self.n_free,
@@ -94,6 +100,17 @@ class LinearSystem:
             b = b + self.source(f)
         return b
 
+    def _check_size(self, kappa) -> None:
+        """A coefficient of the wrong length, from its static shape (free under ``jit``): a
+        frozen system's product reads ``kappa[0]`` only, and would take a whole field."""
+        size = jnp.shape(kappa)[-1] if jnp.ndim(kappa) else None
+        if size == self.n_kappa:
+            return
+        hint = (" (this system is frozen at one kappa, Discretization.system_at: pass its "
+                "scale, jnp.ones(1))") if self.n_kappa == 1 else ""
+        raise ShapeError(f"kappa: {self.n_kappa} coefficient value(s) expected, got shape "
+                         f"{jnp.shape(kappa)}{hint}")
+
     def solve(self, kappa: jax.Array, f: jax.Array | None, solver, x0: jax.Array | None = None,
               counter=None):
         """:func:`~prdp_fem.cg.solve` of ``A(kappa) u = b(kappa, f)``, nullspace included.
@@ -102,6 +119,8 @@ class LinearSystem:
         (even where it would not reach the free dofs), and the assembly runs as one compiled
         program, kept per shape (the solve as :func:`~prdp_fem.cg.solve` runs it).
         """
+        if jnp.ndim(kappa) == 1:  # a frozen system's hint before the generic length check
+            self._check_size(kappa)
         kappa = finite_vector(kappa, "kappa", self.n_kappa, error=CoefficientError)
         if is_traced(self, kappa, f):
             matrix, b = self.operator(kappa), self.rhs(kappa, f)

@@ -85,12 +85,23 @@ def test_system_at_kappa_equals_the_kappa_map_there(make, element, kappa_space):
                                atol=1e-13 * np.abs(disc.rhs(kappa)).max())
 
 
-def test_system_at_a_tensor_kappa_and_neumann_data():
-    disc = pf.discretize(pf.unit_square(4), element="P2", kappa_space="P1",
-                         kappa_kind="tensor", dirichlet={"left": 1.0},
-                         neumann={"top": lambda x: x[0]})
-    kappa = disc.interpolate_kappa(lambda x: np.array(
-        [[2.0 + x[0], 0.5 * x[1]], [0.5 * x[1], 1.0 + 0 * x[0]]]))
+@pytest.mark.parametrize(("make", "element"), [
+    (lambda: pf.unit_square(4), "P2"), (lambda: pf.unit_square(3, "quad"), "Q2"),
+    (lambda: pf.unit_cube(2), "P1"), (lambda: pf.unit_cube(1, "hexahedron"), "Q2")])
+def test_system_at_a_tensor_kappa_and_neumann_data(make, element):
+    mesh = make()
+    dim = mesh.dim()
+    disc = pf.discretize(mesh, element=element, kappa_space="P1", kappa_kind="tensor",
+                         dirichlet={"left": 1.0}, neumann={"right": lambda x: x[1]})
+
+    def tensor(x):  # symmetric positive definite, varying in space
+        k = np.zeros((dim, dim, x.shape[1]))
+        for i in range(dim):
+            k[i, i] = 2.0 + x[i]
+        k[0, 1] = k[1, 0] = 0.5 * x[1]
+        return k
+
+    kappa = disc.interpolate_kappa(tensor)
     assert max(_frozen_gap(disc.system_at(kappa), disc, kappa)) < 1e-14
 
 
@@ -132,12 +143,33 @@ def test_a_source_inversion_builds_no_kappa_map():
     np.testing.assert_allclose(grad, grad_ref, rtol=0, atol=1e-12 * np.abs(grad_ref).max())
 
 
-def test_system_at_refuses_a_traced_or_bad_kappa():
+def test_system_at_refuses_a_traced_or_bad_kappa_and_takes_only_its_scale():
     disc = pf.discretize(pf.unit_square(3), element="P1")
-    with pytest.raises(pf.CoefficientError, match="kappa is traced"):
+    with pytest.raises(pf.CoefficientError, match="kappa: traced"):
         jax.jit(disc.system_at)(jnp.ones(disc.n_kappa))
     with pytest.raises(pf.CoefficientError, match=r"kappa: .*> 0"):
         disc.system_at(-np.ones(disc.n_kappa))
+    with pytest.raises(pf.CoefficientError, match=r"known: .*> 0"):
+        disc.host_system_at(np.zeros(disc.n_kappa), name="known")
+    # a whole field where the frozen system takes its scale: named, never kappa[0] A
+    frozen, kappa = disc.system_at(np.ones(disc.n_kappa)), jnp.full(disc.n_kappa, 2.0)
+    for call in (frozen.operator, frozen.rhs, jax.jit(frozen.operator),
+                 lambda k: frozen.solve(k, None, pf.TruncatedCG(2))):
+        with pytest.raises(pf.ShapeError, match=r"frozen at one kappa.*jnp.ones\(1\)"):
+            call(kappa)
+
+
+def test_system_at_a_pure_neumann_problem_carries_its_nullspace():
+    disc = pf.discretize(pf.unit_square(4), element="P1", kappa_space="P1", dirichlet=None)
+    kappa = 1.0 + disc.kappa_basis.doflocs[0]
+    frozen = disc.system_at(kappa)
+    assert frozen.lifting.shape == (0, 1) and frozen.nullspace is not None
+    np.testing.assert_array_equal(frozen.nullspace, disc.system.nullspace)
+    assert max(_frozen_gap(frozen, disc, kappa)) < 1e-14
+    f = disc.balance_source(np.cos(np.arange(disc.n_dofs)))
+    x = frozen.solve(jnp.ones(1), jnp.asarray(f), pf.ConvergedCG(rtol=1e-12)).x
+    x_ref = disc.system.solve(jnp.asarray(kappa), jnp.asarray(f), pf.ConvergedCG(rtol=1e-12)).x
+    np.testing.assert_allclose(x, x_ref, rtol=0, atol=1e-10 * np.abs(x_ref).max())
 
 
 def test_the_system_first_read_inside_jit_is_built_eagerly():

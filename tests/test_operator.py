@@ -385,3 +385,19 @@ def test_a_named_kernel_runs_forward_and_backward_and_changes_no_number(random_s
     value_ell, grad_ell = jax.value_and_grad(loss(A))(A.values)
     np.testing.assert_allclose(value, value_ell, rtol=1e-12)
     np.testing.assert_allclose(grad, grad_ell, rtol=1e-10, atol=1e-14 * np.abs(grad_ell).max())
+
+
+@pytest.mark.parametrize("size", [0, 1, 7])
+def test_a_column_map_and_its_transpose(size):
+    """FixedMatrix.column: x -> values * x[0], its transpose a sum of values * y (a COO row,
+    where an ELL layout would be one row `size` slots wide); reverse mode uses it."""
+    values = np.linspace(-1.0, 2.0, size)
+    column = pf.FixedMatrix.column(values)
+    assert column.shape == (size, 1)
+    np.testing.assert_allclose(column(jnp.asarray([3.0])), 3.0 * values, rtol=1e-15)
+    y = np.cos(np.arange(size))
+    np.testing.assert_allclose(column.T(jnp.asarray(y)), [values @ y], rtol=1e-14, atol=1e-15)
+    _, pullback = jax.vjp(column, jnp.asarray([3.0]))
+    np.testing.assert_allclose(pullback(jnp.asarray(y))[0], [values @ y], rtol=1e-14,
+                               atol=1e-15)
+    np.testing.assert_array_equal(column.to_scipy().toarray(), values.reshape(-1, 1))
