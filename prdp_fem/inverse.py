@@ -88,9 +88,8 @@ class InverseProblem:
     the system at it (:meth:`~prdp_fem.discretization.Discretization.system_at`): ``known``
     is then that system's one coefficient, the scale ``ones(1)`` (to differentiate in
     ``kappa``, or to change it, use ``dataclasses.replace(problem, system=disc.system,
-    known=kappa)``). ``truth`` is the parameter
-    *field* to measure errors against (``None`` when unknown). ``alpha`` is a leaf: sweeping it
-    does not recompile.
+    known=kappa)``). ``truth`` is the parameter *field* to measure errors against (``None``
+    when unknown). ``alpha`` is a leaf: sweeping it does not recompile.
     ``residual_factors`` (:mod:`prdp_fem.residuals`, from :meth:`with_residual`) let
     :meth:`residual` write ``J`` as a sum of squares for Gauss-Newton-type optimisers.
     """

@@ -103,8 +103,7 @@ class LinearSystem:
     def _check_size(self, kappa) -> None:
         """A coefficient of the wrong length, from its static shape (free under ``jit``): a
         frozen system's product reads ``kappa[0]`` only, and would take a whole field."""
-        size = jnp.shape(kappa)[-1] if jnp.ndim(kappa) else None
-        if size == self.n_kappa:
+        if jnp.shape(kappa) == (self.n_kappa,):
             return
         hint = (" (this system is frozen at one kappa, Discretization.system_at: pass its "
                 "scale, jnp.ones(1))") if self.n_kappa == 1 else ""
