@@ -657,7 +657,7 @@ def _bench_mother(args) -> None:
         f"rtol {args.inner_rtol:g}"
     print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
     print(f"{'n':>5} {'dofs':>7} {'target':>8} {'error':>8} {'outer':>5} {'CG its':>6} "
-          f"{'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} "
+          f"{'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} {'exit':>5} "
           f"{'whole [s]':>9} {'peer [s]':>8} {'ratio':>6} {'cache':>5}  goal")
     for n, cache in itertools.product(args.sizes, caches):
         b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=args.iterations,
@@ -668,11 +668,13 @@ def _bench_mother(args) -> None:
         peer = f"{b.peer.seconds:>8.1f}" if b.peer else f"{'-':>8}"
         print(f"{b.n:>5} {b.dofs:>7} {b.target:>8.1e} {b.error:>8.2e} {b.outer_iterations:>5} "
               f"{b.cg_iterations:>6} {b.start_s:>6.2f} {b.import_s:>6.2f} {b.assembly_s:>6.2f} "
-              f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.whole_s:>9.2f} {peer} "
+              f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.exit_s:>5.2f} {b.whole_s:>9.2f} "
+              f"{peer} "
               f"{b.ratio:>6.2f} {b.cache:>5}  {goal}", flush=True)
     print(f"whole: median wall time of {args.repeats} fresh process(es) per size (Python start, "
-          "imports, mesh, assembly, compilation, optimisation); phases: medians inside the "
-          "process, start = whole - phases; CG its: primal + adjoint state-solve iterations "
+          "imports, mesh, assembly, compilation, optimisation, exit); phases: medians inside "
+          "the process; exit: from its last print to its end (the interpreter's shutdown); "
+          "start = whole - phases - exit; CG its: primal + adjoint state-solve iterations "
           "(Riesz-map mass solves apart); error: relative L2 of f against the analytic optimum; "
           "cache: cold = the program compiled in the process, warm = loaded from a cache one "
           "untimed process filled (no goal: the goal's time includes compiling)")

@@ -194,7 +194,8 @@ def test_mother_whole_process_times_a_fresh_process():
     bench = mother_whole_process(8, repeats=1, target=0.5)
     assert bench.error <= 0.5 and bench.outer_iterations == 1 and bench.runs == 1
     phases = bench.import_s + bench.assembly_s + bench.compile_s + bench.solve_s
-    assert bench.start_s > 0 and bench.whole_s == pytest.approx(bench.start_s + phases)
+    assert bench.start_s > 0 and bench.exit_s > 0
+    assert bench.whole_s == pytest.approx(bench.start_s + phases + bench.exit_s)
     assert bench.import_s > 0 and bench.compile_s > 0
     assert bench.peer is None and bench.goal_met is None and np.isnan(bench.ratio)
 
@@ -249,18 +250,19 @@ def test_bench_mother_prints_a_cold_and_a_warm_row_per_size_and_judges_the_cold(
         calls.append((n, cache))
         return bench_inverse.MotherBench(
             n=n, dofs=(n + 1) ** 2, target=PEER[n].error, error=0.5 * PEER[n].error,
-            outer_iterations=1, cg_iterations=15, riesz_iterations=9, start_s=0.4,
+            outer_iterations=1, cg_iterations=15, riesz_iterations=9, start_s=0.1,
             import_s=1.0, assembly_s=0.8, compile_s=1.0 if cache == "cold" else 0.4,
-            solve_s=0.1, whole_s=3.3 if cache == "cold" else 2.7, runs=1, peer=PEER[n],
+            solve_s=0.1, exit_s=0.3, whole_s=3.3 if cache == "cold" else 2.7, runs=1, peer=PEER[n],
             cache=cache)
 
     monkeypatch.setattr(bench_inverse, "mother_whole_process", fake)
     assert main(["bench", "mother", "--sizes", "256", "512", "--cache", "both"]) == 0
     assert calls == [(256, "cold"), (256, "warm"), (512, "cold"), (512, "warm")]
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:6]]
-    assert [row[14:] for row in rows] == [["cold", "<=", "0.5", "NOT", "met"], ["warm", "-"],
+    assert [row[15:] for row in rows] == [["cold", "<=", "0.5", "NOT", "met"], ["warm", "-"],
                                           ["cold", "<=", "0.33", "met"], ["warm", "-"]]
     assert [float(row[9]) for row in rows] == [1.0, 0.4, 1.0, 0.4]  # the compile column
+    assert [float(row[11]) for row in rows] == [0.3] * 4  # the exit column
     with pytest.raises(SystemExit):
         main(["bench", "mother", "--cache", "hot"])
 
@@ -270,10 +272,23 @@ def test_a_tree_without_bytecode_is_said_once_and_the_benchmark_runs(monkeypatch
     monkeypatch.setattr(bench_inverse, "_run_child", lambda arguments, timeout, environment: (
         {"dofs": 81, "error": 0.1, "outer_iterations": 1, "cg_iterations": 3,
          "riesz_iterations": 2, "import_s": 1.0, "assembly_s": 0.1, "compile_s": 0.5,
-         "solve_s": 0.1}, 2.0))
+         "solve_s": 0.1}, 2.0, 0.25))
     with pytest.warns(RuntimeWarning, match="bytecode of .*prdp_fem could not be written"):
         bench = mother_whole_process(8, repeats=1, target=0.5)
-    assert bench.whole_s == 2.0 and bench.start_s == pytest.approx(0.3)
+    assert bench.whole_s == 2.0 and bench.exit_s == 0.25
+    assert bench.start_s == pytest.approx(0.05)
+
+
+def test_a_childs_exit_is_timed_from_its_last_print(monkeypatch):
+    """The exit column is the time from the child's printed line to its end: a child whose
+    shutdown sleeps 0.4 s (an exit handler) reads at least that, and its start does not."""
+    child = ("import atexit, json, sys, time\n"
+             "atexit.register(time.sleep, 0.4)\n"
+             "print(json.dumps({'import_s': 0.0, 'printed_at': time.time()}), flush=True)\n")
+    monkeypatch.setattr(bench_inverse, "_CHILD", child)
+    phases, whole, shutdown = bench_inverse._run_child({}, 60.0, dict(os.environ))
+    assert phases["import_s"] == 0.0
+    assert 0.4 <= shutdown <= whole
 
 
 def test_peer_figures_and_goals_are_the_benchmark_table():
@@ -578,6 +593,7 @@ def test_bench_mother_prints_one_row_per_size(capsys, monkeypatch):
     assert lines[0].startswith("reduced-Hessian CG, inner jacobi-PCG: PRDP K0 = dK = 5")
     row = lines[2].split()
     assert row[:2] == ["8", "81"] and float(row[3]) <= 0.5 and row[-2:] == ["cold", "-"]
-    start, imports, assembly, compile_, solve, whole = map(float, row[6:12])
-    assert min(start, imports, compile_) > 0  # whole = the phases + the rest, 2 decimals
-    assert whole == pytest.approx(start + imports + assembly + compile_ + solve, abs=0.03)
+    start, imports, assembly, compile_, solve, shutdown, whole = map(float, row[6:13])
+    assert min(start, imports, compile_, shutdown) > 0  # whole = the phases + the rest
+    assert whole == pytest.approx(start + imports + assembly + compile_ + solve + shutdown,
+                                  abs=0.035)  # six figures of 2 decimals
