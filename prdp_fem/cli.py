@@ -669,8 +669,7 @@ def _bench_mother(args) -> None:
         print(f"{b.n:>5} {b.dofs:>7} {b.target:>8.1e} {b.error:>8.2e} {b.outer_iterations:>5} "
               f"{b.cg_iterations:>6} {b.start_s:>6.2f} {b.import_s:>6.2f} {b.assembly_s:>6.2f} "
               f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.exit_s:>5.2f} {b.whole_s:>9.2f} "
-              f"{peer} "
-              f"{b.ratio:>6.2f} {b.cache:>5}  {goal}", flush=True)
+              f"{peer} {b.ratio:>6.2f} {b.cache:>5}  {goal}", flush=True)
     print(f"whole: median wall time of {args.repeats} fresh process(es) per size (Python start, "
           "imports, mesh, assembly, compilation, optimisation, exit); phases: medians inside "
           "the process; exit: from its last print to its end (the interpreter's shutdown); "
