@@ -85,7 +85,7 @@ from .inverse import (
     _solver,
 )
 from .learned import Network, Training, mlp_apply, mlp_init
-from .operator import SparseMatrix, matvec, symmetric_matvec
+from .operator import FixedMatrix, SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, prdp
 from .validation import finite_vector
 
@@ -129,7 +129,7 @@ class HeatProblem:
     ``load = dt b`` (source, Neumann data and Dirichlet lifting); a pytree."""
 
     matrix: SparseMatrix
-    mass: SparseMatrix
+    mass: FixedMatrix  # symmetric, laid out once
     load: jax.Array
     dt: jax.Array
 
@@ -167,7 +167,7 @@ def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
     mass = disc.mass_matrix[free][:, free].tocsr()
     stiffness, b = disc.host_system_at(kappa, source)  # one kappa: no map kappa -> A
     matrix = (mass + dt * stiffness).tocsr()
-    return HeatProblem(SparseMatrix.from_scipy(matrix), SparseMatrix.from_scipy(mass),
+    return HeatProblem(SparseMatrix.from_scipy(matrix), FixedMatrix.symmetric(mass),
                        jnp.asarray(dt * b), jnp.asarray(dt))
 
 

@@ -147,7 +147,7 @@ class InverseProblem:
         """
         def observed(params):
             sol = self.state(params, solver, x0, counter)
-            return matvec(self.observation.operator, self.system.expand(sol.x))
+            return self.observation.operator(self.system.expand(sol.x))
 
         def regularization(params):
             return self.alpha * self.regularizer(self.field(params))
@@ -157,7 +157,7 @@ class InverseProblem:
         _, regularization_hessian = jax.linearize(jax.grad(regularization), z)
 
         def apply(v: jax.Array) -> jax.Array:
-            (misfit_part,) = adjoint(matvec(self.observation.weight, forward(v)))
+            (misfit_part,) = adjoint(self.observation.weight(forward(v)))
             return misfit_part + regularization_hessian(v)
 
         return apply

@@ -57,7 +57,7 @@ from .inverse import (
     _value_grad_and_update,
 )
 from .observations import Observation
-from .operator import SparseMatrix, matvec, symmetric_matvec
+from .operator import FixedMatrix, SparseMatrix, matvec, symmetric_matvec
 from .prdp import Refinement, RefinementState, prdp
 from .reference import amg_solve
 from .residuals import square_root_factor
@@ -208,7 +208,7 @@ class LearnedInverse:
     system: LinearSystem
     kappa: jax.Array  # the system's coefficient: the scale ones(1) of a frozen system
     observation: Observation
-    mass: SparseMatrix
+    mass: FixedMatrix  # symmetric, laid out once
     supervised: jax.Array
     factors: LearnedFactors | None = None
 
@@ -216,8 +216,8 @@ class LearnedInverse:
                counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
         """``1/2 ||B u(f) - d||_W^2`` with ``u`` from ``solver``, and its iteration count."""
         sol = self.system.solve(self.kappa, f, solver, counter=counter)
-        r = matvec(self.observation.operator, self.system.expand(sol.x)) - d
-        return 0.5 * jnp.vdot(r, symmetric_matvec(self.observation.weight, r)), sol.iterations
+        r = self.observation.operator(self.system.expand(sol.x)) - d
+        return 0.5 * jnp.vdot(r, self.observation.weight(r)), sol.iterations
 
     def source_error(self, f: jax.Array, truth: jax.Array) -> jax.Array:
         """Relative L2 error ``||f - f*||_M / ||f*||_M``."""
@@ -237,7 +237,7 @@ class LearnedInverse:
                         counter: IterationCounter | None = None) -> jax.Array:
         """``L_W (B u_K(f) - d)``: half its squared norm is :meth:`misfit`."""
         sol = self.system.solve(self.kappa, f, solver, counter=counter)
-        r = matvec(self.observation.operator, self.system.expand(sol.x)) - d
+        r = self.observation.operator(self.system.expand(sol.x)) - d
         return matvec(self._factors().misfit, r)
 
     def supervised_residual(self, f: jax.Array, f_true: jax.Array) -> jax.Array:
@@ -264,7 +264,7 @@ def learned_inverse(disc: Discretization, observation: Observation, *, kappa=1.0
     # kappa never changes: the system frozen at it, whose one coefficient is a scale
     system = disc.system_at(kappa)
     return LearnedInverse(system, jnp.ones(1), observation,
-                          SparseMatrix.from_scipy(disc.mass_matrix),
+                          FixedMatrix.symmetric(disc.mass_matrix),
                           jnp.asarray(float(supervised)))
 
 

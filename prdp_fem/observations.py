@@ -28,7 +28,7 @@ import scipy.sparse as sp
 
 from .discretization import Discretization
 from .errors import DataError, SensorError, ShapeError, SolverConfigError
-from .operator import SparseMatrix, matvec, symmetric_matvec
+from .operator import FixedMatrix
 from .transfer import as_jax
 from .validation import finite_vector
 
@@ -36,27 +36,33 @@ __all__ = ["Observation", "boundary_values", "full_field", "point_sensors", "wit
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["operator", "weight", "data",
-                                                         "noise_std"], meta_fields=[])
+                                                         "noise_std", "weight_trace"],
+         meta_fields=[])
 @dataclasses.dataclass(frozen=True)
 class Observation:
-    """``B`` (n_obs x n_dofs), ``W`` (n_obs x n_obs), data ``d`` and its noise ``sigma``."""
+    """``B`` (n_obs x n_dofs), ``W`` (n_obs x n_obs), data ``d`` and its noise ``sigma``.
 
-    operator: SparseMatrix
-    weight: SparseMatrix
+    ``B`` and ``W`` are constant: :class:`~prdp_fem.operator.FixedMatrix` products laid out
+    once (``W`` as a symmetric one), not in every evaluation; ``weight_trace`` is ``tr W``.
+    """
+
+    operator: FixedMatrix
+    weight: FixedMatrix
     data: jax.Array
     noise_std: jax.Array
+    weight_trace: jax.Array
 
     @property
     def size(self) -> int:
         return int(self.data.shape[0])
 
     def residual(self, u: jax.Array) -> jax.Array:
-        return matvec(self.operator, u) - self.data
+        return self.operator(u) - self.data
 
     def misfit(self, u: jax.Array) -> jax.Array:
         """``1/2 ||B u - d||_W^2``."""
         r = self.residual(u)
-        return 0.5 * jnp.vdot(r, symmetric_matvec(self.weight, r))
+        return 0.5 * jnp.vdot(r, self.weight(r))
 
     def misfit_norm(self, u: jax.Array) -> jax.Array:
         """``||B u - d||_W`` (compare with :meth:`noise_norm`)."""
@@ -64,8 +70,7 @@ class Observation:
 
     def noise_norm(self) -> jax.Array:
         """Expected ``||eta||_W = sigma sqrt(tr W)``: the discrepancy principle's target."""
-        trace = jnp.sum(jnp.where(self.weight.rows == self.weight.cols, self.weight.values, 0.0))
-        return self.noise_std * jnp.sqrt(trace)
+        return self.noise_std * jnp.sqrt(self.weight_trace)
 
     def clean(self, data: np.ndarray) -> Observation:
         """The same operator with other (noise-free) data."""
@@ -82,8 +87,8 @@ def _observation(operator: sp.spmatrix, weight: sp.spmatrix, u_true: np.ndarray 
     if u_true is not None:
         data = operator @ finite_vector(u_true, "u_true (nodal state, all dofs)", n_dofs)
     data = finite_vector(data, "data (observed values)", n_obs)
-    return Observation(SparseMatrix.from_scipy(operator), SparseMatrix.from_scipy(weight),
-                       as_jax(data), as_jax(0.0))
+    return Observation(FixedMatrix.from_scipy(operator), FixedMatrix.symmetric(weight),
+                       as_jax(data), as_jax(0.0), as_jax(float(weight.diagonal().sum())))
 
 
 def full_field(disc: Discretization, *, u_true: np.ndarray | None = None,

@@ -37,7 +37,7 @@ import scipy.sparse as sp
 
 from .discretization import Discretization
 from .errors import SolverConfigError
-from .operator import SparseMatrix, matvec, symmetric_matvec
+from .operator import FixedMatrix, SparseMatrix, matvec
 from .parameters import parameter_basis, parameter_mass
 from .transfer import as_jax
 from .validation import finite_vector
@@ -55,9 +55,10 @@ class Regularizer:
     """``kind`` in :data:`REGULARIZERS`; ``matrix`` is the mass matrix (L2) or ``D``.
 
     ``gram`` is the quadratic form's matrix of L2 and H1 (the mass matrix, ``D^T diag(w) D``):
-    square, with the ELL layout. The value is ``1/2 m^T gram m`` and its gradient one product
-    with it, instead of the tall ``D`` (whose reverse pass is a scatter): on the inclusion
-    scene's P1 log-kappa, 7k entries instead of 74k.
+    a symmetric :class:`~prdp_fem.operator.FixedMatrix`, laid out once. The value is
+    ``1/2 m^T gram m`` and its gradient one product with it, instead of the tall ``D`` (whose
+    reverse pass is a scatter): on the inclusion scene's P1 log-kappa, 7k entries instead of
+    74k.
     """
 
     kind: str
@@ -66,12 +67,12 @@ class Regularizer:
     reference: jax.Array
     epsilon: jax.Array
     dim: int
-    gram: SparseMatrix | None = None
+    gram: FixedMatrix | None = None
 
     def __call__(self, field: jax.Array) -> jax.Array:
         if self.gram is not None:
             m = field - self.reference
-            return 0.5 * jnp.vdot(m, symmetric_matvec(self.gram, m))
+            return 0.5 * jnp.vdot(m, self.gram(m))
         g = matvec(self.matrix, field).reshape(-1, self.dim)
         return jnp.vdot(self.weights, jnp.sqrt(jnp.sum(g * g, axis=1) + self.epsilon ** 2))
 
@@ -101,9 +102,11 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
         matrix, weights = _quadrature_gradients(basis)
         dim = disc.mesh.dim()
     operator = SparseMatrix.from_scipy(matrix)
-    gram = {"l2": operator, "tv": None}.get(kind)  # L2: the mass matrix is its own Gram form
+    # L2: the mass matrix is its own Gram form; laid out once, not in every evaluation
+    gram = {"l2": matrix, "h1": None, "tv": None}[kind]
     if kind == "h1":
-        gram = SparseMatrix.from_scipy(gradient_gram(matrix, weights, dim))
+        gram = gradient_gram(matrix, weights, dim)
+    gram = None if gram is None else FixedMatrix.symmetric(gram)
     return Regularizer(kind, operator, as_jax(weights), as_jax(m0),
                        as_jax(float(epsilon)), dim, gram)
 

@@ -589,3 +589,36 @@ def test_state_error_against_pyamg_when_asked():
     exact = invert(problem, refinement=converged(1e-12), steps=2, reference_every=2).history
     assert truncated[0].state_error > 1e-3 and truncated[1].state_error > 1e-3
     assert math.isnan(exact[0].state_error) and exact[1].state_error < 1e-8
+
+
+@pytest.mark.parametrize("regularization", ["l2", "h1"])
+def test_an_evaluation_lays_out_no_constant_matrix(regularization):
+    """The observation's B and W and the regulariser's Gram matrix are laid out once, when
+    the problem is built: an evaluation's program pads and gathers none of their values
+    (the mother problem at 66k unknowns copied and gathered W's and the Gram matrix's 460k
+    values in every evaluation, 3 ms of 8 at K = 0), and its value and gradient are the
+    SciPy ones."""
+    disc = pf.discretize(pf.unit_square(8), element="P1", dirichlet=0.0)
+    data = disc.project(lambda x: x[0] * x[1])
+    problem = inverse_problem(disc, full_field(disc, data=data), unknown="source", alpha=1e-3,
+                              regularization=regularization)
+    W = problem.observation.weight.to_scipy()
+    gram = problem.regularizer.gram.to_scipy()
+    solver = ConvergedCG(rtol=1e-13)
+
+    def J(z):
+        return problem.loss(z, solver)[0]
+
+    z = jnp.asarray(np.cos(np.arange(problem.n_parameters, dtype=float)))
+    jaxpr = str(jax.make_jaxpr(jax.value_and_grad(J))(z))
+    for nnz in {W.nnz, gram.nnz}:
+        assert f"f64[{nnz + 1}]" not in jaxpr  # a padded copy of the values
+    A, S = disc.stiffness_matrix(np.ones(disc.n_kappa)), disc.source_matrix
+    u = disc.expand(spla.spsolve(A.tocsc(), S @ np.asarray(z)))
+    r = u - np.asarray(data)
+    value, grad = jax.value_and_grad(J)(z)
+    expected = 0.5 * r @ (W @ r) + 0.5e-3 * np.asarray(z) @ (gram @ np.asarray(z))
+    np.testing.assert_allclose(value, expected, rtol=1e-10)
+    adjoint = spla.spsolve(A.T.tocsc(), (W @ r)[disc.free_dofs])
+    np.testing.assert_allclose(grad, S.T @ adjoint + 1e-3 * gram @ np.asarray(z), rtol=1e-8,
+                               atol=1e-12 * np.abs(grad).max())

@@ -99,7 +99,7 @@ def test_gauss_newton_operator_is_jacobian_transpose_w_jacobian_plus_the_regular
 
     J = np.asarray(jax.jit(jax.jacfwd(observed, argnums=1))(problem, z))
     L = np.asarray(jax.hessian(lambda m: problem.regularizer(m))(z))
-    W = problem.observation.weight.todense()
+    W = problem.observation.weight.to_scipy().toarray()
     v = jnp.asarray(np.random.default_rng(3).normal(size=z.shape))
     expected = J.T @ W @ J @ v + 1e-3 * L @ v
     product = jax.jit(lambda p, z, v: p.gauss_newton_product(z, v, solver))(problem, z, v)

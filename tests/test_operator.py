@@ -401,3 +401,32 @@ def test_a_column_map_and_its_transpose(size):
     np.testing.assert_allclose(pullback(jnp.asarray(y))[0], [values @ y], rtol=1e-14,
                                atol=1e-15)
     np.testing.assert_array_equal(column.to_scipy().toarray(), values.reshape(-1, 1))
+
+
+def test_a_symmetric_fixed_matrix_is_its_own_transpose_in_every_mode():
+    """FixedMatrix.symmetric: one kernel both ways; the product, its jvp and vjp, and vmap
+    equal SciPy's, and matvec / symmetric_matvec take it as they take a SparseMatrix."""
+    disc = pf.discretize(pf.unit_square(6), element="P2")
+    M = disc.mass_matrix.tocsr()
+    fixed = pf.FixedMatrix.symmetric(M)
+    assert fixed.transpose is None and fixed.T is fixed and fixed.shape == M.shape
+    x = np.sin(np.arange(M.shape[0], dtype=float))
+    y = np.cos(np.arange(M.shape[0], dtype=float))
+    for product in (fixed, lambda v: pf.matvec(fixed, v), lambda v: pf.symmetric_matvec(fixed, v)):
+        np.testing.assert_allclose(product(jnp.asarray(x)), M @ x, rtol=1e-13, atol=1e-16)
+    _, tangent = jax.jvp(fixed, (jnp.asarray(x),), (jnp.asarray(y),))
+    np.testing.assert_allclose(tangent, M @ y, rtol=1e-13, atol=1e-16)
+    _, pullback = jax.vjp(fixed, jnp.asarray(x))
+    np.testing.assert_allclose(pullback(jnp.asarray(y))[0], M.T @ y, rtol=1e-13, atol=1e-16)
+    batch = jnp.stack([x, y])
+    np.testing.assert_allclose(jax.vmap(fixed)(batch), (M @ np.stack([x, y]).T).T, rtol=1e-13,
+                               atol=1e-16)
+    assert (abs(fixed.to_scipy() - M)).max() == 0.0
+
+
+def test_a_symmetric_fixed_matrix_refuses_a_matrix_that_is_not():
+    with pytest.raises(pf.ShapeError, match="not symmetric"):
+        pf.FixedMatrix.symmetric(sp.csr_matrix(np.array([[2.0, 1.0], [0.0, 3.0]])))
+    with pytest.raises(pf.ShapeError, match="expected a square one"):
+        pf.FixedMatrix.symmetric(sp.csr_matrix(np.ones((2, 3))))
+    assert pf.FixedMatrix.symmetric(sp.csr_matrix((0, 0))).shape == (0, 0)
