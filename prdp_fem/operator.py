@@ -595,10 +595,10 @@ class FixedMatrix:
         if csr.shape[0] != csr.shape[1]:
             raise ShapeError(f"FixedMatrix.symmetric: a {csr.shape[0]} x {csr.shape[1]} "
                              "matrix; expected a square one")
-        scale = abs(csr).max() if csr.nnz else 0.0
-        if csr.nnz and abs(csr - csr.T).max() > 1e-12 * scale:
-            raise ShapeError("FixedMatrix.symmetric: the matrix is not symmetric (|A - A^T| "
-                             f"up to {abs(csr - csr.T).max():.3g}); expected A = A^T, or "
+        asymmetry = abs(csr - csr.T).max() if csr.nnz else 0.0
+        if csr.nnz and asymmetry > 1e-12 * abs(csr).max():  # beyond an assembly's round-off
+            raise ShapeError(f"FixedMatrix.symmetric: the matrix is not symmetric (|A - A^T| "
+                             f"up to {asymmetry:.3g}); expected A = A^T, or "
                              "FixedMatrix.from_scipy for a general one")
         return cls(jax.device_put(host_prepared(csr)), None, tuple(int(s) for s in csr.shape))
 
