@@ -85,7 +85,7 @@ from .inverse import (
     _solver,
 )
 from .learned import Network, Training, mlp_apply, mlp_init
-from .operator import FixedMatrix, SparseMatrix, matvec, symmetric_matvec
+from .operator import FixedMatrix, SparseMatrix
 from .prdp import Refinement, prdp
 from .validation import finite_vector
 
@@ -139,7 +139,7 @@ class HeatProblem:
 
     def rhs(self, u: jax.Array) -> jax.Array:
         """``M u + dt b``: the right-hand side of the step from ``u``."""
-        return symmetric_matvec(self.mass, u) + self.load
+        return self.mass(u) + self.load
 
 
 def _positive(value: Any, name: str) -> float:
@@ -292,8 +292,8 @@ def stepper(setup: str, network: Network | None, problem: HeatProblem, u: jax.Ar
 
 def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> jax.Array:
     e = u - truth
-    return jnp.vdot(e, matvec(problem.mass, e)) / jnp.maximum(
-        jnp.vdot(truth, matvec(problem.mass, truth)), 1e-300)
+    return jnp.vdot(e, problem.mass(e)) / jnp.maximum(
+        jnp.vdot(truth, problem.mass(truth)), 1e-300)
 
 
 def window_loss(network: Network, problem: HeatProblem, window: jax.Array, solver, *,

@@ -57,7 +57,7 @@ from .inverse import (
     _value_grad_and_update,
 )
 from .observations import Observation
-from .operator import FixedMatrix, SparseMatrix, matvec, symmetric_matvec
+from .operator import FixedMatrix, SparseMatrix, matvec
 from .prdp import Refinement, RefinementState, prdp
 from .reference import amg_solve
 from .residuals import square_root_factor
@@ -222,8 +222,8 @@ class LearnedInverse:
     def source_error(self, f: jax.Array, truth: jax.Array) -> jax.Array:
         """Relative L2 error ``||f - f*||_M / ||f*||_M``."""
         e = f - truth
-        return jnp.sqrt(jnp.vdot(e, matvec(self.mass, e))
-                        / jnp.maximum(jnp.vdot(truth, matvec(self.mass, truth)), 1e-300))
+        return jnp.sqrt(jnp.vdot(e, self.mass(e))
+                        / jnp.maximum(jnp.vdot(truth, self.mass(truth)), 1e-300))
 
     def with_residual(self) -> LearnedInverse:
         """The problem with the factors of ``W`` and ``M`` (built once, on the host)."""
@@ -277,7 +277,7 @@ def batch_loss(network: Network, problem: LearnedInverse, batch: SourceSamples,
         f = mlp_apply(network, d)
         misfit, iterations = problem.misfit(f, d, solver, counter)
         e = f - f_true
-        return misfit + problem.supervised * 0.5 * jnp.vdot(e, symmetric_matvec(problem.mass, e)), \
+        return misfit + problem.supervised * 0.5 * jnp.vdot(e, problem.mass(e)), \
             iterations
 
     losses, iterations = jax.vmap(one)(batch.sources, batch.observations)
