@@ -13,11 +13,12 @@ write; the rename is atomic on POSIX within one directory.
 from __future__ import annotations
 
 import contextlib
+import csv
 import os
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "write_text_atomic"]
+__all__ = ["atomic_path", "write_csv_atomic", "write_text_atomic"]
 
 
 @contextlib.contextmanager
@@ -37,3 +38,21 @@ def write_text_atomic(path: str | os.PathLike, text: str) -> None:
     """``Path(path).write_text(text)``, atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def write_csv_atomic(path: str | os.PathLike, rows: list[dict]) -> None:
+    """``rows`` as CSV, the first row's keys as the header (``None`` as an empty cell),
+    atomically; an empty ``rows`` writes an empty file.
+
+    >>> import tempfile, pathlib
+    >>> target = pathlib.Path(tempfile.mkdtemp()) / "rows.csv"
+    >>> write_csv_atomic(target, [{"run": "prdp", "step": None}, {"run": "fixed", "step": 3}])
+    >>> target.read_text().splitlines()
+    ['run,step', 'prdp,', 'fixed,3']
+    """
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as stream:
+        if rows:
+            writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
+            writer.writeheader()
+            for row in rows:
+                writer.writerow({k: ("" if v is None else v) for k, v in row.items()})

@@ -452,14 +452,16 @@ def _restricted(scene, names: list[str]):
 
 
 def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
-                progress=None) -> list[SavingRow]:
+                resume: bool = False, progress=None) -> list[SavingRow]:
     """The PRDP saving of every comparable PRDP run of ``scene`` (a loaded Scene).
 
     Runs the reference and those runs with :func:`~prdp_fem.study.run_study` into ``out`` (a
     temporary directory when ``None``) and reads the figures from its summary and records.
     ``repeats > 1`` runs the study that many times (into ``out/repeat-<i>``), so the reference
     and the PRDP runs alternate, and returns each run's :func:`median_row`: on a shared 2-core
-    machine one study's time saving moved by 10 points from run to run.
+    machine one study's time saving moved by 10 points from run to run. ``resume``: the
+    studies already in ``out`` keep their finished runs (read back, with the times measured
+    when they ran) and run only the rest.
     """
     from .study import inverse_histories, run_study  # here: they import matplotlib
 
@@ -471,7 +473,7 @@ def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
         root = Path(out) if out is not None else Path(scratch)
         for index in range(repeats):
             directory = root if repeats == 1 else root / f"repeat-{index + 1}"
-            result = run_study(restricted, directory, progress=progress)
+            result = run_study(restricted, directory, resume=resume, progress=progress)
             histories = inverse_histories(restricted, directory)
             per_study.append(saving_rows(scene.name, scene.study.reference, result.summary,
                                          histories, scene.study.band))

@@ -30,6 +30,7 @@ import gc
 import itertools
 import json
 import math
+import shlex
 import signal
 import sys
 import threading
@@ -212,6 +213,12 @@ def _parser() -> argparse.ArgumentParser:
                         "a scene whose data draw nothing runs once) and add a summary: per "
                         "run, how many of these problem instances meet the goal, and the "
                         "median savings")
+    saving.add_argument("--out", type=Path, help="where the studies go, one directory per "
+                        "scene and seed, and the tables (saving.csv, seeds.csv) at the end "
+                        "(default: a new ./bench-prdp, or ./bench-prdp with --resume)")
+    saving.add_argument("--resume", action="store_true",
+                        help="continue the studies in --out: their finished runs are read back "
+                        "(times as measured then), the rest run")
     return parser
 
 
@@ -247,6 +254,7 @@ class _Bars:
                            disable=self._quiet, leave=True)
         self._inner = None
         self.stop_requested = False
+        self.skipped = 0  # runs found done already (a resumed study), not run again
 
     def run_started(self, name: str, steps: int) -> None:
         self._inner = self._tqdm(total=steps, desc=name[:28], position=1, leave=False,
@@ -263,6 +271,7 @@ class _Bars:
             self._inner = None
         self._outer.update()
         if skipped:
+            self.skipped += 1
             self._outer.write(f"{name}: done already, skipped")
         self._stop_if_requested()
 
@@ -680,6 +689,7 @@ def _bench_mother(args) -> None:
 
 
 def _bench_prdp(args) -> None:
+    from .atomic import write_csv_atomic
     from .bench_inverse import (
         SAVING_SCENES,
         prdp_saving,
@@ -704,14 +714,39 @@ def _bench_prdp(args) -> None:
     for scene in scenes:  # every scene and seed checked before the first one runs
         saving_configurations(scene)
         instances += seed_variants(scene, args.seeds)
-    rows = [row for _, scene in instances for row in prdp_saving(scene, repeats=args.repeats)]
+    out = _bench_directory(args.out, args.resume)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = sum(len(saving_configurations(scene)) * args.repeats for _, scene in instances)
+    print(f"PRDP saving: {len(instances)} problem instance(s), {runs} run(s) into {out}/",
+          flush=True)
+    bars = _Bars(runs)
+    try:
+        with _stop_between_steps(bars):
+            rows = [row for seed, scene in instances for row in prdp_saving(
+                scene, repeats=args.repeats, out=out / _instance_name(scene.name, seed),
+                resume=args.resume, progress=bars)]
+    except (KeyboardInterrupt, RuntimeError) as error:  # JaxRuntimeError is a RuntimeError
+        if not _is_interrupt(error):
+            raise
+        bars.close()
+        raise _Interrupted(f"interrupted; finished runs are kept in {out}/ (continue with: "
+                           f"{_bench_prdp_command(args, out)} --resume)") from None
+    bars.close()
     seeded = args.seeds is not None
     cells = [_saving_cells(row, seeded) for row in rows]
     _print_table(cells, list(cells[0]))
+    # the files keep every figure at full precision, and the goal's readings
+    tables = {"saving.csv": [{**row._asdict(), "error_difference": row.error_difference,
+                              "met": row.goal_met, "met_below": row.goal_met_at_or_below}
+                             for row in rows]}
     if seeded:
         print()
-        summary = [_seed_cells(per_run) for per_run in seed_summary(rows)]
+        per_run = seed_summary(rows)
+        summary = [_seed_cells(one_run) for one_run in per_run]
         _print_table(summary, list(summary[0]))
+        tables["seeds.csv"] = [one_run._asdict() for one_run in per_run]
+    for name, table in tables.items():
+        write_csv_atomic(out / name, table)
     medians = (f"medians of {args.repeats} studies run one after another (save_t range: the "
                "lowest and highest time saving among them); " if args.repeats > 1 else "")
     print(medians + "save: 1 - (run time or CG iterations of the PRDP run up to the step from "
@@ -724,6 +759,41 @@ def _bench_prdp(args) -> None:
               "nothing), then per run over the seeds: band, met, met_below: instances that "
               "reach the band / meet each goal; medians of the savings over the instances "
               "that reach e*" if seeded else ""))
+    if bars.skipped:
+        print(f"{bars.skipped} of {runs} run(s) read back from {out}/: timed in an earlier "
+              "process, so their savings compare runs timed apart")
+    print(f"wrote {out}/: {', '.join(tables)}, and the studies in "
+          f"{', '.join(name + '/' for name in names)}")
+
+
+def _bench_directory(out: Path | None, resume: bool) -> Path:
+    """``bench prdp``'s output directory: ``out``, or a new ``./bench-prdp`` (``./bench-prdp``
+    itself to resume); one that holds anything already is refused unless resumed."""
+    if out is None:
+        return Path("bench-prdp") if resume else _fresh_directory("bench-prdp")
+    if not resume and out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise SolverConfigError(f"--out {out}: holds files already; expected a new or empty "
+                                "directory, or --resume to continue the benchmark in it")
+    return out
+
+
+def _instance_name(scene: str, seed: int | None) -> str:
+    """An instance's directory under ``bench prdp``'s output: the scene, then its seed."""
+    return scene if seed is None else f"{scene}/seed-{seed}"
+
+
+def _bench_prdp_command(args, out: Path) -> str:
+    """The command line that continues this ``bench prdp`` run (before ``--resume``)."""
+    words = ["prdp-fem", "bench", "prdp"]
+    if args.scene:
+        words += ["--scene", *args.scene]
+    if args.steps is not None:
+        words += ["--steps", str(args.steps)]
+    if args.repeats != 1:
+        words += ["--repeats", str(args.repeats)]
+    if args.seeds is not None:
+        words += ["--seeds", *map(str, args.seeds)]
+    return shlex.join([*words, "--out", str(out)])
 
 
 def _saving_cells(row, seeded: bool = False) -> dict:

@@ -27,7 +27,6 @@ saving).
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import os
@@ -42,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import heat, plots
-from .atomic import atomic_path, write_text_atomic
+from .atomic import write_csv_atomic, write_text_atomic
 from .build import (
     build_discretization,
     build_heat,
@@ -543,7 +542,7 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
     else:
         rows = _h_summary(by_run)
         figures = plots.h_figures(rows, out)
-    _write_csv(out / SUMMARY, rows)
+    write_csv_atomic(out / SUMMARY, rows)
     return rows, figures
 
 
@@ -626,10 +625,3 @@ def _h_summary(by_run: dict[str, list[dict]]) -> list[dict]:
     return out
 
 
-def _write_csv(path: Path, rows: list[dict]) -> None:
-    with atomic_path(path) as tmp, open(tmp, "w", newline="") as stream:
-        if rows:
-            writer = csv.DictWriter(stream, fieldnames=list(rows[0]))
-            writer.writeheader()
-            for row in rows:
-                writer.writerow({k: ("" if v is None else v) for k, v in row.items()})

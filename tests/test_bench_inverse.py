@@ -489,13 +489,17 @@ def test_seed_summary_counts_the_instances_that_meet_the_goal():
         median_row([row._replace(seed=1), row._replace(seed=2)])
 
 
-def _stand_in_saving(seen):
+def _stand_in_saving(seen, directories=None):
     """``prdp_saving`` without the studies: one row per scene, its seed stamped as the real
-    one stamps it, the goal missed in the band for seed 2."""
+    one stamps it, the goal missed in the band for seed 2; ``directories`` receives each
+    call's ``(out, resume)``."""
     from prdp_fem.bench_inverse import SavingRow, _seeded
 
-    def stand_in(scene, *, repeats=1, out=None, progress=None):
+    directories = [] if directories is None else directories
+
+    def stand_in(scene, *, repeats=1, out=None, resume=False, progress=None):
         seen.append((scene.name, scene.inverse.seed, repeats))
+        directories.append((out, resume))
         met = scene.inverse.seed != 2 or not _seeded(scene)
         return [SavingRow(scene.name, "prdp", 10.0, 1000, 1.0, 100, 5, 0.9 if met else 0.5,
                           0.9, 5, 0.9, 0.9, 1.0, 1.005,
@@ -503,37 +507,142 @@ def _stand_in_saving(seen):
     return stand_in
 
 
-def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, capsys):
-    """The command runs every instance's study (here: stand-in rows) and prints the seed
-    column and the per-run summary; a scene whose data draw nothing runs once."""
+def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, capsys,
+                                                                   tmp_path):
+    """The command runs every instance's study (here: stand-in rows) into a directory of its
+    own and prints the seed column and the per-run summary, which it also writes as CSV; a
+    scene whose data draw nothing runs once."""
     from prdp_fem import bench_inverse
 
-    seen = []
-    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen))
+    seen, directories = [], []
+    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
+    out = tmp_path / "saving"
     assert main(["bench", "prdp", "--scene", "plate_hole", "mother", "--seeds", "1", "2",
-                 "--repeats", "2"]) == 0
+                 "--repeats", "2", "--out", str(out)]) == 0
     mother_seed = load_scene("mother").inverse.seed  # its own: noise-free full-field data
     assert seen == [("plate_hole", 1, 2), ("plate_hole", 2, 2), ("mother", mother_seed, 2)]
+    assert directories == [(out / "plate_hole" / "seed-1", False),
+                           (out / "plate_hole" / "seed-2", False), (out / "mother", False)]
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].split()[:3] == ["scene", "run", "seed"]
-    assert [line.split()[:3] for line in lines[1:4]] == [
+    assert lines[0] == f"PRDP saving: 3 problem instance(s), 16 run(s) into {out}/"
+    assert lines[1].split()[:3] == ["scene", "run", "seed"]
+    rows = [line.split() for line in lines[2:5]]
+    assert [row[:3] for row in rows] == [
         ["plate_hole", "prdp", "1"], ["plate_hole", "prdp", "2"], ["mother", "prdp", "-"]]
-    assert lines[4] == ""
-    assert lines[5].split()[:5] == ["scene", "run", "band", "met", "met_below"]
-    assert lines[6].split()[:5] == ["plate_hole", "prdp", "2/2", "1/2", "2/2"]
-    assert lines[7].split()[:5] == ["mother", "prdp", "1/1", "1/1", "1/1"]
+    assert lines[5] == ""
+    assert lines[6].split()[:5] == ["scene", "run", "band", "met", "met_below"]
+    assert lines[7].split()[:5] == ["plate_hole", "prdp", "2/2", "1/2", "2/2"]
+    assert lines[8].split()[:5] == ["mother", "prdp", "1/1", "1/1", "1/1"]
+    assert lines[-1] == (f"wrote {out}/: saving.csv, seeds.csv, and the studies in "
+                         "plate_hole/, mother/")
+    with open(out / "saving.csv") as stream:  # the figures at full precision
+        written = list(csv.DictReader(stream))
+    assert [(r["scene"], r["seed"], float(r["time_saving"]), r["met"]) for r in written] == [
+        ("plate_hole", "1", 0.9, "True"), ("plate_hole", "2", 0.5, "False"),
+        ("mother", "", 0.9, "True")]
+    assert float(written[0]["error_difference"]) == pytest.approx(0.005)
+    with open(out / "seeds.csv") as stream:
+        assert [(r["scene"], r["instances"], r["met"]) for r in csv.DictReader(stream)] == [
+            ("plate_hole", "2", "1"), ("mother", "1", "1")]
 
 
-def test_bench_prdp_without_seeds_has_no_seed_column_or_summary(monkeypatch, capsys):
+def test_bench_prdp_without_seeds_has_no_seed_column_or_summary(monkeypatch, capsys,
+                                                                tmp_path):
+    """Without --out the studies go to a new ./bench-prdp (never into an earlier one)."""
     from prdp_fem import bench_inverse
 
-    seen = []
-    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen))
+    seen, directories = [], []
+    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
+    monkeypatch.chdir(tmp_path)
     assert main(["bench", "prdp", "--scene", "plate_hole"]) == 0
     assert seen == [("plate_hole", load_scene("plate_hole").inverse.seed, 1)]
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0].split()[:3] == ["scene", "run", "conv_s"]
-    assert len(lines) == 3 and lines[2].startswith("save: ")  # header, row, footnote
+    assert lines[1].split()[:3] == ["scene", "run", "conv_s"]
+    assert len(lines) == 5 and lines[3].startswith("save: ")  # header, row, footnote
+    assert main(["bench", "prdp", "--scene", "plate_hole"]) == 0
+    assert directories == [(Path("bench-prdp") / "plate_hole", False),
+                           (Path("bench-prdp-2") / "plate_hole", False)]
+    assert (tmp_path / "bench-prdp" / "saving.csv").exists()
+
+
+def test_bench_prdp_refuses_an_earlier_output_unless_resumed(monkeypatch, capsys, tmp_path):
+    from prdp_fem import bench_inverse
+
+    seen, directories = [], []
+    monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
+    out = tmp_path / "saving"
+    (out / "plate_hole").mkdir(parents=True)
+    assert main(["bench", "prdp", "--scene", "plate_hole", "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and seen == []  # refused before anything ran
+    assert captured.err == (f"prdp-fem: error: --out {out}: holds files already; expected a "
+                            "new or empty directory, or --resume to continue the benchmark "
+                            "in it\n")
+    assert main(["bench", "prdp", "--scene", "plate_hole", "--out", str(out), "--resume"]) == 0
+    assert directories == [(out / "plate_hole", True)]
+
+
+def test_an_interrupted_bench_prdp_says_how_to_resume_it(monkeypatch, capsys, tmp_path):
+    """Ctrl-C in the second instance: the first one's rows are in its study; the message
+    gives the command that continues the run, and the exit code is 130."""
+    from prdp_fem import bench_inverse
+
+    seen = []
+    stand_in = _stand_in_saving(seen)
+
+    def interrupted_on_seed_2(scene, **options):
+        if scene.inverse.seed == 2:
+            raise KeyboardInterrupt
+        return stand_in(scene, **options)
+
+    monkeypatch.setattr(bench_inverse, "prdp_saving", interrupted_on_seed_2)
+    out = tmp_path / "saving"
+    assert main(["bench", "prdp", "--scene", "plate_hole", "--seeds", "1", "2", "--steps", "7",
+                 "--out", str(out)]) == 130
+    assert seen == [("plate_hole", 1, 1)]
+    assert capsys.readouterr().err == (
+        f"prdp-fem: interrupted; finished runs are kept in {out}/ (continue with: prdp-fem "
+        f"bench prdp --scene plate_hole --steps 7 --seeds 1 2 --out {out} --resume)\n")
+
+
+def test_a_resumed_saving_reads_its_finished_runs_back(tmp_path):
+    """A benchmark stopped after the converged run keeps it: resumed, only the PRDP run runs,
+    and once both are done a resumed call runs nothing and returns the same row, times
+    included (read back, not measured again)."""
+    scene_file = tmp_path / "small.toml"
+    scene_file.write_text(SMALL_STUDY.replace("STEPS", "3"))
+    scene, out = load_scene(scene_file), tmp_path / "study"
+
+    class StopAfter:  # a progress that records the runs, and stops after one of them
+        def __init__(self, stop_after=None):
+            self.finished, self.stop_after = [], stop_after
+
+        def run_started(self, name, steps):
+            pass
+
+        def step(self):
+            pass
+
+        def run_finished(self, name, skipped):
+            self.finished.append((name, skipped))
+            if name == self.stop_after:
+                raise KeyboardInterrupt
+
+    first = StopAfter(stop_after="converged")
+    with pytest.raises(KeyboardInterrupt):
+        prdp_saving(scene, out=out, progress=first)
+    assert first.finished == [("converged", False)]
+    resumed = StopAfter()
+    [row] = prdp_saving(scene, out=out, resume=True, progress=resumed)
+    assert resumed.finished == [("converged", True), ("prdp", False)]
+    again = StopAfter()
+    [again_row] = prdp_saving(scene, out=out, resume=True, progress=again)
+    assert again.finished == [("converged", True), ("prdp", True)]
+    assert (again_row.converged_s, again_row.prdp_s) == (row.converged_s, row.prdp_s)
+    np.testing.assert_equal(list(again_row), list(row))  # NaN savings: the band not reached
+    assert row.converged_iterations > row.prdp_iterations > 0
+    with pytest.raises(study.StudyError, match="pass --resume"):  # not resumed: refused
+        prdp_saving(scene, out=out)
 
 
 # --------------------------------------------------------------------------------------
