@@ -215,10 +215,10 @@ def _parser() -> argparse.ArgumentParser:
                         "median savings")
     saving.add_argument("--out", type=Path, help="where the studies go, one directory per "
                         "scene and seed, and the tables (saving.csv, seeds.csv) at the end "
-                        "(default: a new ./bench-prdp, or ./bench-prdp with --resume)")
+                        "(default: a new ./bench-prdp)")
     saving.add_argument("--resume", action="store_true",
-                        help="continue the studies in --out: their finished runs are read back "
-                        "(times as measured then), the rest run")
+                        help="continue the run in --out (same options): its finished runs are "
+                        "read back (times as measured then), the rest run")
     return parser
 
 
@@ -263,7 +263,7 @@ class _Bars:
     def step(self) -> None:
         if self._inner is not None:
             self._inner.update()
-        self._stop_if_requested()
+        self.stop_if_requested()
 
     def run_finished(self, name: str, skipped: bool) -> None:
         if self._inner is not None:
@@ -273,9 +273,11 @@ class _Bars:
         if skipped:
             self.skipped += 1
             self._outer.write(f"{name}: done already, skipped")
-        self._stop_if_requested()
+        self.stop_if_requested()
 
-    def _stop_if_requested(self) -> None:
+    def stop_if_requested(self) -> None:
+        """Stop here (``KeyboardInterrupt``) if a Ctrl-C asked for it: between two steps, or
+        two studies of a benchmark."""
         if self.stop_requested:
             raise KeyboardInterrupt
 
@@ -366,6 +368,21 @@ def _stop_between_steps(bars: _Bars):
         signal.signal(signal.SIGINT, previous)
 
 
+@contextlib.contextmanager
+def _interrupt_kept(bars: _Bars, kept: str):
+    """A block in which the first Ctrl-C stops after the step in flight
+    (:func:`_stop_between_steps`) and the interrupt leaves as one line: ``kept`` says what
+    is kept and how to continue."""
+    try:
+        with _stop_between_steps(bars):
+            yield
+    except (KeyboardInterrupt, RuntimeError) as error:  # JaxRuntimeError is a RuntimeError
+        if not _is_interrupt(error):
+            raise
+        bars.close()
+        raise _Interrupted(f"interrupted; {kept}") from None
+
+
 def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
     from .study import RESULTS, SUMMARY, configurations, run_study
 
@@ -375,16 +392,11 @@ def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
     print(f"{scene.name} ({scene.source}): {scene.study.kind} study of "
           f"{len(configurations(scene))} configuration(s) into {out}/", flush=True)
     bars = _Bars(len(configurations(scene)))
-    try:
-        with _stop_between_steps(bars):
-            result = run_study(scene, out, resume=resume, progress=bars)
-    except (KeyboardInterrupt, RuntimeError) as error:  # JaxRuntimeError is a RuntimeError
-        if not _is_interrupt(error):
-            raise
-        bars.close()
-        raise _Interrupted(f"interrupted; finished records are kept in {out}/{RESULTS} "
-                           f"(continue with: prdp-fem study {scene.source} --out {out} "
-                           "--resume)") from None
+    continued = shlex.join(["prdp-fem", "study", str(scene.source), "--out", str(out),
+                            "--resume"])
+    with _interrupt_kept(bars, f"finished records are kept in {out}/{RESULTS} (continue "
+                               f"with: {continued})"):
+        result = run_study(scene, out, resume=resume, progress=bars)
     bars.close()
     _print_table(result.summary, SUMMARY_COLUMNS[scene.study.kind])
     figures = ", ".join(str(p.relative_to(out)) for p in result.figures)
@@ -690,13 +702,41 @@ def _bench_mother(args) -> None:
 
 def _bench_prdp(args) -> None:
     from .atomic import write_csv_atomic
-    from .bench_inverse import (
-        SAVING_SCENES,
-        prdp_saving,
-        saving_configurations,
-        seed_summary,
-        seed_variants,
-    )
+    from .bench_inverse import prdp_saving, saving_configurations
+
+    scenes, instances = _saving_instances(args)
+    out = _bench_directory(args)
+    runs = sum(len(saving_configurations(scene)) * args.repeats for _, scene in instances)
+    print(f"PRDP saving: {len(instances)} problem instance(s), {runs} run(s) into {out}/",
+          flush=True)
+    bars, rows = _Bars(runs), []
+    with _interrupt_kept(bars, f"finished runs are kept in {out}/ (continue with: "
+                               f"{_bench_prdp_command(args, out)})"):
+        for seed, scene in instances:
+            bars.stop_if_requested()  # a Ctrl-C between two studies
+            rows += prdp_saving(scene, repeats=args.repeats,
+                                out=out / _instance_name(scene.name, seed),
+                                resume=args.resume, progress=bars)
+    bars.close()
+    tables = _print_saving(rows, seeded=args.seeds is not None, repeats=args.repeats)
+    for name, table in tables.items():
+        write_csv_atomic(out / name, table)
+    if bars.skipped:
+        print(f"{bars.skipped} of {runs} run(s) read back from {out}/, as timed in an earlier "
+              "process" + ("" if bars.skipped == runs else
+                           ": a saving may compare runs timed in different processes"))
+    print(f"wrote {out}/: {', '.join(tables)}, and the studies in "
+          f"{', '.join(scene.name + '/' for scene in scenes)}")
+
+
+#: What ``bench prdp`` writes at the top of its output directory, besides the studies.
+BENCH_MANIFEST, SAVING_TABLE, SEED_TABLE = "bench.json", "saving.csv", "seeds.csv"
+
+
+def _saving_instances(args) -> tuple[list, list]:
+    """``bench prdp``'s scenes and ``(seed, scene)`` instances, every option and scene
+    checked before the first study runs."""
+    from .bench_inverse import SAVING_SCENES, saving_configurations, seed_variants
 
     if args.steps is not None and args.steps < 1:
         raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
@@ -705,38 +745,85 @@ def _bench_prdp(args) -> None:
     if args.seeds is not None and (min(args.seeds) < 0 or len(set(args.seeds)) < len(args.seeds)):
         raise SolverConfigError(f"--seeds {' '.join(map(str, args.seeds))}: expected distinct "
                                 "integers >= 0")
+    if args.resume and args.out is None:
+        raise SolverConfigError("--resume: expected --out DIR, the directory of the run to "
+                                "continue")
     scenes = [_scene(name, args.steps) for name in (args.scene or SAVING_SCENES)]
     names = [scene.name for scene in scenes]
-    if len(set(names)) < len(names):  # the rows and the summary go by the scene's name
+    for name in names:  # each names a directory of the output
+        if name in (".", "..", BENCH_MANIFEST, SAVING_TABLE, SEED_TABLE) or "/" in name \
+                or "\\" in name:
+            raise SolverConfigError(f"--scene: a scene named {name!r}; expected a name that "
+                                    "can be a directory of --out (no '/' or '\\', not '.', "
+                                    f"'..', {BENCH_MANIFEST}, {SAVING_TABLE} or {SEED_TABLE})")
+    # the rows, the summary and the directories go by the scene's name (whatever the case)
+    if len({name.casefold() for name in names}) < len(names):
         raise SolverConfigError(f"--scene {' '.join(args.scene)}: scenes named {names}; "
                                 "expected scenes of distinct names")
     instances = []
-    for scene in scenes:  # every scene and seed checked before the first one runs
+    for scene in scenes:
         saving_configurations(scene)
         instances += seed_variants(scene, args.seeds)
-    out = _bench_directory(args.out, args.resume)
+    return scenes, instances
+
+
+def _bench_directory(args) -> Path:
+    """``bench prdp``'s output directory, with its manifest of the options: a new or empty
+    ``--out`` (default: a new ``./bench-prdp``), or, resumed, one written with the same
+    options (its studies would otherwise start afresh beside the old ones, or fail late)."""
+    from .atomic import write_text_atomic
+
+    options = {"scene": args.scene, "steps": args.steps, "repeats": args.repeats,
+               "seeds": args.seeds}
+    out = _fresh_directory("bench-prdp") if args.out is None else args.out
+    manifest = out / BENCH_MANIFEST
+    if args.resume:
+        try:
+            before = json.loads(manifest.read_text())
+        except (OSError, json.JSONDecodeError):
+            raise SolverConfigError(f"--resume: {manifest} is missing or unreadable; expected "
+                                    "the --out of an earlier bench prdp run") from None
+        changed = [f"--{key}" for key in options if before.get(key) != options[key]]
+        if changed:
+            raise SolverConfigError(
+                f"--resume: {out} was run with other {', '.join(changed)} ({before}); expected "
+                "the options of the run it continues")
+        return out
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise SolverConfigError(f"--out {out}: is not empty; expected a new or empty "
+                                "directory, or --resume to continue the run in it")
     out.mkdir(parents=True, exist_ok=True)
-    runs = sum(len(saving_configurations(scene)) * args.repeats for _, scene in instances)
-    print(f"PRDP saving: {len(instances)} problem instance(s), {runs} run(s) into {out}/",
-          flush=True)
-    bars = _Bars(runs)
-    try:
-        with _stop_between_steps(bars):
-            rows = [row for seed, scene in instances for row in prdp_saving(
-                scene, repeats=args.repeats, out=out / _instance_name(scene.name, seed),
-                resume=args.resume, progress=bars)]
-    except (KeyboardInterrupt, RuntimeError) as error:  # JaxRuntimeError is a RuntimeError
-        if not _is_interrupt(error):
-            raise
-        bars.close()
-        raise _Interrupted(f"interrupted; finished runs are kept in {out}/ (continue with: "
-                           f"{_bench_prdp_command(args, out)} --resume)") from None
-    bars.close()
-    seeded = args.seeds is not None
+    write_text_atomic(manifest, json.dumps(options, indent=2) + "\n")
+    return out
+
+
+def _instance_name(scene: str, seed: int | None) -> str:
+    """An instance's directory under ``bench prdp``'s output: the scene, then its seed."""
+    return scene if seed is None else f"{scene}/seed-{seed}"
+
+
+def _bench_prdp_command(args, out: Path) -> str:
+    """The command line that continues this ``bench prdp`` run."""
+    words = ["prdp-fem", "bench", "prdp"]
+    if args.scene:
+        words += ["--scene", *args.scene]
+    if args.steps is not None:
+        words += ["--steps", str(args.steps)]
+    if args.repeats != 1:
+        words += ["--repeats", str(args.repeats)]
+    if args.seeds is not None:
+        words += ["--seeds", *map(str, args.seeds)]
+    return shlex.join([*words, "--out", str(out), "--resume"])
+
+
+def _print_saving(rows, *, seeded: bool, repeats: int) -> dict[str, list[dict]]:
+    """Print ``bench prdp``'s table (and the summary over the seeds); return the tables to
+    write, every figure at full precision, with the goal's readings."""
+    from .bench_inverse import seed_summary
+
     cells = [_saving_cells(row, seeded) for row in rows]
     _print_table(cells, list(cells[0]))
-    # the files keep every figure at full precision, and the goal's readings
-    tables = {"saving.csv": [{**row._asdict(), "error_difference": row.error_difference,
+    tables = {SAVING_TABLE: [{**row._asdict(), "error_difference": row.error_difference,
                               "met": row.goal_met, "met_below": row.goal_met_at_or_below}
                              for row in rows]}
     if seeded:
@@ -744,11 +831,9 @@ def _bench_prdp(args) -> None:
         per_run = seed_summary(rows)
         summary = [_seed_cells(one_run) for one_run in per_run]
         _print_table(summary, list(summary[0]))
-        tables["seeds.csv"] = [one_run._asdict() for one_run in per_run]
-    for name, table in tables.items():
-        write_csv_atomic(out / name, table)
-    medians = (f"medians of {args.repeats} studies run one after another (save_t range: the "
-               "lowest and highest time saving among them); " if args.repeats > 1 else "")
+        tables[SEED_TABLE] = [one_run._asdict() for one_run in per_run]
+    medians = (f"medians of {repeats} studies run one after another (save_t range: the "
+               "lowest and highest time saving among them); " if repeats > 1 else "")
     print(medians + "save: 1 - (run time or CG iterations of the PRDP run up to the step from "
           "which its parameter error stays within +-1 % of the converged run's final error e* "
           "(band@, the study's figures) or at or below 1.01 e* (below@)) / (the converged "
@@ -759,41 +844,7 @@ def _bench_prdp(args) -> None:
               "nothing), then per run over the seeds: band, met, met_below: instances that "
               "reach the band / meet each goal; medians of the savings over the instances "
               "that reach e*" if seeded else ""))
-    if bars.skipped:
-        print(f"{bars.skipped} of {runs} run(s) read back from {out}/: timed in an earlier "
-              "process, so their savings compare runs timed apart")
-    print(f"wrote {out}/: {', '.join(tables)}, and the studies in "
-          f"{', '.join(name + '/' for name in names)}")
-
-
-def _bench_directory(out: Path | None, resume: bool) -> Path:
-    """``bench prdp``'s output directory: ``out``, or a new ``./bench-prdp`` (``./bench-prdp``
-    itself to resume); one that holds anything already is refused unless resumed."""
-    if out is None:
-        return Path("bench-prdp") if resume else _fresh_directory("bench-prdp")
-    if not resume and out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise SolverConfigError(f"--out {out}: holds files already; expected a new or empty "
-                                "directory, or --resume to continue the benchmark in it")
-    return out
-
-
-def _instance_name(scene: str, seed: int | None) -> str:
-    """An instance's directory under ``bench prdp``'s output: the scene, then its seed."""
-    return scene if seed is None else f"{scene}/seed-{seed}"
-
-
-def _bench_prdp_command(args, out: Path) -> str:
-    """The command line that continues this ``bench prdp`` run (before ``--resume``)."""
-    words = ["prdp-fem", "bench", "prdp"]
-    if args.scene:
-        words += ["--scene", *args.scene]
-    if args.steps is not None:
-        words += ["--steps", str(args.steps)]
-    if args.repeats != 1:
-        words += ["--repeats", str(args.repeats)]
-    if args.seeds is not None:
-        words += ["--seeds", *map(str, args.seeds)]
-    return shlex.join([*words, "--out", str(out)])
+    return tables
 
 
 def _saving_cells(row, seeded: bool = False) -> dict:

@@ -500,6 +500,8 @@ def _stand_in_saving(seen, directories=None):
     def stand_in(scene, *, repeats=1, out=None, resume=False, progress=None):
         seen.append((scene.name, scene.inverse.seed, repeats))
         directories.append((out, resume))
+        if resume:  # as a study that finds its run done: read back, not run
+            progress.run_finished("prdp", skipped=True)
         met = scene.inverse.seed != 2 or not _seeded(scene)
         return [SavingRow(scene.name, "prdp", 10.0, 1000, 1.0, 100, 5, 0.9 if met else 0.5,
                           0.9, 5, 0.9, 0.9, 1.0, 1.005,
@@ -565,26 +567,57 @@ def test_bench_prdp_without_seeds_has_no_seed_column_or_summary(monkeypatch, cap
     assert (tmp_path / "bench-prdp" / "saving.csv").exists()
 
 
-def test_bench_prdp_refuses_an_earlier_output_unless_resumed(monkeypatch, capsys, tmp_path):
+def test_bench_prdp_resumes_only_its_own_run(monkeypatch, capsys, tmp_path):
+    """An output directory is refused unless resumed, and resumed only with the options it
+    was run with (else its studies would start afresh beside the old ones); the table says
+    how many runs were read back."""
     from prdp_fem import bench_inverse
 
     seen, directories = [], []
     monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
     out = tmp_path / "saving"
-    (out / "plate_hole").mkdir(parents=True)
-    assert main(["bench", "prdp", "--scene", "plate_hole", "--out", str(out)]) == 2
+    command = ["bench", "prdp", "--scene", "plate_hole", "--seeds", "1", "--out", str(out)]
+    assert main(command) == 0
+    capsys.readouterr()
+    assert main(command) == 2  # not resumed: refused before anything ran
     captured = capsys.readouterr()
-    assert captured.out == "" and seen == []  # refused before anything ran
-    assert captured.err == (f"prdp-fem: error: --out {out}: holds files already; expected a "
-                            "new or empty directory, or --resume to continue the benchmark "
-                            "in it\n")
-    assert main(["bench", "prdp", "--scene", "plate_hole", "--out", str(out), "--resume"]) == 0
-    assert directories == [(out / "plate_hole", True)]
+    assert captured.out == "" and len(seen) == 1
+    assert captured.err == (f"prdp-fem: error: --out {out}: is not empty; expected a new or "
+                            "empty directory, or --resume to continue the run in it\n")
+    assert main([*command, "--resume"]) == 0
+    assert directories[-1] == (out / "plate_hole" / "seed-1", True)
+    assert "1 of 2 run(s) read back from" in capsys.readouterr().out
+    assert main(["bench", "prdp", "--scene", "plate_hole", "--seeds", "2", "--out", str(out),
+                 "--resume"]) == 2
+    assert capsys.readouterr().err.startswith(f"prdp-fem: error: --resume: {out} was run with "
+                                              "other --seeds (")
+    assert main(["bench", "prdp", "--out", str(tmp_path / "elsewhere"), "--resume"]) == 2
+    assert "bench.json is missing or unreadable; expected the --out of an earlier bench prdp " \
+        "run" in capsys.readouterr().err
+    assert len(seen) == 2
+
+
+def test_bench_prdp_scene_names_must_make_distinct_directories(tmp_path, capsys):
+    def scene_named(file_name, name):
+        path = tmp_path / file_name
+        path.write_text(SMALL_STUDY.replace("STEPS", "3").replace('name = "small"',
+                                                                  f'name = "{name}"'))
+        return str(path)
+
+    nested = scene_named("nested.toml", "a/b")
+    assert main(["bench", "prdp", "--scene", nested, "--out", str(tmp_path / "o")]) == 2
+    assert "--scene: a scene named 'a/b'; expected a name that can be a directory of --out" \
+        in capsys.readouterr().err
+    upper, lower = scene_named("upper.toml", "Small"), scene_named("lower.toml", "small")
+    assert main(["bench", "prdp", "--scene", upper, lower, "--out", str(tmp_path / "o")]) == 2
+    assert "expected scenes of distinct names" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()  # refused before anything was written
 
 
 def test_an_interrupted_bench_prdp_says_how_to_resume_it(monkeypatch, capsys, tmp_path):
     """Ctrl-C in the second instance: the first one's rows are in its study; the message
-    gives the command that continues the run, and the exit code is 130."""
+    gives the command that continues the run (a scene path with a space quoted), and the
+    exit code is 130."""
     from prdp_fem import bench_inverse
 
     seen = []
@@ -596,13 +629,17 @@ def test_an_interrupted_bench_prdp_says_how_to_resume_it(monkeypatch, capsys, tm
         return stand_in(scene, **options)
 
     monkeypatch.setattr(bench_inverse, "prdp_saving", interrupted_on_seed_2)
+    small = tmp_path / "my scenes" / "small.toml"
+    small.parent.mkdir()
+    small.write_text(SMALL_STUDY.replace("STEPS", "3"))
     out = tmp_path / "saving"
-    assert main(["bench", "prdp", "--scene", "plate_hole", "--seeds", "1", "2", "--steps", "7",
-                 "--out", str(out)]) == 130
-    assert seen == [("plate_hole", 1, 1)]
+    assert main(["bench", "prdp", "--scene", "plate_hole", str(small), "--seeds", "1", "2",
+                 "--steps", "7", "--repeats", "2", "--out", str(out)]) == 130
+    assert seen == [("plate_hole", 1, 2)]
     assert capsys.readouterr().err == (
         f"prdp-fem: interrupted; finished runs are kept in {out}/ (continue with: prdp-fem "
-        f"bench prdp --scene plate_hole --steps 7 --seeds 1 2 --out {out} --resume)\n")
+        f"bench prdp --scene plate_hole '{small}' --steps 7 --repeats 2 --seeds 1 2 --out "
+        f"{out} --resume)\n")
 
 
 def test_a_resumed_saving_reads_its_finished_runs_back(tmp_path):
@@ -666,6 +703,7 @@ def test_a_resumed_saving_reads_its_finished_runs_back(tmp_path):
     (["bench", "prdp", "--seeds", "-3"], "--seeds -3: expected distinct integers >= 0"),
     (["bench", "prdp", "--scene", "cube", "cube"], "expected scenes of distinct names"),
     (["bench", "prdp", "--scene", "mother", "poisson_h"], "expected an inverse study"),
+    (["bench", "prdp", "--resume"], "--resume: expected --out DIR, the directory of the run"),
 ])
 def test_bench_bad_options_are_one_line_and_exit_2(argv, message, capsys):
     assert main(argv) == 2
