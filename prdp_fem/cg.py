@@ -35,15 +35,31 @@ Gradient modes
     stores every iteration's intermediates, ``O(K)`` n-vectors; ``checkpoint=True`` stores the
     state only at the starts of segments of ``ceil(sqrt(K))`` iterations and recomputes one
     segment at a time in the backward pass: ``O(sqrt(K))`` n-vectors for about one more forward
-    sweep (1.6 GB -> 0.13 GB at 65k dofs and K = 1000, ``prdp-fem bench memory``). Once CG has
-    frozen at round-off (or terminated exactly, e.g. a right-hand side in a small invariant
-    subspace) before ``K``, the map *is* the solution map: the scan's iterate is returned and
-    its derivative taken implicitly (the tangent or adjoint solved to round-off through
-    ``lax.custom_linear_solve``, as in implicit mode; the forward sweep solves nothing more).
-    The reverse sweep through the frozen iterations would give the derivative of the last
-    Krylov iterate, which was measured 0.7 % to 24 % off. Just *before* freezing, in CG's
-    superlinear phase, the truncated map varies on scales below ~1e-7 in kappa: its exact
-    derivative can differ from finite differences taken at larger steps.
+    sweep (1.6 GB -> 0.13 GB at 65k dofs and K = 1000, ``prdp-fem bench memory``).
+
+    Two cases are not differentiated through the iterations:
+
+    - *Converged.* Once the relative preconditioned residual ``sqrt(r.z / r0.z0)`` is below
+      ``sqrt(eps)`` before or at ``K``, the map is the solution map to half the working
+      precision: the scan's iterate is returned and its derivative taken implicitly (the
+      tangent or adjoint solved to a relative residual of ``1e-12`` through
+      ``lax.custom_linear_solve``, as in implicit mode; the forward sweep solves nothing
+      more). Reverse and forward mode through the last iterations lose digits to round-off as
+      the residual falls (2e-5 relative at 3e-11, 5 % at 5e-13; through frozen iterations,
+      the lagging derivative of the last moving iterate, 0.7 % to 24 % off). Where CG
+      terminated in an invariant subspace (e.g. eigenvector data), the K-iteration map's own
+      derivative differs from the solution map's; the latter is returned.
+    - *Unreliable.* The derivative holds the frozen map ``(1 - R_K(MA)) A^{-1}``, with
+      ``R_K`` CG's residual polynomial. Where the data has (next to) no weight on part of the
+      spectrum -- a right-hand side in a small invariant subspace, e.g. ``sin(pi x) y`` on a
+      structured grid -- CG fits ``R_K`` to the rest and it grows by orders of magnitude
+      there: the exact derivative of the K-iteration map is then that large in the
+      directions that reach it (the map is linear only on scales far below any useful
+      step), and round-off in both sweeps is amplified alike (derivatives 1e14 off were
+      measured). ``max |R_K|`` over the spectrum is evaluated from the step coefficients
+      after the scan (a Gershgorin bound of the spectrum; with AMG or a nullspace, that of
+      CG's Lanczos matrix); above ``1/sqrt(eps)`` the solve's ``status`` is
+      ``UNRELIABLE_DERIVATIVE``. ``x`` is unaffected, and an eager solve does not raise.
 ``"implicit"``
     The solve is a ``jax.custom_jvp`` whose tangent is ``dx = A^{-1} (db - dA x)``, the
     tangent system solved with ``adjoint_iterations`` PCG iterations through
@@ -65,9 +81,11 @@ Status and bad input
 ``BREAKDOWN`` (``p.Ap <= 0`` before round-off: the operator is not positive definite, e.g. a
 ``kappa <= 0``; ``x`` is the last iterate before it); ``NONFINITE`` (NaN/Inf in the inputs or
 the result); ``INCOMPATIBLE`` (a singular system whose right-hand side has a component in the
-nullspace); ``NOT_CONVERGED`` (:class:`ConvergedCG` ran out of iterations). Called eagerly (no
-tracers), :func:`solve` raises instead: :class:`~prdp_fem.errors.DataError` for non-finite
-inputs before running, :class:`~prdp_fem.errors.SolverBreakdownError` /
+nullspace); ``NOT_CONVERGED`` (:class:`ConvergedCG` ran out of iterations);
+``UNRELIABLE_DERIVATIVE`` (unrolled mode: ``x`` is right, its derivative cannot be trusted).
+Called eagerly (no tracers), :func:`solve` raises instead (except for
+``UNRELIABLE_DERIVATIVE``): :class:`~prdp_fem.errors.DataError` for non-finite inputs before
+running, :class:`~prdp_fem.errors.SolverBreakdownError` /
 :class:`~prdp_fem.errors.IncompatibleDataError` after. Inside ``jit`` it cannot raise: check
 ``status`` (the inverse driver does).
 
@@ -129,6 +147,9 @@ class Status(enum.IntEnum):
     NONFINITE = 2  # NaN/Inf in the inputs or in the result
     INCOMPATIBLE = 3  # b has a component in the nullspace given to solve()
     NOT_CONVERGED = 4  # ConvergedCG: max_iterations reached above the tolerance
+    # TruncatedCG, unrolled: x is the K-iteration map's value, but its derivative cannot be
+    # trusted (the CG polynomial amplifies part of the spectrum past 1/sqrt(eps))
+    UNRELIABLE_DERIVATIVE = 5
 
 
 class Solution(NamedTuple):
@@ -149,7 +170,8 @@ class Solution(NamedTuple):
         ``scan_length + 1`` entries padded with the final value); in implicit/converged mode a
         buffer of ``history_size + 1`` entries, padded with the final value.
     status
-        A :class:`Status` code (int32): ``0`` when ``x`` can be trusted.
+        A :class:`Status` code (int32): ``0`` when ``x`` (and, unrolled, its derivative) can
+        be trusted; ``UNRELIABLE_DERIVATIVE`` when ``x`` can be and its derivative cannot.
     """
 
     x: jax.Array
@@ -764,9 +786,18 @@ def _stacks(krylov: _Krylov, n: int) -> bool:
     return krylov.precond is None and n > _ROW_REDUCTION_FROM
 
 
+class _StepInfo(NamedTuple):
+    """What one iteration of :func:`_step` says besides its state."""
+
+    moving: jax.Array  # it moved ``x``
+    alpha: jax.Array  # the step length (0 where it did not move)
+    beta: jax.Array  # the direction update's coefficient (0 where it did not move)
+
+
 def _step(krylov: _Krylov, state: _CGState,
-          runs: jax.Array | bool = True) -> tuple[_CGState, jax.Array]:
-    """One PCG iteration; returns the new state and whether it moved ``x``.
+          runs: jax.Array | bool = True) -> tuple[_CGState, _StepInfo]:
+    """One PCG iteration; returns the new state and whether it moved ``x`` (with the step's
+    coefficients, which the unrolled scan's derivative check reads).
 
     ``runs`` false: a step taken as CG takes a frozen one (a zero step length, ``p`` and
     ``r.z`` kept, no breakdown), so the state passes through unchanged to round-off (``d +
@@ -788,7 +819,7 @@ def _step(krylov: _Krylov, state: _CGState,
     p = jnp.where(moving, z + beta * state.p, state.p)
     rz_new = jnp.where(moving, rz_new, state.rz)
     broken = state.broken | (active & ~moving)
-    return _CGState(dr, p, rz_new, state.freeze_level, broken), moving
+    return _CGState(dr, p, rz_new, state.freeze_level, broken), _StepInfo(moving, alpha, beta)
 
 
 def _update(dr, alpha: jax.Array, p: jax.Array, q: jax.Array):
@@ -841,22 +872,41 @@ def _solver_status(broken: jax.Array, not_converged: jax.Array) -> jax.Array:
 # --------------------------------------------------------------------------------------
 
 
+# Unrolled mode differentiates the K-iteration map implicitly, as the solution map, once the
+# relative (preconditioned) residual sqrt(r.z / r0.z0) is below this: the map then equals the
+# solution map to half the working precision, while reverse and forward mode through the last
+# iterations lose digits to round-off as the residual falls (the P1 Laplacian, 4,096 unknowns,
+# b = 1: 2e-5 relative at a residual of 3e-11, 4e-4 at 3e-12, 5 % at 5e-13, each against
+# settled finite differences, which equal the solution map's derivative there)
+_SOLUTION_MAP_RTOL = float(np.sqrt(np.finfo(np.float64).eps))
+
+# The unrolled derivative is flagged (Status.UNRELIABLE_DERIVATIVE) once the frozen CG
+# polynomial amplifies some part of the spectrum by more than this (see _amplification):
+# round-off is then amplified past half the working precision, and the exact derivative of the
+# K-iteration map is that large in some direction, so the map is linear only on scales far
+# below any useful step
+_AMPLIFICATION_LIMIT = 1.0 / _SOLUTION_MAP_RTOL
+
+# points of [0, mu_max] at which the residual polynomial is evaluated
+_SPECTRUM_POINTS = 257
+
+
 def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
               scan_length: int | None = None) -> Solution:
     krylov = _krylov(matrix, precond)
     start = _init(krylov, b, x0, stacked=False)
 
     def iterate(state, runs=True):
-        new, moving = _step(krylov, state, runs)
-        return new, (moving, krylov.residual_norm(new.r))
+        new, info = _step(krylov, state, runs)
+        return new, (info, krylov.residual_norm(new.r))
 
     if scan_length is None:
         length = iterations
-        state, (moved, norms) = _scan_iterations(lambda carry, _: iterate(carry), start.state,
+        state, (steps, norms) = _scan_iterations(lambda carry, _: iterate(carry), start.state,
                                                  length, segment_length(length, checkpoint))
     else:
         length = scan_length
-        state, (moved, norms) = _bounded_iterations(iterate, start.state, iterations, length,
+        state, (steps, norms) = _bounded_iterations(iterate, start.state, iterations, length,
                                                     segment_length(length, checkpoint))
     history = jax.lax.stop_gradient(jnp.concatenate(
         [start.r0_norm[None], start.r0_scale * norms]))
@@ -864,16 +914,83 @@ def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
         ran = jnp.clip(iterations, 0, length)
         history = jnp.where(jnp.arange(length + 1) <= ran, history, history[ran])
     x = _solution(krylov, start, state.d)
-    # frozen at round-off before K: the K-iteration map *is* the solution map to working
-    # precision, but the reverse sweep through the frozen iterations would return the
-    # derivative of the last moving Krylov iterate, which lags the exact one (the CG
-    # polynomial is small on the spectrum, its slope is not): differentiate implicitly there
-    converged = jax.lax.stop_gradient(~_active(state) & ~state.broken)
-    x = jax.lax.cond(converged, lambda: _as_solution_map(x, matrix, precond, b, iterations),
-                     lambda: x)
-    return Solution(x, jnp.sum(moved).astype(jnp.int32), history[-1],
-                    jax.lax.stop_gradient(start.r0_norm), history,
-                    _solver_status(state.broken, jnp.asarray(False)))
+    # converged (to half precision, or frozen at round-off) before K: the K-iteration map is
+    # the solution map to that accuracy, but reverse and forward mode through the last
+    # iterations return the derivative of Krylov iterates whose coefficients are ruled by
+    # round-off (and through frozen iterations, that of the last moving iterate, which lags
+    # the exact one): differentiate implicitly there
+    converged = jax.lax.stop_gradient(_settled(state) & ~state.broken)
+    x = jax.lax.cond(converged, lambda: _as_solution_map(x, matrix, precond, b), lambda: x)
+    status = _solver_status(state.broken, jnp.asarray(False))
+    amplification = _amplification(jax.lax.stop_gradient(steps),
+                                   _spectrum_bound(matrix, krylov, steps))
+    unreliable = ~converged & (amplification > _AMPLIFICATION_LIMIT)
+    status = jnp.where(unreliable & (status == Status.SUCCESS), Status.UNRELIABLE_DERIVATIVE,
+                       status).astype(jnp.int32)
+    return Solution(x, jnp.sum(steps.moving).astype(jnp.int32), history[-1],
+                    jax.lax.stop_gradient(start.r0_norm), history, status)
+
+
+def _settled(state: _CGState) -> jax.Array:
+    """``r.z <= rtol^2 r0.z0`` with ``rtol = _SOLUTION_MAP_RTOL`` (frozen states included)."""
+    rz0 = state.freeze_level / jnp.square(jnp.finfo(state.rz.dtype).eps)
+    return state.rz <= jnp.square(_SOLUTION_MAP_RTOL) * rz0
+
+
+def _spectrum_bound(matrix: SparseMatrix, krylov: _Krylov, steps: _StepInfo) -> jax.Array:
+    """An upper bound of the spectrum of the operator CG runs on.
+
+    Without a preconditioner to apply (identity, or Jacobi as the scaled ``S A S``): the
+    Gershgorin bound ``max_i sum_j |a_ij| s_i s_j``, one pass over the entries. With one (AMG,
+    a projected nullspace), whose spectrum cannot be bounded from the entries, the Gershgorin
+    bound of the Lanczos matrix ``T_K`` that CG built (its step coefficients): an estimate
+    from the part of the spectrum CG has seen.
+    """
+    steps = jax.lax.stop_gradient(steps)
+    if krylov.precond is None:
+        values = jnp.abs(jax.lax.stop_gradient(matrix.values))
+        scale = jnp.ones(matrix.shape[0], values.dtype) if krylov.scale is None \
+            else jax.lax.stop_gradient(krylov.scale)
+        sums = jax.ops.segment_sum(values * scale[matrix.cols], matrix.rows,
+                                   num_segments=matrix.shape[0]) * scale
+        return jnp.max(sums, initial=0.0)
+    # T_K of CG: diagonal 1/alpha_k + beta_{k-1}/alpha_{k-1}, off-diagonal sqrt(beta_k)/alpha_k
+    moving, alpha, beta = steps
+    inverse_alpha = _safe_ratio(jnp.ones_like(alpha), alpha, moving)
+    carried = jnp.concatenate([jnp.zeros(1, alpha.dtype), (beta * inverse_alpha)[:-1]])
+    off = jnp.sqrt(jnp.maximum(beta, 0.0)) * inverse_alpha
+    off_before = jnp.concatenate([jnp.zeros(1, alpha.dtype), off[:-1]])
+    rows = jnp.where(moving, inverse_alpha + carried + off + off_before, 0.0)
+    return jnp.max(rows, initial=0.0)
+
+
+def _amplification(steps: _StepInfo, bound: jax.Array) -> jax.Array:
+    """``max |R_K(mu)|`` over ``mu`` in ``[0, bound]``: the CG residual polynomial's size.
+
+    PCG's error is ``R_K(MA) e0``, with ``R_0 = P_0 = 1``, ``R_{k+1} = R_k - alpha_k mu P_k``
+    and ``P_{k+1} = R_{k+1} + beta_k P_k``. The derivative of ``x_K`` holds the frozen map
+    ``(1 - R_K(MA)) A^{-1}``: where the data has (next to) no weight on part of the spectrum,
+    CG's polynomial is fitted to the rest and grows there by orders of magnitude, and so do
+    the derivative's directions that reach that part, and round-off in them. Both values
+    are rescaled every step (their logarithm is summed), so that no growth overflows.
+    """
+    mu = jnp.linspace(0.0, 1.0, _SPECTRUM_POINTS, dtype=steps.alpha.dtype) * bound
+
+    def body(carry, step):
+        residual, direction, log_size = carry
+        moving, alpha, beta = step
+        new_residual = residual - alpha * mu * direction
+        new_direction = new_residual + beta * direction
+        residual = jnp.where(moving, new_residual, residual)
+        direction = jnp.where(moving, new_direction, direction)
+        size = jnp.maximum(jnp.max(jnp.abs(residual)), jnp.max(jnp.abs(direction)))
+        size = jnp.where(jnp.isfinite(size) & (size > 0), size, 1.0)
+        return (residual / size, direction / size, log_size + jnp.log(size)), None
+
+    ones = jnp.ones_like(mu)
+    (residual, _, log_size), _ = jax.lax.scan(
+        body, (ones, ones, jnp.zeros((), mu.dtype)), steps)
+    return jnp.exp(log_size + jnp.log(jnp.max(jnp.abs(residual))))
 
 
 def unrolled_length(iterations: int, smallest: int = 16) -> int:
@@ -957,22 +1074,28 @@ def _scan_iterations(body, state, iterations: int, segment: int | None):
     return state, outputs
 
 
-def _as_solution_map(x, matrix, precond, b, iterations) -> jax.Array:
-    """``x``, a solve frozen at round-off, differentiated as the solution map ``A^+ b``.
+# the tangent (and adjoint) solve of a converged unrolled solve: to the reference tolerance of
+# ConvergedCG, within as many iterations as its default allows
+_SOLUTION_MAP_TANGENT_RTOL = 1e-12
 
-    The value is the frozen iterate itself (the solution to working precision), so the
+
+def _as_solution_map(x, matrix, precond, b) -> jax.Array:
+    """``x``, a converged solve, differentiated as the solution map ``A^+ b``.
+
+    The value is the iterate itself (the solution to the accuracy it converged to), so the
     forward sweep runs no second solve; the derivatives are the implicit ones of
-    :func:`_frozen_jvp`, the tangent solved by PCG to round-off (at most ``iterations``
-    iterations, as the frozen scan took) with the preconditioner held constant.
+    :func:`_frozen_jvp`, the tangent (reverse mode: the adjoint) solved by PCG to a relative
+    residual of ``1e-12`` (at most ``10 n`` iterations, as :class:`ConvergedCG`) with the
+    preconditioner held constant. A cap of ``K`` iterations, as the scan took, left a rough
+    tangent direction unconverged (forward mode 2.5 % off on the P1 Laplacian at K = 90).
     """
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     pattern, form = _pattern_and_form(matrix)
-    return _frozen(x, matrix.values, b, jnp.asarray(iterations, jnp.int32), pattern, precond,
-                   form)
+    return _frozen(x, matrix.values, b, pattern, precond, form)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(6,))
-def _frozen(x, values, b, iterations, pattern, precond, form):
+@partial(jax.custom_jvp, nondiff_argnums=(5,))
+def _frozen(x, values, b, pattern, precond, form):
     return x
 
 
@@ -980,15 +1103,16 @@ def _frozen(x, values, b, iterations, pattern, precond, form):
 def _frozen_jvp(form, primals, tangents):
     """``dx = A^+ (db - dA x)``: the tangent of ``A x = b``, by :func:`_implicit_tangent`.
 
-    ``x``'s own tangent (the reverse sweep through the frozen scan: the lagging derivative of
-    the last moving Krylov iterate) is dropped. The primal is this function called again, so
-    a derivative of this derivative sees the implicit tangent of ``x`` too.
+    ``x``'s own tangent (the sweep through the converged scan: the derivative of the last
+    Krylov iterates, ruled by round-off) is dropped. The primal is this function called again,
+    so a derivative of this derivative sees the implicit tangent of ``x`` too.
     """
-    x, values, b, iterations, pattern, precond = primals
+    x, values, b, pattern, precond = primals
     values_dot, b_dot = tangents[1], tangents[2]
-    x = _frozen(x, values, b, iterations, pattern, precond, form)
-    x_dot = _implicit_tangent(values, values_dot, b_dot, x, iterations, pattern, precond,
-                              jnp.zeros(2, b.dtype), form, False, None)
+    x = _frozen(x, values, b, pattern, precond, form)
+    tolerances = jnp.asarray([_SOLUTION_MAP_TANGENT_RTOL, 0.0], b.dtype)
+    x_dot = _implicit_tangent(values, values_dot, b_dot, x, 10 * b.shape[-1], pattern, precond,
+                              tolerances, form, True, None)
     return x, x_dot
 
 
@@ -1053,6 +1177,7 @@ def _while_solve(krylov: _Krylov, b, x0, max_iterations, tolerances, history_siz
             new, moving = _step_preconditioning_first(krylov, st, k == 0)
         else:
             new, moving = _step(krylov, st)
+            moving = moving.moving
         if track_norm:
             norm = krylov.residual_norm(new.r)
             hist = jnp.where(positions > k, norm, hist)  # pads the tail with the latest value

@@ -1,0 +1,252 @@
+"""Unrolled derivatives of truncated PCG against settled finite differences.
+
+The derivative of the K-iteration map is checked along a fixed direction for right-hand sides
+of every shape a user meets -- smooth (in a small invariant subspace of the operator, the
+case that once gave derivatives 1e14 off), constant, rough, random, smooth with a little
+noise -- on 2-D and 3-D Laplacians, for K from 1 to past convergence. The rule under test:
+either ``status`` is ``UNRELIABLE_DERIVATIVE``, or reverse mode equals forward mode to
+round-off and both equal the finite differences where they settle (the smallest steps at
+which neighbouring differences agree). Once CG has converged (relative residual below
+sqrt(eps)) the unrolled derivative is the solution map's, as a converged solve's: the
+reference there is :class:`ConvergedCG`'s derivative (where CG terminated in an invariant
+subspace, e.g. eigenvector data, the K-iteration map's own derivative differs from it, and
+reverse mode through the iterations after convergence is ruled by round-off).
+"""
+
+import dataclasses
+from functools import cache, partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import prdp_fem as pf
+from prdp_fem.bench import poisson_operator
+from prdp_fem.cg import ConvergedCG, Status, TruncatedCG, solve, unrolled_length
+
+STEPS = 10.0 ** -np.arange(3, 9)  # finite-difference steps, relative to |b|
+
+
+@cache
+def operator(n_side: int, dim: int):
+    matrix, smooth = poisson_operator(n_side, dim)
+    return matrix, np.asarray(smooth)
+
+
+def right_hand_side(kind: str, smooth: np.ndarray, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    n = smooth.size
+    return {
+        "smooth": smooth,  # sin(pi x) y: one x-mode of the 5-point Laplacian
+        "constant": np.ones(n),
+        "rough": (-1.0) ** np.arange(n),
+        "random": rng.standard_normal(n),
+        "smooth+noise": smooth * (1.0 + 1e-6 * rng.standard_normal(n)),
+    }[kind]
+
+
+@cache
+def programs(n_side: int, dim: int, iterations: int, checkpoint=False, scan=False):
+    """Jitted loss, gradient, directional derivative, status and relative residual for one
+    operator and K, and the converged solve's directional derivative (the right-hand side is
+    an argument: one compile serves every kind)."""
+    matrix, _ = operator(n_side, dim)
+    target = 1e-3 * jnp.cos(1e-3 * jnp.arange(matrix.shape[0]))
+    solver = TruncatedCG(iterations, gradient="unrolled", checkpoint=checkpoint,
+                         scan_length=unrolled_length(iterations) if scan else None)
+
+    def loss(b, solver=solver):
+        return 0.5 * jnp.sum((solve(matrix, b, solver).x - target) ** 2)
+
+    def diagnostics(b):
+        sol = solve(matrix, b, solver)
+        return sol.status, sol.residual_norm / sol.initial_residual_norm
+
+    converged = partial(loss, solver=ConvergedCG(rtol=1e-13))
+    return (jax.jit(loss), jax.jit(jax.grad(loss)),
+            jax.jit(lambda b, v: jax.jvp(loss, (b,), (v,))[1]), jax.jit(diagnostics),
+            jax.jit(lambda b, v: jax.jvp(converged, (b,), (v,))[1]))
+
+
+def reference_derivative(loss, converged_jvp, b, v, relative_residual) -> tuple[float, float]:
+    """The value the unrolled derivative must match, and its uncertainty: the converged
+    derivative past convergence, else the settled finite difference."""
+    if relative_residual < 1e-7:
+        return float(converged_jvp(b, v)), 0.0
+    return settled_difference(loss, b, v)
+
+
+def direction(b: np.ndarray, seed: int = 0) -> np.ndarray:
+    v = np.random.default_rng(seed).standard_normal(b.size)
+    return v * np.linalg.norm(b) / np.linalg.norm(v)
+
+
+def settled_difference(loss, b, v) -> tuple[float, float]:
+    """Central differences at ``STEPS``; returns the one at the smallest step and the change
+    from its neighbour (the error a settled difference carries)."""
+    values = [(float(loss(b + h * v)) - float(loss(b - h * v))) / (2 * h) for h in STEPS]
+    return values[-1], abs(values[-1] - values[-2])
+
+
+def check_derivative(n_side, dim, kind, iterations, **options) -> Status:
+    b = jnp.asarray(right_hand_side(kind, operator(n_side, dim)[1]))
+    return check_at(programs(n_side, dim, iterations, **options), b, (kind, iterations))
+
+
+def check_at(compiled, b, label) -> Status:
+    loss, grad, jvp, diagnostics, converged_jvp = compiled
+    v = jnp.asarray(direction(np.asarray(b)))
+    status, relative_residual = diagnostics(b)
+    flag = Status(int(status))
+    if flag == Status.UNRELIABLE_DERIVATIVE:
+        return flag
+    assert flag == Status.SUCCESS
+    reverse, forward = float(jnp.vdot(grad(b), v)), float(jvp(b, v))
+    scale = max(abs(reverse), 1e-300)
+    assert abs(reverse - forward) <= 1e-8 * scale, (label, reverse, forward)
+    reference, spread = reference_derivative(loss, converged_jvp, b, v,
+                                             float(relative_residual))
+    assert abs(reverse - reference) <= 3 * spread + 1e-6 * scale, \
+        (label, reverse, reference, spread)
+    return flag
+
+
+def test_the_reported_case():
+    """P1 Laplacian, 4,096 unknowns, b = sin(pi x) y: K = 5 is exact, K = 30 (derivative
+    1e17 off before) is flagged, K = 100 (signs of reverse and forward mode differed) is
+    right."""
+    assert check_derivative(65, 2, "smooth", 5) == Status.SUCCESS
+    assert check_derivative(65, 2, "smooth", 30) == Status.UNRELIABLE_DERIVATIVE
+    assert check_derivative(65, 2, "smooth", 100) == Status.SUCCESS
+
+
+@pytest.mark.parametrize("n_side,dim", [(33, 2), (9, 3)])
+@pytest.mark.parametrize("iterations", [1, 10, 30, 400])
+def test_family_of_right_hand_sides(n_side, dim, iterations):
+    kinds = ("smooth", "constant", "rough", "random", "smooth+noise")
+    flags = {kind: check_derivative(n_side, dim, kind, iterations) for kind in kinds}
+    # data with weight on the whole spectrum is never flagged
+    assert flags["random"] == flags["rough"] == Status.SUCCESS
+    if iterations >= 400:  # converged (1,024 / 512 unknowns): the solution map's derivative
+        assert set(flags.values()) == {Status.SUCCESS}
+
+
+def test_flag_fires_where_finite_differences_disagree():
+    """Without the flag, K = 30 on the reported case returns a derivative that no finite
+    difference supports: the flag is what stands between it and the user."""
+    loss, grad, _, diagnostics, _ = programs(65, 2, 30)
+    b = jnp.asarray(operator(65, 2)[1])
+    v = jnp.asarray(direction(np.asarray(b)))
+    reverse = float(jnp.vdot(grad(b), v))
+    differences = [(float(loss(b + h * v)) - float(loss(b - h * v))) / (2 * h) for h in STEPS]
+    assert abs(reverse) > 1e6 * max(abs(d) for d in differences)
+    assert Status(int(diagnostics(b)[0])) == Status.UNRELIABLE_DERIVATIVE
+
+
+@pytest.mark.parametrize("iterations", [5, 30, 100])
+def test_checkpointed_and_bounded_scans_agree(iterations):
+    """Checkpointed segments and a traced K below a scan length: the same derivative and the
+    same status as the plain scan."""
+    b = jnp.asarray(operator(65, 2)[1])
+    v = jnp.asarray(direction(np.asarray(b)))
+    results = []
+    for options in ({}, {"checkpoint": True}, {"scan": True}):
+        _, grad, jvp, diagnostics, _ = programs(65, 2, iterations, **options)
+        results.append((int(diagnostics(b)[0]), float(jnp.vdot(grad(b), v)),
+                        float(jvp(b, v))))
+    flags = {flag for flag, _, _ in results}
+    assert len(flags) == 1
+    if flags == {Status.SUCCESS}:
+        reference = results[0][1]
+        for _, reverse, forward in results:
+            np.testing.assert_allclose([reverse, forward], reference, rtol=1e-8)
+
+
+@pytest.fixture(scope="module")
+def coefficient_problem():
+    disc = pf.discretize(pf.unit_square(24), element="P1", kappa_space="P0",
+                         dirichlet=lambda x: x[1] * (1 - x[1]))
+    kappa = jnp.asarray(disc.interpolate_kappa(lambda x: 1.0 + x[0] * x[1]))
+    f = jnp.asarray(disc.interpolate(lambda x: np.sin(np.pi * x[0]) * x[1]))
+    return disc, kappa, f
+
+
+@pytest.mark.parametrize("iterations", [3, 20, 60, 300])
+def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
+    """Derivatives in kappa and in the Dirichlet data, unrolled, against settled finite
+    differences (or flagged), from a few iterations to past convergence."""
+    disc, kappa, f = coefficient_problem
+    system = disc.system
+    target = jnp.cos(jnp.arange(disc.n_free) / 7.0)
+
+    def solution(kappa, g, solver):
+        lifted = dataclasses.replace(system, dirichlet_values=g)
+        return solve(lifted.operator(kappa), lifted.rhs(kappa, f), solver)
+
+    def make_loss(solver):
+        return jax.jit(lambda k, g: 0.5 * jnp.sum((solution(k, g, solver).x - target) ** 2))
+
+    solver = TruncatedCG(iterations, gradient="unrolled")
+    loss, converged = make_loss(solver), make_loss(ConvergedCG(rtol=1e-13))
+    g0 = jnp.asarray(system.dirichlet_values)
+    sol = solution(kappa, g0, solver)
+    flag = Status(int(sol.status))
+    if flag == Status.UNRELIABLE_DERIVATIVE:
+        return
+    assert flag == Status.SUCCESS
+    past_convergence = float(sol.residual_norm / sol.initial_residual_norm) < 1e-7
+    rng = np.random.default_rng(3)
+    args = (kappa, g0)
+    for argnum, point in enumerate(args):
+        v = jnp.asarray(rng.standard_normal(point.shape)) * jnp.linalg.norm(point) \
+            / np.sqrt(point.size)
+
+        def moved(h, argnum=argnum, v=v):
+            return [a + h * v if i == argnum else a for i, a in enumerate(args)]
+
+        def directional(fn, argnum=argnum, v=v):
+            return float(jax.jvp(lambda p: fn(*[p if i == argnum else a
+                                                for i, a in enumerate(args)]),
+                                 (args[argnum],), (v,))[1])
+
+        reverse = float(jnp.vdot(jax.grad(loss, argnum)(*args), v))
+        scale = max(abs(reverse), 1e-300)
+        assert abs(reverse - directional(loss)) <= 1e-8 * scale
+        if past_convergence:
+            reference, spread = directional(converged), 0.0
+        else:
+            values = [(float(loss(*moved(h))) - float(loss(*moved(-h)))) / (2 * h)
+                      for h in STEPS]
+            reference, spread = values[-1], abs(values[-1] - values[-2])
+        assert abs(reverse - reference) <= 3 * spread + 1e-6 * scale, \
+            (argnum, iterations, reverse, reference, spread)
+
+
+@settings(max_examples=8, deadline=None)
+@given(kind=st.sampled_from(["mode", "modes", "constant", "random", "smooth+noise"]),
+       k=st.integers(1, 6), l=st.integers(1, 6),
+       iterations=st.sampled_from([1, 2, 4, 8, 16, 32, 64, 128, 256]))
+def test_property_shaped_data(kind, k, l, iterations):
+    """Draws of data shaped as users' data are: one or two eigenmodes of the Laplacian,
+    constants, noise, smooth data with noise -- not only random vectors."""
+    n_side = 33
+    x, y = np.meshgrid(np.arange(1, n_side) / n_side, np.arange(1, n_side) / n_side,
+                       indexing="xy")
+    mode = (np.sin(k * np.pi * x) * np.sin(l * np.pi * y)).ravel()
+    second = (np.sin(l * np.pi * x) * np.sin(k * np.pi * y)).ravel()
+    rng = np.random.default_rng(k * 7 + l)
+    b = {"mode": mode, "modes": mode + 0.3 * second, "constant": np.ones(mode.size),
+         "random": rng.standard_normal(mode.size),
+         "smooth+noise": mode * (1 + 1e-5 * rng.standard_normal(mode.size))}[kind]
+    check_at(programs(33, 2, iterations), jnp.asarray(b), (kind, k, l, iterations))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("iterations", [30, 100, 2000])
+def test_the_reported_case_at_65k_unknowns(iterations):
+    flag = check_derivative(257, 2, "smooth", iterations)
+    if iterations == 2000:
+        assert flag == Status.SUCCESS
