@@ -134,6 +134,29 @@ def test_family_of_right_hand_sides(n_side, dim, iterations):
         assert set(flags.values()) == {Status.SUCCESS}
 
 
+@pytest.mark.parametrize("n_side,dim", [(33, 2), (9, 3)])
+def test_implicit_mode_past_convergence(n_side, dim):
+    """Implicit mode (the truncated adjoint) past convergence: reverse = forward mode = the
+    converged derivative, for the same family of right-hand sides."""
+    matrix, smooth = operator(n_side, dim)
+    target = 1e-3 * jnp.cos(1e-3 * jnp.arange(matrix.shape[0]))
+
+    def make(solver):
+        return lambda b: 0.5 * jnp.sum((solve(matrix, b, solver).x - target) ** 2)
+
+    loss = make(TruncatedCG(400, gradient="implicit"))
+    converged = make(ConvergedCG(rtol=1e-13))
+    grad = jax.jit(jax.grad(loss))
+    jvp = jax.jit(lambda b, v: jax.jvp(loss, (b,), (v,))[1])
+    reference = jax.jit(lambda b, v: jax.jvp(converged, (b,), (v,))[1])
+    for kind in ("smooth", "constant", "rough", "random", "smooth+noise"):
+        b = jnp.asarray(right_hand_side(kind, smooth))
+        v = jnp.asarray(direction(np.asarray(b)))
+        expected = float(reference(b, v))
+        np.testing.assert_allclose([float(jnp.vdot(grad(b), v)), float(jvp(b, v))], expected,
+                                   rtol=1e-7, err_msg=kind)
+
+
 def test_flag_fires_where_finite_differences_disagree():
     """Without the flag, K = 30 on the reported case returns a derivative that no finite
     difference supports: the flag is what stands between it and the user."""
