@@ -2,8 +2,8 @@
 
 Importing the package switches JAX to float64 (``jax_enable_x64``): finite-element systems and
 their gradients need it. Set ``PRDP_FEM_KEEP_X64=0`` before import to leave JAX's setting alone.
-It also turns on JAX's persistent compilation cache in a user cache directory
-(:mod:`prdp_fem.compilation_cache`; ``PRDP_FEM_COMPILATION_CACHE=0`` switches it off).
+It changes no other setting: JAX's persistent compilation cache is switched on by the
+``prdp-fem`` program, and by :func:`enable_compilation_cache` in a script.
 """
 import os as _os
 
@@ -34,7 +34,6 @@ from .cg import (
     unrolled_length,
 )
 from .comparison import ComparisonRow, compare, format_table
-from .compilation_cache import cache_directory as _cache_directory
 from .compilation_cache import enable_compilation_cache
 from .discretization import Discretization, discretize
 from .errors import (
@@ -120,8 +119,6 @@ from .regularizers import Regularizer, regularizer
 from .residuals import ResidualFactors
 from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
-
-enable_compilation_cache(_cache_directory())  # before anything compiles
 
 __all__ = [
     "KERNELS",

@@ -9,10 +9,9 @@ Subcommands
 ``scenes``     list the built-in scenes, or print one
 ``forward``    truncated-PCG error against K and run time (a quick forward study)
 ``stability``  the stiff/extreme-case suite: a Markdown + CSV table; exit 1 on any failure
-``bench cg``   PCG iteration / SciPy SpMV time ratio (see :mod:`prdp_fem.bench`)
+``bench cg``   PCG iteration / SciPy SpMV time ratio, and its slope against the dofs
 ``bench memory``  peak memory and time of a gradient through PCG, per gradient mode and K
-               (see :mod:`prdp_fem.bench_memory`)
-``bench amg``  AMG-PCG against pyamg's own CG solve (see :mod:`prdp_fem.bench_amg`)
+``bench amg``  AMG-PCG against pyamg's own CG solve
 ``bench mother``  whole-process time and error on dolfin-adjoint's mother problem, against it
 ``bench prdp``    the PRDP saving against the converged run on the built-in inverse scenes
 
@@ -37,6 +36,7 @@ import threading
 import time
 from pathlib import Path
 
+from ._version import __version__
 from .errors import PrdpFemError, SceneError, SolverConfigError
 
 DEFAULT_ITERATIONS = [0, 5, 10, 20, 40, 80, 160, 320, 640]
@@ -74,10 +74,17 @@ def _command(sub, name: str, help_text: str, **kwargs) -> argparse.ArgumentParse
                           formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
 
 
+def _plain(text: str) -> str:
+    """Docstring text for a terminal: reST's double backquotes dropped."""
+    return text.replace("``", "")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="prdp-fem", description=__doc__.split("\n")[0],
+    epilog = __doc__.split("\n\n")[1]  # the module docstring's list of subcommands
+    parser = argparse.ArgumentParser(prog="prdp-fem", description=_plain(__doc__.split("\n")[0]),
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=__doc__.split("\n\n")[1])  # the subcommands
+                                     epilog=_plain(epilog))
+    parser.add_argument("--version", action="version", version=f"prdp-fem {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     study = _command(sub, "study", "sweep a scene's configurations; tables and figures of "
@@ -930,6 +937,11 @@ COMMANDS = {"study": _study, "invert": _invert, "solve": _solve, "mesh-info": _m
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    from .compilation_cache import enable_compilation_cache
+
+    # the program, not the import, switches the persistent compilation cache on: a second
+    # run of a command loads the executables the first compiled
+    enable_compilation_cache()
     try:
         code = COMMANDS[args.command](args)
     except PrdpFemError as error:

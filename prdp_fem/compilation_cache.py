@@ -1,8 +1,10 @@
-"""JAX's persistent compilation cache, on by default in a user cache directory.
+"""JAX's persistent compilation cache in a user cache directory, switched on by the CLI.
 
 A jitted solve or optimiser step compiles in 0.2-8 s, and a new process (every ``prdp-fem``
-command, every script run) would compile it again. Importing :mod:`prdp_fem` points JAX's
-persistent cache at a directory so that a second process loads the executables instead:
+command, every script run) would compile it again. The ``prdp-fem`` program points JAX's
+persistent cache at a directory so that a second process loads the executables instead; a
+script asks for the same with :func:`enable_compilation_cache` (importing :mod:`prdp_fem`
+changes no JAX setting but float64). The directory:
 
 ``PRDP_FEM_COMPILATION_CACHE``
     unset, ``1``, ``on``, ``true`` or ``yes``: ``$XDG_CACHE_HOME/prdp_fem/jax``
@@ -56,14 +58,19 @@ def cache_directory(environ: Mapping[str, str] = os.environ) -> Path | None:
     return Path(base) / "prdp_fem" / "jax"
 
 
-def enable_compilation_cache(directory: str | os.PathLike | None) -> Path | None:
-    """Point JAX's persistent compilation cache at ``directory`` (``None``: leave it off).
+def enable_compilation_cache(directory: str | os.PathLike | None = None) -> Path | None:
+    """Point JAX's persistent compilation cache at ``directory``.
 
-    Returns the directory in use. A directory JAX was already given wins (the user chose it).
+    ``None`` (default): the directory :func:`cache_directory` reads from the environment, or
+    no cache at all where ``PRDP_FEM_COMPILATION_CACHE`` switches it off. Returns the
+    directory in use (``None``: off). A directory JAX was already given wins (the user chose
+    it).
     """
     chosen = jax.config.jax_compilation_cache_dir
     if chosen:
         return Path(chosen)
+    if directory is None:
+        directory = cache_directory()
     if directory is None:
         return None
     jax.config.update("jax_compilation_cache_dir", str(directory))

@@ -104,3 +104,33 @@ def test_the_program_exits_with_mains_code_and_a_frozen_heap(argv, code, monkeyp
         assert exit.value.code == code and gc.get_freeze_count() > 0
     finally:
         gc.unfreeze()
+
+
+def test_version_and_plain_help(capsys):
+    import prdp_fem
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"prdp-fem {prdp_fem.__version__}"
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert "bench prdp" in text and "``" not in text and ":mod:" not in text
+
+
+def test_the_program_switches_the_compilation_cache_on(tmp_path, monkeypatch, capsys):
+    """The import leaves JAX's persistent cache alone; the program points it at the
+    directory the environment names (checked in a fresh process: JAX's setting is global)."""
+    import subprocess
+
+    script = ("import jax, prdp_fem\n"
+              "before = jax.config.jax_compilation_cache_dir\n"
+              "from prdp_fem.cli import main\n"
+              "main(['scenes'])\n"
+              "print(repr(before), repr(jax.config.jax_compilation_cache_dir))\n")
+    env = {**__import__("os").environ, "PRDP_FEM_COMPILATION_CACHE": str(tmp_path / "c")}
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          env=env, timeout=120, check=True)
+    assert done.stdout.strip().splitlines()[-1] == f"None {str(tmp_path / 'c')!r}"

@@ -10,12 +10,15 @@ import json, jax, jax.numpy as jnp, numpy as np
 events = []
 jax.monitoring.register_event_listener(lambda name, **_: events.append(name))
 import prdp_fem as pf
+imported_with = jax.config.jax_compilation_cache_dir  # the import switches nothing on
+pf.enable_compilation_cache()
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # store even quick ones
 disc = pf.discretize(pf.unit_square(9))
 solve = jax.jit(lambda kappa, system: system.solve(
     kappa, None, pf.TruncatedCG(5, gradient="implicit")).x)
 x = solve(jnp.ones(disc.n_kappa), disc.system)
 print(json.dumps({"directory": jax.config.jax_compilation_cache_dir,
+                  "at_import": imported_with,
                   "hits": events.count("/jax/compilation_cache/cache_hits"),
                   "misses": events.count("/jax/compilation_cache/cache_misses"),
                   "finite": bool(np.isfinite(np.asarray(x)).all())}))
@@ -39,6 +42,7 @@ def test_directory_from_the_environment(tmp_path):
 def test_second_process_loads_the_compiled_solve(tmp_path):
     first = _run(str(tmp_path))
     assert first["directory"] == str(tmp_path) and first["finite"]
+    assert not first["at_import"]
     assert first["hits"] == 0 and first["misses"] > 0
     assert any(tmp_path.iterdir())  # executables were written
     second = _run(str(tmp_path))

@@ -192,6 +192,7 @@ def counting(backend, module, devices, options, host_callbacks):
     return original(backend, module, devices, options, host_callbacks)
 compiler.backend_compile_and_load = counting
 import prdp_fem as pf
+pf.enable_compilation_cache()
 from prdp_fem.inverse import inverse_problem, invert
 from prdp_fem.observations import full_field
 from prdp_fem.prdp import prdp
