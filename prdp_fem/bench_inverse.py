@@ -302,7 +302,7 @@ def compile_package_bytecode() -> bool:
     A process reads bytecode that exists even where it may not write any
     (``PYTHONDONTWRITEBYTECODE``, common in containers); without it every child of the
     mother benchmark compiled the 40 modules of the package it imports from source, 0.13 s of
-    its import (median paired difference, Intel Xeon) that a user's process does not spend.
+    its import (median paired difference) that a user's process does not spend.
     The dependencies' bytecode came with their install.
     """
     return compileall.compile_dir(Path(__file__).resolve().parent, quiet=2)
@@ -312,7 +312,7 @@ def _run_child(arguments: dict, timeout: float, environment: dict[str, str]
                ) -> tuple[dict, float, float]:
     """The child's phases, its whole wall time and its exit: the interpreter's shutdown, whose
     garbage collections over JAX's objects took 0.27-0.35 s (a process that only imports
-    JAX: 0.19 s; Intel Xeon, 2026-11-28)."""
+    JAX: 0.19 s; on 2 CPU cores)."""
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", _CHILD, json.dumps(arguments)],
                           capture_output=True, text=True, timeout=timeout, env=environment)

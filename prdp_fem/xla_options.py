@@ -4,7 +4,7 @@ On the CPU, XLA's classic fusion emitters (``xla_cpu_use_fusion_emitters=False``
 package's programs faster than its default emitters and run their PCG iterations faster: a
 Jacobi-PCG iteration took 0.66-0.80x as long from 65k to 261k unknowns in 2-D (about the same
 at 2k-16k, within the noise), and the mother problem's gradient compiled in 0.90-1.19 s
-against 1.02-1.44 s (Intel Xeon, 2 cores; ``docs/performance-log.md``). The arithmetic is the
+against 1.02-1.44 s (2 CPU cores; ``docs/performance-log.md``). The arithmetic is the
 same IEEE arithmetic, but a fusion may order a sum differently, as another CPU would: the
 mother problem's error and the inclusion scene's losses agreed to every digit compared (seven
 and eleven), while the inclusion scene's unpreconditioned PRDP run took another path (20020 CG
