@@ -60,7 +60,6 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .bench import this_package_first
-from .comparison import settled
 from .compilation_cache import ENVIRONMENT_VARIABLE as CACHE_VARIABLE
 from .compilation_cache import enable_compilation_cache
 from .discretization import discretize
@@ -379,24 +378,24 @@ SAVING_SCENES = ("mother", "inclusion", "plate_hole", "cube")
 class SavingRow(NamedTuple):
     """One PRDP configuration against the scene's converged reference.
 
-    Two readings of "reach the converged run's final error ``e*``": the study's (the error
-    stays within ``+-1 %`` of ``e*`` from ``reached_step`` on) and *at or below* (it stays
-    ``<= 1.01 e*`` from ``below_step`` on: a run that ends more accurate than the converged
-    one has reached it too). Savings are ``1 -`` cost up to that step / the converged totals.
+    Same target, both sides: the run reaches the converged run's final error ``e*`` at the
+    first step from which its error stays within ``+-1 %`` of it (``reached_step``), and the
+    savings are ``1 -`` its cost there / the converged run's cost to its *own* such step
+    (wall time without compilation; CG iterations, validation solves included). A run that
+    ends below the band has not reached it: ``ends_at_or_below`` says so apart, never as a
+    saving.
     """
 
     scene: str
     run: str
-    converged_s: float
+    converged_s: float          # whole run
     converged_iterations: int
     prdp_s: float               # whole run
     prdp_iterations: int
     reached_step: int | None    # the study's: in the +-1 % band from here on (None: never)
     time_saving: float          # NaN when never reached
     iteration_saving: float
-    below_step: int | None      # at or below 1.01 e* from here on
-    below_time_saving: float
-    below_iteration_saving: float
+    ends_at_or_below: bool      # the final error is at most 1.01 e* (not a saving)
     converged_error: float
     prdp_error: float
     repeats: int = 1            # studies whose medians these are (see median_row)
@@ -414,10 +413,6 @@ class SavingRow(NamedTuple):
         """BENCHMARKS.md read strictly: >= 80 % time saving, final error within +-1 %."""
         return self.time_saving >= SAVING_GOAL and abs(self.error_difference) <= ERROR_BAND
 
-    @property
-    def goal_met_at_or_below(self) -> bool:
-        """>= 80 % time saving to reach ``e*`` and a final error at most 1 % above it."""
-        return self.below_time_saving >= SAVING_GOAL and self.error_difference <= ERROR_BAND
 
 
 def _comparable(variant, reference) -> bool:
@@ -505,7 +500,8 @@ def median_row(rows) -> SavingRow:
         return float(np.median(np.asarray(values, dtype=float)))
 
     fields = dict(zip(SavingRow._fields, zip(*rows, strict=True), strict=True))
-    merged = {name: count(values) if name in _COUNT_FIELDS else number(values)
+    merged = {name: count(values) if name in _COUNT_FIELDS
+              else all(values) if name == "ends_at_or_below" else number(values)
               for name, values in fields.items() if name in _MEDIAN_FIELDS}
     savings = np.asarray(fields["time_saving"], dtype=float)
     return SavingRow(first.scene, first.run, **merged, repeats=len(rows),
@@ -513,8 +509,7 @@ def median_row(rows) -> SavingRow:
                      time_saving_high=float(np.max(savings)), seed=first.seed)
 
 
-_COUNT_FIELDS = frozenset({"converged_iterations", "prdp_iterations", "reached_step",
-                           "below_step"})
+_COUNT_FIELDS = frozenset({"converged_iterations", "prdp_iterations", "reached_step"})
 # the measured figures: every field after the run's name up to the repeat bookkeeping
 _MEDIAN_FIELDS = frozenset(SavingRow._fields[2:SavingRow._fields.index("repeats")])
 
@@ -525,19 +520,16 @@ def saving_rows(scene_name: str, reference: str, summary: list[dict],
     (as ``run_study`` returns them) and step records."""
     rows = {row["run"]: row for row in summary}
     base = rows[reference]
-    base_iterations = base["cg_iterations"]
 
-    def at_or_below(name: str) -> tuple[int | None, float, float]:
-        hit = _reached_at_or_below(histories[name], base["final_error"], band, base["metric"])
-        if hit is None:
-            return None, math.nan, math.nan
-        iterations = hit.primal_iterations + hit.adjoint_iterations_total
-        return hit.step, 1 - hit.time / base["time_s"], 1 - iterations / base_iterations
+    def ends_at_or_below(name: str) -> bool:
+        final = getattr(histories[name][-1], base["metric"])
+        return bool(final <= (1 + band) * base["final_error"])
 
     return [SavingRow(
-        scene_name, name, base["time_s"], base_iterations, row["time_s"], row["cg_iterations"],
-        row["reached_step"] if row["reached_step"] != "" else None, row["time_saving"],
-        row["iteration_saving"], *at_or_below(name), base["final_error"], row["final_error"])
+        scene_name, name, base["time_s"], base["cg_iterations"], row["time_s"],
+        row["cg_iterations"], row["reached_step"] if row["reached_step"] != "" else None,
+        row["time_saving"], row["iteration_saving"], ends_at_or_below(name),
+        base["final_error"], row["final_error"])
         for name, row in rows.items() if name != reference]
 
 
@@ -579,11 +571,11 @@ class SeedSummary(NamedTuple):
     scene: str
     run: str
     instances: int
-    met: int                    # instances meeting the goal read strictly (SavingRow.goal_met)
-    met_below: int              # ... at or below (SavingRow.goal_met_at_or_below)
+    met: int                    # instances meeting the goal (SavingRow.goal_met)
     reached: int                # instances that reach the +-1 % band at all
+    ends_below: int             # instances whose final error is at most 1.01 e* (not a saving)
     time_saving: float          # medians over the instances that reach the band (NaN: none)
-    below_time_saving: float    # ... over those that reach e* at or below
+    iteration_saving: float
     error_difference: float     # median over all instances
 
 
@@ -600,14 +592,8 @@ def seed_summary(rows) -> list[SeedSummary]:
 
     return [SeedSummary(
         scene, run, len(group), sum(r.goal_met for r in group),
-        sum(r.goal_met_at_or_below for r in group),
         sum(r.reached_step is not None for r in group),
-        median([r.time_saving for r in group]), median([r.below_time_saving for r in group]),
+        sum(bool(r.ends_at_or_below) for r in group),
+        median([r.time_saving for r in group]), median([r.iteration_saving for r in group]),
         median([r.error_difference for r in group]))
         for (scene, run), group in groups.items()]
-
-
-def _reached_at_or_below(history: History, target: float, band: float, metric: str):
-    if metric != "parameter_error":  # settled() reads parameter_error: give it the metric
-        history = History(r._replace(parameter_error=getattr(r, metric)) for r in history)
-    return settled(history, target, band, at_or_below=True)

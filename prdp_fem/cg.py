@@ -873,19 +873,22 @@ def _solver_status(broken: jax.Array, not_converged: jax.Array) -> jax.Array:
 
 
 # Unrolled mode differentiates the K-iteration map implicitly, as the solution map, once the
-# relative (preconditioned) residual sqrt(r.z / r0.z0) is below this: the map then equals the
-# solution map to half the working precision, while reverse and forward mode through the last
+# relative (preconditioned) residual sqrt(r.z / r0.z0) is below sqrt(eps) of the working dtype
+# (_solution_map_rtol): the map then equals the solution map to half the working precision,
+# while reverse and forward mode through the last
 # iterations lose digits to round-off as the residual falls (the P1 Laplacian, 4,096 unknowns,
 # b = 1: 2e-5 relative at a residual of 3e-11, 4e-4 at 3e-12, 5 % at 5e-13, each against
 # settled finite differences, which equal the solution map's derivative there)
-_SOLUTION_MAP_RTOL = float(np.sqrt(np.finfo(np.float64).eps))
+def _solution_map_rtol(dtype) -> float:
+    return float(np.sqrt(np.finfo(dtype).eps))
+
 
 # The unrolled derivative is flagged (Status.UNRELIABLE_DERIVATIVE) once the frozen CG
-# polynomial amplifies some part of the spectrum by more than this (see _amplification):
+# polynomial amplifies some part of the spectrum by more than 1 / sqrt(eps) (see
+# _amplification):
 # round-off is then amplified past half the working precision, and the exact derivative of the
 # K-iteration map is that large in some direction, so the map is linear only on scales far
 # below any useful step
-_AMPLIFICATION_LIMIT = 1.0 / _SOLUTION_MAP_RTOL
 
 # points of [0, mu_max] at which the residual polynomial is evaluated
 _SPECTRUM_POINTS = 257
@@ -924,7 +927,7 @@ def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
     status = _solver_status(state.broken, jnp.asarray(False))
     amplification = _amplification(jax.lax.stop_gradient(steps),
                                    _spectrum_bound(matrix, krylov, steps))
-    unreliable = ~converged & (amplification > _AMPLIFICATION_LIMIT)
+    unreliable = ~converged & (amplification > 1.0 / _solution_map_rtol(state.rz.dtype))
     status = jnp.where(unreliable & (status == Status.SUCCESS), Status.UNRELIABLE_DERIVATIVE,
                        status).astype(jnp.int32)
     return Solution(x, jnp.sum(steps.moving).astype(jnp.int32), history[-1],
@@ -932,9 +935,9 @@ def _unrolled(matrix, precond, b, x0, iterations, checkpoint: bool | int,
 
 
 def _settled(state: _CGState) -> jax.Array:
-    """``r.z <= rtol^2 r0.z0`` with ``rtol = _SOLUTION_MAP_RTOL`` (frozen states included)."""
+    """``r.z <= rtol^2 r0.z0`` with ``rtol = sqrt(eps)`` (frozen states included)."""
     rz0 = state.freeze_level / jnp.square(jnp.finfo(state.rz.dtype).eps)
-    return state.rz <= jnp.square(_SOLUTION_MAP_RTOL) * rz0
+    return state.rz <= jnp.square(_solution_map_rtol(state.rz.dtype)) * rz0
 
 
 def _spectrum_bound(matrix: SparseMatrix, krylov: _Krylov, steps: _StepInfo) -> jax.Array:

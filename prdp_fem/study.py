@@ -23,6 +23,16 @@ compilation, cumulative primal and adjoint CG iterations, optimiser steps and ``
 the held-out rollout error, the validation rollout error, run time, CG iterations and ``K``;
 the summary pairs each run with the converged run of the same setup and mode for PRDP's
 saving).
+
+Savings, in every summary: same target, both sides. A run's *time-to-target* is its run time
+(compilation excluded) and its cumulative CG iterations (primal, adjoint, line-search trials,
+validation solves) at the first step from which its error stays within ``study.band`` of the
+target (the scene's ``target_error``, else the reference run's final error; with
+``study.reached = "at_or_below"``, at most ``1 + band`` times it). The saving is ``1 -`` that
+over the reference run's own time-to-target -- never over its whole run, which goes on after
+it has arrived. A run that never settles has no saving (NaN) and its ``error_gap`` (final
+error / target - 1) says how far off it ended; ``ends_at_or_below`` says apart, never as a
+saving, whether it ended at most ``1 + band`` times the target.
 """
 
 from __future__ import annotations
@@ -476,13 +486,18 @@ def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
                "equal_epochs_iteration_ratio": math.nan}
         if partner is not None:
             base = histories[partner][-1]
+            at_or_below = scene.study.reached == "at_or_below"
             hit = _settled(history, base.parameter_error, scene.study.band, "parameter_error",
-                           scene.study.reached == "at_or_below")
+                           at_or_below)
+            # the partner's own epoch from which it stays at its final error: same target
+            base_hit = _settled(histories[partner], base.parameter_error, scene.study.band,
+                                "parameter_error", at_or_below)
             row.update(
                 converged_run=partner, reached_epoch=hit.step if hit else "",
-                time_saving=1 - hit.time / base.time if hit else math.nan,
-                iteration_saving=1 - _iterations(hit) / _iterations(base) if hit
-                else math.nan,
+                time_saving=_saving(hit.time if hit else math.nan,
+                                    base_hit.time if base_hit else math.nan),
+                iteration_saving=_saving(_iterations(hit) if hit else math.nan,
+                                         _iterations(base_hit) if base_hit else math.nan),
                 equal_epochs_time_ratio=last.time / base.time,
                 equal_epochs_iteration_ratio=_iterations(last) / _iterations(base))
         rows.append(row)
@@ -567,17 +582,19 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
         target = getattr(reference[-1], metric)
     else:
         target = min(finals.values(), default=math.nan)
-    base = reference[-1] if reference is not None and len(reference) else None
+    band, at_or_below = scene.study.band, scene.study.reached == "at_or_below"
+    # same target, both sides: the reference's own time to the target, not its whole run
+    base = _settled(reference, target, band, metric, at_or_below) \
+        if reference is not None and len(reference) else None
     rows = []
     for name, history in histories.items():
         if not len(history):
             continue
         last = history[-1]
-        hit = _settled(history, target, scene.study.band, metric,
-                       scene.study.reached == "at_or_below")
-        iterations = last.primal_iterations + last.adjoint_iterations_total
-        hit_iterations = hit.primal_iterations + hit.adjoint_iterations_total if hit \
-            else math.nan
+        hit = _settled(history, target, band, metric, at_or_below)
+        iterations = last.total_iterations
+        hit_iterations = hit.total_iterations if hit else math.nan
+        final = getattr(last, metric)
         rows.append({
             "run": name, "steps": last.step, "metric": metric,
             "final_error": getattr(last, metric), "final_loss": last.loss,
@@ -586,15 +603,24 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
             "compile_s": last.compile_time, "cg_iterations": iterations,
             "evaluations": last.evaluations, "failed_steps": last.failed_steps,
             "target_error": target,
+            "error_gap": final / target - 1 if target else math.nan,
+            "ends_at_or_below": bool(final <= (1 + band) * target),
             "reached_step": hit.step if hit else "",
             "time_to_target_s": hit.time if hit else math.nan,
             "iterations_to_target": hit_iterations,
-            "time_saving": 1 - (hit.time if hit else math.nan) / base.time if base
-            else math.nan,
-            "iteration_saving": 1 - hit_iterations / (base.primal_iterations
-                                                      + base.adjoint_iterations_total)
-            if base else math.nan})
+            "converged_time_to_target_s": base.time if base else math.nan,
+            "time_saving": _saving(hit.time if hit else math.nan,
+                                   base.time if base else math.nan),
+            "iteration_saving": _saving(hit_iterations,
+                                        base.total_iterations if base else math.nan)})
     return rows
+
+
+def _saving(cost: float, reference_cost: float) -> float:
+    """``1 - cost / reference_cost``, both to the same target (NaN where either is missing)."""
+    if math.isnan(cost) or math.isnan(reference_cost) or reference_cost <= 0:
+        return math.nan
+    return 1 - cost / reference_cost
 
 
 def _settled(history: History, target: float, band: float, metric: str,

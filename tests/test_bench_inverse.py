@@ -343,21 +343,23 @@ def test_saving_rows_are_the_study_figures():
                  "prdp better": better}
     summary = study._inverse_summary(scene, histories, "parameter_error")
     reached, passed, below = saving_rows("mother", "converged", summary, histories)
-    assert (reached.run, reached.reached_step, reached.below_step) == ("prdp", 3, 3)
+    assert (reached.run, reached.reached_step, reached.ends_at_or_below) == ("prdp", 3, True)
     assert reached.converged_s == 8.0 and reached.converged_iterations == 800
-    assert reached.time_saving == pytest.approx(1 - 0.3 / 8.0)
-    assert reached.iteration_saving == pytest.approx(1 - 30 / 800)
-    assert reached.below_time_saving == reached.time_saving
+    # same target, both sides: the converged run settles in its own band at step 3 (6 s,
+    # 600 iterations), not at its last step (8 s, 800)
+    assert reached.time_saving == pytest.approx(1 - 0.3 / 6.0)
+    assert reached.iteration_saving == pytest.approx(1 - 30 / 600)
+    assert summary[1]["converged_time_to_target_s"] == 6.0
     assert reached.error_difference == pytest.approx(-0.005)
-    assert reached.goal_met and reached.goal_met_at_or_below
+    assert reached.goal_met
     assert passed.reached_step is None and np.isnan(passed.time_saving)  # only passed through
-    assert passed.below_step is None and np.isnan(passed.below_time_saving)
     assert passed.error_difference == pytest.approx(2.0) and not passed.goal_met
-    assert not passed.goal_met_at_or_below
-    assert below.reached_step is None and below.below_step == 3
-    assert below.below_iteration_saving == pytest.approx(1 - 30 / 800)
+    assert not passed.ends_at_or_below
+    # ends 5 % below: not a saving, only its own column
+    assert below.reached_step is None and np.isnan(below.time_saving) and below.ends_at_or_below
     assert below.error_difference == pytest.approx(-0.05)
-    assert not below.goal_met and below.goal_met_at_or_below
+    assert not below.goal_met
+    assert summary[3]["error_gap"] == pytest.approx(-0.05)
 
 
 @pytest.mark.slow  # two inversions compiled and a study's figures (about 15 s)
@@ -378,14 +380,12 @@ def test_saving_rows_are_the_study_summary(tmp_path):
     if prdp_row["reached_step"]:
         assert row.reached_step == int(prdp_row["reached_step"])
         assert row.iteration_saving == pytest.approx(
-            1 - float(prdp_row["iterations_to_target"]) / int(base["cg_iterations"]))
+            1 - float(prdp_row["iterations_to_target"]) / float(base["iterations_to_target"]))
         assert row.iteration_saving == pytest.approx(float(prdp_row["iteration_saving"]))
     else:
         assert row.reached_step is None and np.isnan(row.time_saving)
     history = study.inverse_histories(scene, tmp_path / "study")["small"]
-    assert row.below_step == next(
-        r.step for r in history if all(later.parameter_error <= 1.01 * row.converged_error
-                                       for later in history[r.step - 1:]))
+    assert row.ends_at_or_below == (history[-1].parameter_error <= 1.01 * row.converged_error)
     assert row.goal_met == (row.time_saving >= 0.8 and abs(row.error_difference) <= 0.01)
     assert row.seed is None  # given data: the seed draws nothing
 
@@ -393,21 +393,18 @@ def test_saving_rows_are_the_study_summary(tmp_path):
 def test_saving_goal_needs_both_the_time_and_the_error():
     from prdp_fem.bench_inverse import SavingRow
 
-    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
-    assert row.goal_met and row.goal_met_at_or_below
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, True, 1.0, 1.005)
+    assert row.goal_met
     assert not row._replace(prdp_error=1.02).goal_met
-    assert not row._replace(prdp_error=1.02).goal_met_at_or_below
-    assert not row._replace(prdp_error=0.95).goal_met  # 5 % better is outside the band ...
-    assert row._replace(prdp_error=0.95).goal_met_at_or_below  # ... and has reached e*
+    assert not row._replace(prdp_error=0.95).goal_met  # 5 % better is outside the band
     assert not row._replace(time_saving=0.79).goal_met
-    assert not row._replace(below_time_saving=0.79).goal_met_at_or_below
     assert not row._replace(time_saving=float("nan"), reached_step=None).goal_met
 
 
 def test_repeated_studies_give_medians_and_the_time_saving_range():
     from prdp_fem.bench_inverse import SavingRow, median_row
 
-    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, True, 1.0, 1.005)
     rows = [row._replace(converged_s=12.0, time_saving=0.7),
             row._replace(converged_s=8.0, prdp_s=3.0, time_saving=0.8, reached_step=7), row]
     merged = median_row(rows)
@@ -415,9 +412,10 @@ def test_repeated_studies_give_medians_and_the_time_saving_range():
     assert merged.reached_step == 5 and merged.prdp_iterations == 100
     assert (merged.repeats, merged.time_saving_low, merged.time_saving_high) == (3, 0.7, 0.9)
     # a run that missed the band in one study has not reached it: no step, NaN saving
-    missed = median_row([row, row._replace(reached_step=None, time_saving=float("nan"))])
+    missed = median_row([row, row._replace(reached_step=None, time_saving=float("nan"),
+                                           ends_at_or_below=False)])
     assert missed.reached_step is None and np.isnan(missed.time_saving)
-    assert not missed.goal_met
+    assert not missed.goal_met and missed.ends_at_or_below is False  # only if every study
     with pytest.raises(ValueError, match="different runs"):
         median_row([row, row._replace(run="other")])
 
@@ -472,19 +470,20 @@ def test_seed_variants_refuse_bad_seeds(seeds):
 def test_seed_summary_counts_the_instances_that_meet_the_goal():
     from prdp_fem.bench_inverse import SavingRow, median_row
 
-    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, 5, 0.9, 0.9, 1.0, 1.005)
-    rows = [row._replace(seed=1),                                        # met, both readings
-            row._replace(seed=2, time_saving=0.7, below_time_saving=0.85),  # met below only
+    row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, True, 1.0, 1.005)
+    rows = [row._replace(seed=1),                                        # met
+            row._replace(seed=2, time_saving=0.7, iteration_saving=0.8),  # in the band, slow
             row._replace(seed=3, reached_step=None, time_saving=np.nan,  # never in the band,
-                         prdp_error=0.9, below_time_saving=0.95),          # below: met
-            row._replace(seed=1, run="prdp unrolled", prdp_error=1.05)]  # 5 % above: neither
+                         iteration_saving=np.nan, prdp_error=0.9),        # ends below it
+            row._replace(seed=1, run="prdp unrolled", prdp_error=1.05,
+                         ends_at_or_below=False)]                         # 5 % above
     first, other = seed_summary(rows)
     assert (first.scene, first.run, first.instances) == ("s", "prdp", 3)
-    assert (first.reached, first.met, first.met_below) == (2, 1, 3)
+    assert (first.reached, first.met, first.ends_below) == (2, 1, 3)
     assert first.time_saving == pytest.approx(0.8)        # median of 0.9 and 0.7 (NaN left out)
-    assert first.below_time_saving == pytest.approx(0.9)
+    assert first.iteration_saving == pytest.approx(0.85)
     assert first.error_difference == pytest.approx(0.005)  # median of 0.5 %, 0.5 %, -10 %
-    assert (other.run, other.instances, other.met, other.met_below) == ("prdp unrolled", 1, 0, 0)
+    assert (other.run, other.instances, other.met, other.ends_below) == ("prdp unrolled", 1, 0, 0)
     with pytest.raises(ValueError, match="different runs"):  # repeats of one instance only
         median_row([row._replace(seed=1), row._replace(seed=2)])
 
@@ -504,7 +503,7 @@ def _stand_in_saving(seen, directories=None):
             progress.run_finished("prdp", skipped=True)
         met = scene.inverse.seed != 2 or not _seeded(scene)
         return [SavingRow(scene.name, "prdp", 10.0, 1000, 1.0, 100, 5, 0.9 if met else 0.5,
-                          0.9, 5, 0.9, 0.9, 1.0, 1.005,
+                          0.9, True, 1.0, 1.005,
                           seed=scene.inverse.seed if _seeded(scene) else None)]
     return stand_in
 
@@ -532,7 +531,7 @@ def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, c
     assert [row[:3] for row in rows] == [
         ["plate_hole", "prdp", "1"], ["plate_hole", "prdp", "2"], ["mother", "prdp", "-"]]
     assert lines[5] == ""
-    assert lines[6].split()[:5] == ["scene", "run", "band", "met", "met_below"]
+    assert lines[6].split()[:5] == ["scene", "run", "band", "met", "below"]
     assert lines[7].split()[:5] == ["plate_hole", "prdp", "2/2", "1/2", "2/2"]
     assert lines[8].split()[:5] == ["mother", "prdp", "1/1", "1/1", "1/1"]
     assert lines[-1] == (f"wrote {out}/: saving.csv, seeds.csv, and the studies in "

@@ -81,6 +81,15 @@ def test_study_writes_every_output_and_they_parse(finished_study):
         assert {"recovered", "truth", "error"} <= set(field.point_data)
         assert np.isfinite(field.point_data["recovered"]).all()
     assert "converged" in done.stdout and "time_saving" in done.stdout
+    # one plain line on the PRDP run, by the summary's same-target rule
+    with open(out / "summary.csv") as stream:
+        prdp_row = {r["run"]: r for r in csv.DictReader(stream)}["prdp"]
+    [headline] = [line for line in done.stdout.splitlines() if line.startswith("PRDP (prdp)")]
+    if prdp_row["reached_step"]:
+        assert headline.startswith("PRDP (prdp) reached the converged run's error in ")
+        assert f"{100 * float(prdp_row['time_saving']):.0f} % less wall time" in headline
+    else:
+        assert "did not settle within +-1 %" in headline and "no saving" in headline
     # nothing is overwritten: a second study into the same directory is refused
     again = cli("study", scene, "--out", out)
     assert again.returncode == 2 and "pass --resume" in again.stderr
