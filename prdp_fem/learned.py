@@ -594,21 +594,35 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
 
 def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
                     band: float = 0.01, metric: str = "validation_misfit") -> dict:
-    """PRDP's saving against converged training: the run time (and CG iterations) at which
-    ``records`` first reach the converged run's final ``metric`` within ``band`` (relative)
-    or below it, over the converged run's total. ``None`` fields when it never does."""
+    """PRDP's saving against converged training, same target on both sides: the run time
+    (and CG iterations) of the first epoch from which ``records`` stay at or below the
+    converged run's final ``metric`` times ``1 + band``, over the converged run's own first
+    such epoch (not its whole run, which goes on after it has arrived). ``None`` fields when
+    ``records`` never settle there."""
     if metric not in ("validation_misfit", "validation_error"):
         raise SolverConfigError(f"metric={metric!r}: expected 'validation_misfit' or "
                                 "'validation_error'")
     target = getattr(converged[-1], metric) * (1 + band)
-    hit = next((r for r in records if getattr(r, metric) <= target), None)
-    base = converged[-1]
+    hit, base = _settled_at_or_below(records, metric, target), \
+        _settled_at_or_below(converged, metric, target)
     if hit is None:
         return {"epoch": None, "time_saving": None, "iteration_saving": None,
                 "target": target}
     return {"epoch": hit.epoch, "time_saving": 1 - hit.time / base.time,
             "iteration_saving": 1 - _total_iterations(hit) / _total_iterations(base),
             "target": target}
+
+
+def _settled_at_or_below(records: list[EpochRecord], metric: str,
+                         level: float) -> EpochRecord | None:
+    """The first record from which ``metric`` stays at or below ``level`` to the end."""
+    first = None
+    for record in records:
+        if getattr(record, metric) <= level:
+            first = first or record
+        else:
+            first = None
+    return first
 
 
 def _total_iterations(record: EpochRecord) -> int:

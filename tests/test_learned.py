@@ -167,7 +167,7 @@ def test_converged_and_fixed_training_agree_when_K_is_enough(small):
                                rtol=1e-8)
 
 
-def test_training_saving_reads_the_first_epoch_at_the_converged_level():
+def test_training_saving_reads_the_first_epoch_that_stays_at_the_converged_level():
     def records(misfits, dt, its):
         return [EpochRecord(i + 1, 5, 5, 0.0, its * (i + 1), dt * (i + 1), m, m, m)
                 for i, m in enumerate(misfits)]
@@ -175,9 +175,13 @@ def test_training_saving_reads_the_first_epoch_at_the_converged_level():
     base = records([4.0, 2.0, 1.0, 1.0], 1.0, 100)
     run = records([3.0, 1.005, 0.9], 0.5, 10)
     saving = learned.training_saving(run, base)
-    assert saving["epoch"] == 2 and saving["time_saving"] == pytest.approx(1 - 1.0 / 4.0)
-    assert saving["iteration_saving"] == pytest.approx(1 - 20 / 400)
+    # same target, both sides: the converged run settles at epoch 3 (3 s, 300 iterations)
+    assert saving["epoch"] == 2 and saving["time_saving"] == pytest.approx(1 - 1.0 / 3.0)
+    assert saving["iteration_saving"] == pytest.approx(1 - 20 / 300)
     assert learned.training_saving(records([3.0], 1, 1), base)["epoch"] is None
+    # passing through the level does not count: it must stay there
+    assert learned.training_saving(records([1.0, 3.0, 0.9], 0.5, 10), base)["epoch"] == 3
+    assert learned.training_saving(records([1.0, 3.0], 0.5, 10), base)["epoch"] is None
 
 
 def test_bad_options_are_refused_with_their_names(small):
