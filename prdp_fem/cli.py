@@ -738,6 +738,7 @@ def _bench_mother(args) -> None:
 def _bench_prdp(args) -> None:
     from .atomic import write_csv_atomic
     from .bench_inverse import prdp_saving, saving_configurations
+    from .lock import directory_lock
 
     scenes, instances = _saving_instances(args)
     out = _bench_directory(args)
@@ -745,17 +746,18 @@ def _bench_prdp(args) -> None:
     print(f"PRDP saving: {len(instances)} problem instance(s), {runs} run(s) into {out}/",
           flush=True)
     bars, rows = _Bars(runs), []
-    with _interrupt_kept(bars, f"finished runs are kept in {out}/ (continue with: "
-                               f"{_bench_prdp_command(args, out)})"):
-        for seed, scene in instances:
-            bars.stop_if_requested()  # a Ctrl-C between two studies
-            rows += prdp_saving(scene, repeats=args.repeats,
-                                out=out / _instance_name(scene.name, seed),
-                                resume=args.resume, progress=bars)
-    bars.close()
-    tables = _print_saving(rows, seeded=args.seeds is not None, repeats=args.repeats)
-    for name, table in tables.items():
-        write_csv_atomic(out / name, table)
+    with directory_lock(out):  # one writer: a second bench on ``out`` fails at once
+        with _interrupt_kept(bars, f"finished runs are kept in {out}/ (continue with: "
+                                   f"{_bench_prdp_command(args, out)})"):
+            for seed, scene in instances:
+                bars.stop_if_requested()  # a Ctrl-C between two studies
+                rows += prdp_saving(scene, repeats=args.repeats,
+                                    out=out / _instance_name(scene.name, seed),
+                                    resume=args.resume, progress=bars)
+        bars.close()
+        tables = _print_saving(rows, seeded=args.seeds is not None, repeats=args.repeats)
+        for name, table in tables.items():
+            write_csv_atomic(out / name, table)
     if bars.skipped:
         print(f"{bars.skipped} of {runs} run(s) read back from {out}/, as timed in an earlier "
               "process" + ("" if bars.skipped == runs else

@@ -95,5 +95,9 @@ class SceneError(PrdpFemError):
     """A scene file or table that cannot be used (names the file, the key and the expectation)."""
 
 
+class OutputLockedError(PrdpFemError):
+    """An output directory another process is writing (names the directory and its pid)."""
+
+
 class MeshRepairWarning(UserWarning):
     """A mesh was changed on load (orientation fixed, nodes merged or dropped)."""

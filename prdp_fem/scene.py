@@ -840,12 +840,20 @@ _SECTIONS = ("mesh", "pde", "inverse", "solver", "refinement", "optimizer", "lea
              "heat", "study")
 
 
+def _is_file_name(value: Any) -> bool:
+    """A non-empty string that is one path component on every platform."""
+    return (isinstance(value, str) and bool(value.strip()) and value not in (".", "..")
+            and not any(c in value for c in "/\\\0"))
+
+
 def parse_scene(table: dict, *, source: str = "<table>", directory: str | None = None,
                 default_name: str = "scene", _with_runs: bool = True) -> Scene:
     """Validate a scene table (as :func:`tomllib.loads` returns it) into a :class:`Scene`."""
     top = _Table(table, "", source)
-    name = top.get("name", default_name, lambda v: isinstance(v, str) and v.strip(),
-                   "a non-empty string")
+    # the name becomes file and directory names (./study-NAME, ./NAME-solution.vtu): one
+    # path component, so that no output lands outside the directory the user works in
+    name = top.get("name", default_name, _is_file_name,
+                   "a non-empty string usable as a file name (no '/', '\\' or NUL, not '..')")
     description = top.get("description", "", lambda v: isinstance(v, str), "a string")
     sections = {key: top.get(key, {}, lambda v: isinstance(v, dict), f"a [{key}] table")
                 for key in _SECTIONS}

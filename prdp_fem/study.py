@@ -73,6 +73,7 @@ from .forward import forward_convergence
 from .history import History, StepRecord
 from .inverse import invert
 from .learned import train
+from .lock import directory_lock
 from .operator import SparseMatrix
 from .reference import amg_solve, l2_error
 from .scene import Scene
@@ -382,6 +383,11 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
     if scene.study.kind == "h" and scene.pde.exact is None:
         raise StudyError(f"{scene.source}: study.kind = 'h' needs pde.exact (the exact "
                          "solution to measure the error against)")
+    with directory_lock(out):  # one writer: a second study on ``out`` fails at once
+        return _run_locked(scene, out, resume, progress)
+
+
+def _run_locked(scene: Scene, out: Path, resume: bool, progress: Progress) -> StudyOutput:
     log = _open(scene, out, resume)
     records = log.records()
     done = completed(records)

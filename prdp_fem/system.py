@@ -97,6 +97,11 @@ class LinearSystem:
                                      indices_are_sorted=True)
         b = self.neumann - lifted
         if f is not None:
+            # from the static shape (free under jit): a short f would gather past its end
+            # and give a wrong right-hand side without a word
+            if jnp.shape(f) != (self.source.shape[1],):
+                raise ShapeError(f"f: a nodal source of {self.source.shape[1]} values (the "
+                                 f"solution space's dofs) expected, got shape {jnp.shape(f)}")
             b = b + self.source(f)
         return b
 

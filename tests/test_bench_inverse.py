@@ -605,7 +605,8 @@ def test_bench_prdp_scene_names_must_make_distinct_directories(tmp_path, capsys)
 
     nested = scene_named("nested.toml", "a/b")
     assert main(["bench", "prdp", "--scene", nested, "--out", str(tmp_path / "o")]) == 2
-    assert "--scene: a scene named 'a/b'; expected a name that can be a directory of --out" \
+    # refused where the scene is read: a name is one path component
+    assert "name = 'a/b': expected a non-empty string usable as a file name" \
         in capsys.readouterr().err
     upper, lower = scene_named("upper.toml", "Small"), scene_named("lower.toml", "small")
     assert main(["bench", "prdp", "--scene", upper, lower, "--out", str(tmp_path / "o")]) == 2
