@@ -216,10 +216,9 @@ def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
     loss, converged = make_loss(solver), make_loss(ConvergedCG(rtol=1e-13))
     g0 = jnp.asarray(system.dirichlet_values)
     sol = solution(kappa, g0, solver)
-    flag = Status(int(sol.status))
-    if flag == Status.UNRELIABLE_DERIVATIVE:
-        return
-    assert flag == Status.SUCCESS
+    # a variable coefficient and a source with weight across the spectrum: never flagged,
+    # so every derivative below is checked
+    assert Status(int(sol.status)) == Status.SUCCESS
     past_convergence = float(sol.residual_norm / sol.initial_residual_norm) < 1e-7
     rng = np.random.default_rng(3)
     args = (kappa, g0)
