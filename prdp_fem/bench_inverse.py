@@ -65,7 +65,6 @@ from .compilation_cache import enable_compilation_cache
 from .discretization import discretize
 from .errors import SceneError, SolverConfigError
 from .generators import unit_square
-from .history import History
 from .inverse import InverseProblem, inverse_problem
 from .observations import full_field
 from .prdp import converged, prdp
@@ -460,7 +459,7 @@ def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
     studies already in ``out`` keep their finished runs (read back, with the times measured
     when they ran) and run only the rest.
     """
-    from .study import inverse_histories, run_study  # here: they import matplotlib
+    from .study import run_study  # here: they import matplotlib
 
     if not (isinstance(repeats, int) and not isinstance(repeats, bool) and repeats >= 1):
         raise SolverConfigError(f"repeats={repeats!r}: expected an integer >= 1")
@@ -471,9 +470,7 @@ def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
         for index in range(repeats):
             directory = root if repeats == 1 else root / f"repeat-{index + 1}"
             result = run_study(restricted, directory, resume=resume, progress=progress)
-            histories = inverse_histories(restricted, directory)
-            per_study.append(saving_rows(scene.name, scene.study.reference, result.summary,
-                                         histories, scene.study.band))
+            per_study.append(saving_rows(scene.name, scene.study.reference, result.summary))
     seed = scene.inverse.seed if _seeded(scene) else None
     return [median_row([row._replace(seed=seed) for row in rows])
             for rows in zip(*per_study, strict=True)]
@@ -514,21 +511,15 @@ _COUNT_FIELDS = frozenset({"converged_iterations", "prdp_iterations", "reached_s
 _MEDIAN_FIELDS = frozenset(SavingRow._fields[2:SavingRow._fields.index("repeats")])
 
 
-def saving_rows(scene_name: str, reference: str, summary: list[dict],
-                histories: dict[str, History], band: float = ERROR_BAND) -> list[SavingRow]:
+def saving_rows(scene_name: str, reference: str, summary: list[dict]) -> list[SavingRow]:
     """:class:`SavingRow` s of every run against ``reference``, from a study's summary rows
-    (as ``run_study`` returns them) and step records."""
+    (as ``run_study`` returns them): the study's own figures, read, not recomputed."""
     rows = {row["run"]: row for row in summary}
     base = rows[reference]
-
-    def ends_at_or_below(name: str) -> bool:
-        final = getattr(histories[name][-1], base["metric"])
-        return bool(final <= (1 + band) * base["final_error"])
-
     return [SavingRow(
         scene_name, name, base["time_s"], base["cg_iterations"], row["time_s"],
         row["cg_iterations"], row["reached_step"] if row["reached_step"] != "" else None,
-        row["time_saving"], row["iteration_saving"], ends_at_or_below(name),
+        row["time_saving"], row["iteration_saving"], bool(row["ends_at_or_below"]),
         base["final_error"], row["final_error"])
         for name, row in rows.items() if name != reference]
 

@@ -12,13 +12,13 @@ converged run's whole run, which goes on after it has arrived.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 from .history import History, StepRecord
 from .inverse import InverseProblem, invert
 
-__all__ = ["ComparisonRow", "compare", "format_table", "settled"]
+__all__ = ["ComparisonRow", "compare", "first_settled", "format_table", "settled"]
 
 
 class ComparisonRow(NamedTuple):
@@ -42,18 +42,33 @@ def settled(history: History, target: float, band: float = 0.01, *,
     ``at_or_below=True``: from which ``error <= (1 + band) target`` holds (an error that ends
     *lower* than the target counts as reached, as "reach the converged run's error" reads).
     """
+    first = first_settled([r.parameter_error for r in history], target, band,
+                          at_or_below=at_or_below)
+    return None if first is None else history[first]
+
+
+def first_settled(errors: Sequence[float], target: float, band: float = 0.01, *,
+                  at_or_below: bool = False) -> int | None:
+    """Index of the first of ``errors`` from which each stays within ``band`` of ``target``
+    (or at most ``(1 + band) target``) to the end; ``None`` where the last one is outside.
+
+    >>> first_settled([0.5, 0.1, 0.3, 0.1005, 0.0995], 0.1)
+    3
+    >>> first_settled([0.5, 0.09], 0.1), first_settled([0.5, 0.09], 0.1, at_or_below=True)
+    (None, 1)
+    """
     def inside(error: float) -> bool:
         if at_or_below:
             return error <= (1 + band) * target
         return abs(error - target) <= band * target
 
-    flags = [inside(r.parameter_error) for r in history]
+    flags = [inside(error) for error in errors]
     if not flags or not flags[-1]:
         return None
     first = len(flags) - 1
     while first > 0 and flags[first - 1]:
         first -= 1
-    return history[first]
+    return first
 
 
 def compare(problem: InverseProblem, runs: Mapping[str, dict], *, steps: int,

@@ -42,6 +42,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 from .cg import IterationCounter
+from .comparison import first_settled
 from .discretization import Discretization
 from .errors import ShapeError, SolverConfigError
 from .executables import SharedCompile, kept_programs
@@ -602,27 +603,21 @@ def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
     if metric not in ("validation_misfit", "validation_error"):
         raise SolverConfigError(f"metric={metric!r}: expected 'validation_misfit' or "
                                 "'validation_error'")
-    target = getattr(converged[-1], metric) * (1 + band)
-    hit, base = _settled_at_or_below(records, metric, target), \
-        _settled_at_or_below(converged, metric, target)
+    final = getattr(converged[-1], metric)
+    target = final * (1 + band)
+
+    def settled_record(run: list[EpochRecord]) -> EpochRecord | None:
+        first = first_settled([getattr(r, metric) for r in run], final, band,
+                              at_or_below=True)
+        return None if first is None else run[first]
+
+    hit, base = settled_record(records), settled_record(converged)
     if hit is None:
         return {"epoch": None, "time_saving": None, "iteration_saving": None,
                 "target": target}
     return {"epoch": hit.epoch, "time_saving": 1 - hit.time / base.time,
             "iteration_saving": 1 - _total_iterations(hit) / _total_iterations(base),
             "target": target}
-
-
-def _settled_at_or_below(records: list[EpochRecord], metric: str,
-                         level: float) -> EpochRecord | None:
-    """The first record from which ``metric`` stays at or below ``level`` to the end."""
-    first = None
-    for record in records:
-        if getattr(record, metric) <= level:
-            first = first or record
-        else:
-            first = None
-    return first
 
 
 def _total_iterations(record: EpochRecord) -> int:

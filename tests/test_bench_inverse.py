@@ -342,7 +342,7 @@ def test_saving_rows_are_the_study_figures():
     histories = {"converged": converged_run, "prdp": reaching, "prdp passing": passing,
                  "prdp better": better}
     summary = study._inverse_summary(scene, histories, "parameter_error")
-    reached, passed, below = saving_rows("mother", "converged", summary, histories)
+    reached, passed, below = saving_rows("mother", "converged", summary)
     assert (reached.run, reached.reached_step, reached.ends_at_or_below) == ("prdp", 3, True)
     assert reached.converged_s == 8.0 and reached.converged_iterations == 800
     # same target, both sides: the converged run settles in its own band at step 3 (6 s,
