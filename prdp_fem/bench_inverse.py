@@ -431,7 +431,7 @@ def saving_configurations(scene) -> list[str]:
         raise SceneError(f"{scene.source}: study.reference = {scene.study.reference!r} is not "
                          f"one of its runs {list(runs)}; expected the converged baseline")
     chosen = [name for name, variant in runs.items() if name == scene.study.reference or (
-        variant.refinement.kind == "prdp" and _comparable(variant, reference))]
+        variant.refinement.kind in ("prdp", "adaptive") and _comparable(variant, reference))]
     if len(chosen) < 2:
         raise SceneError(f"{scene.source}: no PRDP run comparable with the reference "
                          f"{scene.study.reference!r}; expected a run with refinement.kind = "

@@ -50,7 +50,7 @@ from .mesh import load_mesh
 from .newton import newton_cg
 from .observations import boundary_values, full_field, point_sensors, with_noise
 from .operator import SparseMatrix
-from .prdp import Refinement, converged, fixed, prdp
+from .prdp import Refinement, adaptive_tolerance, converged, fixed, prdp
 from .reference import amg_solve, direct_solve
 from .scene import (
     OptimizerSpec,
@@ -345,6 +345,9 @@ def controller(scene: Scene) -> Refinement:
         return fixed(spec.K, spec.K_adj)
     if spec.kind == "converged":
         return converged(spec.rtol)
+    if spec.kind == "adaptive":
+        return adaptive_tolerance(spec.rtol0, power=spec.power, rtol_min=spec.rtol_min,
+                                  failure_factor=spec.failure_factor)
     adjoint = None if spec.adjoint_K0 is None else (
         spec.adjoint_K0, spec.adjoint_dK, spec.adjoint_K_max, spec.adjoint_factor)
     return prdp(spec.K0, spec.dK, spec.K_max, factor=spec.factor, adjoint=adjoint,
@@ -409,7 +412,7 @@ def inversion_preconditioner(scene: Scene) -> str | RebuiltAMG:
 def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:
     """Keyword arguments of :func:`~prdp_fem.inverse.invert` for this scene."""
     spec = scene.refinement
-    monitor: str | Validation = spec.monitor
+    monitor: str | Validation | None = None if spec.kind == "adaptive" else spec.monitor
     if monitor == "validation":
         monitor = Validation(spec.validation_every, spec.validation_rtol)
     return dict(optimizer=optimizer(scene), refinement=controller(scene),

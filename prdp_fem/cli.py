@@ -14,6 +14,7 @@ Subcommands
 ``bench amg``  AMG-PCG against pyamg's own CG solve
 ``bench mother``  whole-process time and error on dolfin-adjoint's mother problem, against it
 ``bench prdp``    the PRDP saving against the converged run on the built-in inverse scenes
+``bench descent`` how often each refinement rule's steps descend the converged objective
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
 with status 2, no traceback. Ctrl-C during a study lets the running step finish and write
@@ -226,6 +227,19 @@ def _parser() -> argparse.ArgumentParser:
     saving.add_argument("--resume", action="store_true",
                         help="continue the run in --out (same options): its finished runs are "
                         "read back (times as measured then), the rest run")
+    descent = bench_sub.add_parser(
+        "descent", help="how often each refinement rule's steps descend the converged "
+        "objective, and its saving",
+        description="run each scene's converged reference, its PRDP and fixed runs and an "
+        "adaptive run (refinement.kind = 'adaptive', residual-aware) and check every step "
+        "against a converged gradient: the fraction of steps that descend the converged "
+        "objective, and each run's same-target saving")
+    descent.add_argument("--scene", nargs="+", default=None, metavar="SCENE",
+                         help="scene files or built-in names (default: mother inclusion "
+                         "plate_hole cube)")
+    descent.add_argument("--steps", type=int, help="optimiser steps (overrides the scenes)")
+    descent.add_argument("--out", type=Path, help="where descent.csv goes (default: a new "
+                         "./bench-descent)")
     return parser
 
 
@@ -922,7 +936,51 @@ def _percent_range(low: float, high: float) -> str:
 
 def _bench(args) -> None:
     return {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory,
-            "mother": _bench_mother, "prdp": _bench_prdp}[args.bench](args)
+            "mother": _bench_mother, "prdp": _bench_prdp,
+            "descent": _bench_descent}[args.bench](args)
+
+
+def _bench_descent(args) -> None:
+    from .atomic import write_csv_atomic
+    from .bench_descent import descent_rows
+    from .bench_inverse import SAVING_SCENES
+    from .lock import directory_lock
+
+    scenes = [_scene(name, args.steps) for name in (args.scene or SAVING_SCENES)]
+    if args.steps is not None and args.steps < 1:
+        raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
+    out = _fresh_directory("bench-descent") if args.out is None else args.out
+    if out.exists() and (not out.is_dir() or (out / DESCENT_TABLE).exists()):
+        raise SolverConfigError(f"--out {out}: holds a {DESCENT_TABLE} already; expected a "
+                                "new directory or one without it")
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with directory_lock(out):
+        for scene in scenes:
+            print(f"{scene.name}: ", end="", flush=True)
+            rows += descent_rows(scene, progress=lambda name: print(f"{name}; ", end="",
+                                                                    flush=True))
+            print(flush=True)
+        cells = [{"scene": r.scene, "run": r.run, "rule": r.rule, "steps": r.steps,
+                  "descend": f"{r.descending}/{r.moved}", "fraction": _percent(r.fraction),
+                  "approach": _percent(r.approach_fraction), "cos": r.median_cosine,
+                  "err_gap": _percent(r.error_gap, 1),
+                  "band@": "-" if r.settled_step is None else r.settled_step,
+                  "save_t": _percent(r.time_saving), "save_cg": _percent(r.iteration_saving)}
+                 for r in rows]
+        _print_table(cells, list(cells[0]))
+        print("descend: steps that moved along a descent direction of the converged objective "
+              "(slope of J at rtol 1e-10 < 0) / steps that moved; approach: the same up to the "
+              "step from which the run stays within +-1 % of the converged run's final error "
+              "(band@); cos: median cosine between a step and the converged steepest descent; "
+              "save: 1 - time or CG iterations to band@ / the converged run's own (times "
+              "exclude compilation)")
+        write_csv_atomic(out / DESCENT_TABLE, [row._asdict() for row in rows])
+    print(f"wrote {out / DESCENT_TABLE}")
+
+
+#: What ``bench descent`` writes.
+DESCENT_TABLE = "descent.csv"
 
 
 def _stability(args) -> int:

@@ -475,6 +475,11 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
                                 f"windows ({train_set.states.shape[0]} trajectories x "
                                 f"{train_set.steps - unroll + 1} starts)")
     refinement = prdp(K0=1, dK=1) if refinement is None else refinement
+    if getattr(refinement, "monitor", None) is not None:
+        raise SolverConfigError(
+            f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
+            "inversion step; training feeds its controller a validation error (expected "
+            "prdp(), fixed(K) or converged(rtol))")
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
     solves = setup == "correction"

@@ -60,6 +60,7 @@ __all__ = [
     "InversionError",
     "Objective",
     "Validation",
+    "initial_params",
     "inverse_problem",
     "invert",
 ]
@@ -566,7 +567,7 @@ def _cycle_argument(preconditioner) -> tuple:
 def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
            refinement: Refinement | None = None, gradient: str = "implicit", steps: int = 100,
            init: np.ndarray | None = None, preconditioner: Any = "jacobi",
-           monitor: str | Validation = "loss", reference_every: int = 0,
+           monitor: str | Validation | None = None, reference_every: int = 0,
            callback: Callable[[StepRecord, jax.Array], bool | None] | None = None) -> Inversion:
     """Minimise ``J`` for ``steps`` optimiser steps while ``refinement`` picks the CG work.
 
@@ -598,7 +599,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         What the controller watches: ``"loss"`` (the objective each step), ``"gradient"``
         (the norm of the computed gradient: no floor, unlike a misfit with noise or
         unreachable data, and it stalls exactly when truncated gradients stop the optimiser)
-        or a :class:`Validation`.
+        or a :class:`Validation`. Default: what the controller asks for
+        (``refinement.monitor``: ``"gradient"`` for
+        :func:`~prdp_fem.prdp.adaptive_tolerance`), else ``"loss"``.
     reference_every
         Every that many steps record ``state_error`` against a pyamg solve (not timed).
     callback
@@ -616,7 +619,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     if not (_is_count(reference_every) and reference_every >= 0):
         raise SolverConfigError(
             f"reference_every={reference_every!r}: expected an integer >= 0 (0: never)")
-    if not (isinstance(monitor, Validation) or monitor in ("loss", "gradient")):
+    if not (monitor is None or isinstance(monitor, Validation)
+            or monitor in ("loss", "gradient")):
         raise SolverConfigError(
             f"monitor={monitor!r}: expected 'loss', 'gradient' or a Validation")
     if callback is not None and not callable(callback):
@@ -628,6 +632,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     if not isinstance(refinement, Refinement):
         raise SolverConfigError(f"refinement={refinement!r}: expected a controller from "
                                 "prdp_fem.prdp (prdp(), fixed(K) or converged(rtol))")
+    monitor = _monitor_for(refinement, monitor)
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")
@@ -722,6 +727,19 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     return Inversion(z, problem.field(z), control, opt_state, history)
 
 
+def _monitor_for(refinement: Refinement, monitor):
+    """The run's monitor: the one given, the controller's, or ``"loss"``; a controller that
+    must be fed one value refuses another."""
+    wanted = getattr(refinement, "monitor", None)
+    if wanted is None:
+        return "loss" if monitor is None else monitor
+    if monitor is not None and monitor != wanted:
+        raise SolverConfigError(
+            f"monitor={monitor!r}: this controller is fed the {wanted!r} norm of each step; "
+            f"expected monitor={wanted!r} or none")
+    return wanted
+
+
 def _rebuild_due(rebuilt: RebuiltAMG, state, kappa: np.ndarray) -> tuple[bool, Any]:
     """Whether the policy asks for a new hierarchy at ``kappa``, and its next state."""
     rebuild, state = rebuilt.policy.update(state, kappa)
@@ -779,6 +797,12 @@ def _check_unrolled_start(problem: InverseProblem, z: jax.Array) -> None:
             "gradient='unrolled' at a zero right-hand side: the K-iteration map is not "
             "differentiable there (its gradient is zero and the optimiser would not move); "
             "start from a non-zero source (init=) or use gradient='implicit'")
+
+
+def initial_params(problem: InverseProblem, init: np.ndarray | None = None) -> jax.Array:
+    """The optimisation vector :func:`invert` starts from for ``init`` (an initial field or
+    ``None``), checked as ``invert`` checks it."""
+    return _initial_params(problem, init)
 
 
 def _initial_params(problem: InverseProblem, init) -> jax.Array:

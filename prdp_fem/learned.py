@@ -480,6 +480,11 @@ def _check_training_options(optimizer, gradient, epochs, batch_size, n, refineme
     if batch_size > n:
         raise SolverConfigError(f"batch_size={batch_size}: expected at most the {n} training "
                                 "samples")
+    if getattr(refinement, "monitor", None) is not None:
+        raise SolverConfigError(
+            f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
+            "inversion step; training feeds its controller a validation error (expected "
+            "prdp(), fixed(K) or converged(rtol))")
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
     if not isinstance(optimizer, optax.GradientTransformation):
@@ -594,12 +599,14 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
 
 
 def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
-                    band: float = 0.01, metric: str = "validation_misfit") -> dict:
+                    band: float = 0.01, metric: str = "validation_misfit",
+                    at_or_below: bool = False) -> dict:
     """PRDP's saving against converged training, same target on both sides: the run time
-    (and CG iterations) of the first epoch from which ``records`` stay at or below the
-    converged run's final ``metric`` times ``1 + band``, over the converged run's own first
-    such epoch (not its whole run, which goes on after it has arrived). ``None`` fields when
-    ``records`` never settle there."""
+    (and CG iterations) of the first epoch from which ``records`` stay within ``band`` of
+    the converged run's final ``metric`` (``at_or_below``: at most ``1 + band`` times it, a
+    reading that credits ending lower, named as such where it is reported), over the
+    converged run's own first such epoch (not its whole run, which goes on after it has
+    arrived). ``None`` fields when ``records`` never settle there."""
     if metric not in ("validation_misfit", "validation_error"):
         raise SolverConfigError(f"metric={metric!r}: expected 'validation_misfit' or "
                                 "'validation_error'")
@@ -608,7 +615,7 @@ def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
 
     def settled_record(run: list[EpochRecord]) -> EpochRecord | None:
         first = first_settled([getattr(r, metric) for r in run], final, band,
-                              at_or_below=True)
+                              at_or_below=at_or_below)
         return None if first is None else run[first]
 
     hit, base = settled_record(records), settled_record(converged)

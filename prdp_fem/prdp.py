@@ -69,6 +69,7 @@ __all__ = [
     "Refinement",
     "RefinementState",
     "Schedule",
+    "adaptive_tolerance",
     "converged",
     "fixed",
     "prdp",
@@ -126,6 +127,9 @@ class Refinement(NamedTuple):
     init: Any
     update: Any
     tolerance_mode: bool = False
+    #: what the controller must be fed (``"gradient"``: the norm of the step's gradient), or
+    #: ``None``: whatever the run loop's ``monitor`` says
+    monitor: str | None = None
 
 
 def _check_schedule(schedule: Schedule, name: str) -> Schedule:
@@ -304,6 +308,81 @@ def converged(rtol: float = 1e-10, max_iterations: int = 100_000) -> Refinement:
             "positive integer cap")
     return Refinement(lambda: _initial_state(max_iterations, max_iterations, rtol, 2),
                       _count_only, tolerance_mode=True)
+
+
+def adaptive_tolerance(rtol0: float = 1e-2, *, power: float = 1.0, rtol_min: float = 1e-10,
+                       failure_factor: float = 0.1, max_iterations: int = 100_000
+                       ) -> Refinement:
+    r"""A residual-aware controller: every solve runs to a relative tolerance that follows the
+    gradient, so that the truncation error stays small against the gradient it perturbs.
+
+    Inexact-gradient theory: a gradient with error ``e`` still descends while
+    ``||e|| < ||g||``, and the error of an adjoint gradient is bounded by the primal and
+    adjoint residuals. So the tolerance of the next step's primal and adjoint solves is
+
+    .. math::
+
+        \text{rtol}_{k+1} = \min\left(\text{rtol}_k,\;
+        \max\left(\text{rtol}_\min,\; \text{rtol}_0 \left(\|g_k\| / \|g_1\|\right)^p\right)\right),
+
+    never loosened. A step whose line search failed (``update(..., failed=True)``) tightens it
+    by ``failure_factor`` at once: its gradient was not good enough. Unlike :func:`prdp` with a
+    fixed ``K``, the solves converge as the optimisation does, so a run ends at the converged
+    problem's optimum rather than at a nearby stationary point of the truncated one.
+
+    It must be fed the norm of the step's gradient (``monitor = "gradient"``, which
+    :func:`~prdp_fem.inverse.invert` picks for it). ``state.iterations`` is the cap
+    ``max_iterations``; ``state.rtol`` the tolerance; ``state.checkpoint`` the first gradient
+    norm.
+
+    >>> controller = adaptive_tolerance(1e-2, rtol_min=1e-8)
+    >>> state = controller.init()
+    >>> for gradient_norm in [1.0, 0.1, 0.2, 1e-4]:
+    ...     state = controller.update(state, gradient_norm)
+    ...     print(f"{float(state.rtol):.0e}")
+    1e-02
+    1e-03
+    1e-03
+    1e-06
+    """
+    if not (0 < rtol_min <= rtol0 < 1 and 0 < failure_factor < 1 and math.isfinite(power)
+            and power > 0):
+        raise SolverConfigError(
+            f"rtol0={rtol0!r}, rtol_min={rtol_min!r}, failure_factor={failure_factor!r}, "
+            f"power={power!r}: expected 0 < rtol_min <= rtol0 < 1, 0 < failure_factor < 1 "
+            "and power > 0")
+    if not (_is_count(max_iterations) and max_iterations > 0):
+        raise SolverConfigError(
+            f"max_iterations={max_iterations!r}: expected a positive integer cap")
+
+    def init() -> RefinementState:
+        return _initial_state(max_iterations, max_iterations, rtol0, 2)
+
+    def update(state: RefinementState, value, failed=False) -> RefinementState:
+        xp = _array_module(state, value, failed)
+        value = xp.asarray(value, np.float64)
+        finite = xp.isfinite(value) & (value > 0)
+        checkpoint = xp.where(finite & xp.isnan(state.checkpoint), value, state.checkpoint)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            followed = rtol0 * (value / checkpoint) ** power
+        target = xp.where(finite, xp.clip(followed, rtol_min, rtol0), state.rtol)
+        # a failed line search (after the first step, whose search starts from an arbitrary
+        # step size) or a non-finite gradient: the solves were not accurate enough
+        failed = (xp.asarray(failed, bool) & ~xp.isnan(state.checkpoint)) | \
+            ~xp.isfinite(value)
+        target = xp.where(failed, xp.minimum(target, state.rtol * failure_factor), target)
+        rtol = xp.maximum(xp.minimum(state.rtol, target), rtol_min)
+        tightened = rtol < state.rtol
+        return state._replace(
+            rtol=rtol, checkpoint=checkpoint,
+            count=state.count + finite.astype(state.count.dtype),
+            refinements=state.refinements + tightened.astype(state.refinements.dtype))
+
+    return Refinement(init, update, tolerance_mode=True, monitor="gradient")
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
 
 
 def _count_only(state: RefinementState, value, failed=False) -> RefinementState:

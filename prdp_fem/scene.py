@@ -293,7 +293,9 @@ class RefinementSpec:
     ``kind = "prdp"`` uses ``K0, dK, K_max, factor, adjoint_K0, adjoint_dK, adjoint_K_max,
     adjoint_factor, tau_step, tau_stop, ema_window, delta, latch, restart, stall_on_failure,
     rtol``;
-    ``"fixed"`` uses ``K, K_adj``; ``"converged"`` uses ``rtol``. ``monitor``: loss |
+    ``"fixed"`` uses ``K, K_adj``; ``"converged"`` uses ``rtol``; ``"adaptive"``
+    (:func:`prdp_fem.prdp.adaptive_tolerance`) uses ``rtol0, power, rtol_min,
+    failure_factor`` and watches the gradient. ``monitor``: loss |
     gradient | validation (``validation_every``, ``validation_rtol``).
 
     ``ema_window`` left unset is :data:`MONOTONE_EMA_WINDOW` (2) in an inversion whose
@@ -320,6 +322,9 @@ class RefinementSpec:
     rtol: float | None = None
     rtol_factor: float = 0.1      # tolerance mode: rtol *= rtol_factor at a refinement ...
     rtol_min: float = 1e-12       # ... down to rtol_min
+    rtol0: float = 1e-2           # adaptive: the first steps' tolerance ...
+    power: float = 1.0            # ... followed as rtol0 (|g| / |g_1|) ** power
+    failure_factor: float = 0.1   # ... and tightened so at a failed line search
     K: int = 20
     K_adj: int | None = None
     monitor: str = "loss"
@@ -471,6 +476,12 @@ class Scene:
             path = Path(self.directory) / path
         return path
 
+    def variant(self, overrides: dict, name: str) -> Scene:
+        """This scene with a study run's ``overrides`` (``{"refinement": {...}, "solver":
+        {...}}``: ``refinement`` replaces the scene's, other tables update it), named
+        ``name`` and without a ``[study]``."""
+        return _variant(self, overrides, name)
+
     def runs(self) -> list[tuple[str, Scene]]:
         """The study's configurations as scenes.
 
@@ -604,6 +615,7 @@ _REFINEMENT_KEYS = {
              "restart", "stall_on_failure", "rtol", "rtol_factor", "rtol_min"),
     "fixed": ("K", "K_adj"),
     "converged": ("rtol",),
+    "adaptive": ("rtol0", "power", "rtol_min", "failure_factor"),
 }
 
 
@@ -631,24 +643,37 @@ def _refinement(t: _Table) -> RefinementSpec:
                                    high=0.5, open_low=True),
         "rtol_factor": lambda k: t.number(k, defaults.rtol_factor, low=0.0, high=1.0,
                                           open_low=True),
-        "rtol_min": lambda k: t.number(k, defaults.rtol_min, low=0.0, high=0.5,
-                                       open_low=True),
+        "rtol_min": lambda k: t.number(
+            k, ADAPTIVE_RTOL_MIN if kind == "adaptive" else defaults.rtol_min, low=0.0,
+            high=0.5, open_low=True),
+        "rtol0": lambda k: t.number(k, defaults.rtol0, low=0.0, high=0.5, open_low=True),
+        "power": lambda k: t.number(k, defaults.power, low=0.0, open_low=True),
+        "failure_factor": lambda k: t.number(k, defaults.failure_factor, low=0.0, high=1.0,
+                                             open_low=True),
         "K": lambda k: t.integer(k, defaults.K, 0),
         "K_adj": lambda k: t.integer(k, None, 0),
     }
     for key in _REFINEMENT_KEYS[kind]:
         values[key] = readers[key](key)
-    values["monitor"] = t.choice("monitor", "loss", ("loss", "gradient", "validation"))
+    # the adaptive controller is fed the gradient norm (prdp.adaptive_tolerance)
+    values["monitor"] = t.choice("monitor", "gradient", ("gradient",)) if kind == "adaptive" \
+        else t.choice("monitor", "loss", ("loss", "gradient", "validation"))
     values["validation_every"] = t.integer("validation_every", 1, 1)
     values["validation_rtol"] = t.number("validation_rtol", 1e-10, low=0.0, high=0.5,
                                          open_low=True)
     t.finish()
     spec = RefinementSpec(**values)
+    if kind == "adaptive" and spec.rtol_min > spec.rtol0:
+        raise SceneSolverConfigError(f"{t.source}: refinement.rtol_min = {spec.rtol_min} "
+                                     f"exceeds rtol0 = {spec.rtol0}; expected rtol_min <= rtol0")
     if kind == "prdp" and spec.K0 > spec.K_max:
         raise SceneSolverConfigError(f"{t.source}: refinement.K0 = {spec.K0} exceeds K_max = "
                                      f"{spec.K_max}; expected K0 <= K_max")
     return spec
 
+
+#: ``rtol_min`` of an adaptive controller: the converged baseline's tolerance
+ADAPTIVE_RTOL_MIN = 1e-10
 
 #: Optimisers that step only where their line search found a decrease: between two
 #: refinements the loss they report falls monotonically.
@@ -889,6 +914,11 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         scene.refinement, ema_window=ema_window_of(scene)))
     if learned:
         _check_learned_optimizer(scene)
+    if kind != "inverse" and scene.refinement.kind == "adaptive":
+        raise SceneSolverConfigError(
+            f"{source}: refinement.kind = 'adaptive' with study.kind = {kind!r}: expected "
+            "'prdp', 'fixed' or 'converged' (the adaptive controller follows an inversion's "
+            "gradient)")
     if kind in ("learned", "heat") and scene.solver.preconditioner == "amg":
         raise SceneSolverConfigError(
             f"{source}: solver.preconditioner = 'amg' with study.kind = {kind!r}: expected "

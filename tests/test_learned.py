@@ -173,15 +173,19 @@ def test_training_saving_reads_the_first_epoch_that_stays_at_the_converged_level
                 for i, m in enumerate(misfits)]
 
     base = records([4.0, 2.0, 1.0, 1.0], 1.0, 100)
-    run = records([3.0, 1.005, 0.9], 0.5, 10)
+    run = records([3.0, 1.005, 0.995], 0.5, 10)
     saving = learned.training_saving(run, base)
     # same target, both sides: the converged run settles at epoch 3 (3 s, 300 iterations)
     assert saving["epoch"] == 2 and saving["time_saving"] == pytest.approx(1 - 1.0 / 3.0)
     assert saving["iteration_saving"] == pytest.approx(1 - 20 / 300)
     assert learned.training_saving(records([3.0], 1, 1), base)["epoch"] is None
-    # passing through the level does not count: it must stay there
-    assert learned.training_saving(records([1.0, 3.0, 0.9], 0.5, 10), base)["epoch"] == 3
+    # passing through the band does not count: it must stay there
+    assert learned.training_saving(records([1.0, 3.0, 0.999], 0.5, 10), base)["epoch"] == 3
     assert learned.training_saving(records([1.0, 3.0], 0.5, 10), base)["epoch"] is None
+    # ending lower is not a saving, unless the at-or-below reading is asked for by name
+    lower = records([3.0, 1.005, 0.9], 0.5, 10)
+    assert learned.training_saving(lower, base)["epoch"] is None
+    assert learned.training_saving(lower, base, at_or_below=True)["epoch"] == 2
 
 
 def test_bad_options_are_refused_with_their_names(small):
