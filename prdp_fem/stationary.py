@@ -75,7 +75,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .cg import Solution, Status, _adjoint_tap, _check_count, _check_finite_inputs
-from .errors import DataError, SolverBreakdownError, SolverConfigError
+from .errors import DataError, ShapeError, SolverBreakdownError, SolverConfigError
 from .operator import SparseMatrix, diagonal, prepare, rmatvec
 from .tally import IterationCounter, tap
 from .validation import is_traced
@@ -167,8 +167,6 @@ def jacobi_solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedJacobi,
     x0 = None if x0 is None else jnp.asarray(x0, dtype=b.dtype)
     if matrix.shape[0] != matrix.shape[1] or b.shape != (matrix.shape[0],) or (
             x0 is not None and x0.shape != b.shape):
-        from .errors import ShapeError
-
         raise ShapeError(
             f"matrix{tuple(matrix.shape)}, b{tuple(b.shape)}, x0"
             f"{tuple(b.shape if x0 is None else x0.shape)}: expected a square operator and "

@@ -317,6 +317,23 @@ def test_no_nullspace():
         solve(A, rhs(), TruncatedJacobi(3), nullspace=np.ones(N))
 
 
+@pytest.mark.parametrize("gradient,adjoint", [("unrolled", 9), ("implicit", 4)])
+def test_counter_tallies_sweeps(gradient, adjoint):
+    A = SparseMatrix.from_scipy(laplacian())
+    counter = pf.IterationCounter()
+    solver = TruncatedJacobi(9, gradient=gradient,
+                             adjoint_iterations=4 if gradient == "implicit" else None)
+    jax.grad(lambda b: jnp.sum(solve(A, b, solver, counter=counter).x))(jnp.asarray(rhs()))
+    jax.effects_barrier()
+    assert counter.snapshot() == (9, adjoint)
+
+
+def test_bad_shapes():
+    A = SparseMatrix.from_scipy(laplacian())
+    with pytest.raises(pf.ShapeError):
+        solve(A, np.ones(N + 1), TruncatedJacobi(3))
+
+
 def test_exported():
     assert "TruncatedJacobi" in pf.__all__ and pf.TruncatedJacobi is TruncatedJacobi
     assert pf.jacobi_solve is pf.stationary.jacobi_solve
