@@ -117,6 +117,7 @@ from .reference import (
 )
 from .regularizers import Regularizer, regularizer
 from .residuals import ResidualFactors
+from .stationary import TruncatedJacobi, jacobi_solve
 from .system import LinearSystem
 from .taylor import TaylorResult, taylor_test
 
@@ -182,6 +183,7 @@ __all__ = [
     "StepRecord",
     "TaylorResult",
     "TruncatedCG",
+    "TruncatedJacobi",
     "UnsupportedCellsError",
     "UnusedNodeError",
     "Validation",
@@ -211,6 +213,7 @@ __all__ = [
     "inverse_problem",
     "invert",
     "jacobi",
+    "jacobi_solve",
     "l2_error",
     "l2_norm",
     "l_curve",

@@ -82,7 +82,9 @@ Status and bad input
 ``kappa <= 0``; ``x`` is the last iterate before it); ``NONFINITE`` (NaN/Inf in the inputs or
 the result); ``INCOMPATIBLE`` (a singular system whose right-hand side has a component in the
 nullspace); ``NOT_CONVERGED`` (:class:`ConvergedCG` ran out of iterations);
-``UNRELIABLE_DERIVATIVE`` (unrolled mode: ``x`` is right, its derivative cannot be trusted).
+``UNRELIABLE_DERIVATIVE`` (unrolled mode: ``x`` is right, its derivative cannot be trusted);
+``DIVERGED`` (:class:`~prdp_fem.stationary.TruncatedJacobi` only: the sweep's spectral radius is
+``>= 1``).
 Called eagerly (no tracers), :func:`solve` raises instead (except for
 ``UNRELIABLE_DERIVATIVE``): :class:`~prdp_fem.errors.DataError` for non-finite inputs before
 running, :class:`~prdp_fem.errors.SolverBreakdownError` /
@@ -150,6 +152,9 @@ class Status(enum.IntEnum):
     # TruncatedCG, unrolled: x is the K-iteration map's value, but its derivative cannot be
     # trusted (the CG polynomial amplifies part of the spectrum past 1/sqrt(eps))
     UNRELIABLE_DERIVATIVE = 5
+    # TruncatedJacobi (prdp_fem.stationary): the weighted residual grew, the sweep's spectral
+    # radius is >= 1; x is the last iterate before the growth passed 1/sqrt(eps)
+    DIVERGED = 6
 
 
 class Solution(NamedTuple):
@@ -343,7 +348,7 @@ class ConvergedCG:
         object.__setattr__(self, "history_size", int(self.history_size))
 
 
-def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
+def solve(matrix: SparseMatrix, b: jax.Array, solver: Any,
           x0: jax.Array | None = None, *, nullspace: jax.Array | None = None,
           counter: IterationCounter | None = None) -> Solution:
     """Solve ``A x = b`` (``A`` symmetric positive definite) with ``solver``.
@@ -352,6 +357,8 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
     solution orthogonal to ``v`` is returned (see the module docstring). ``counter`` (an
     :class:`IterationCounter`) tallies the iterations run forward and backward. Called eagerly,
     bad input and a breakdown raise typed errors; under ``jit`` they set ``status``.
+    ``solver`` may also be a :class:`~prdp_fem.stationary.TruncatedJacobi` (stationary Jacobi
+    sweeps, :func:`~prdp_fem.stationary.jacobi_solve`; no ``nullspace``).
 
     An eager call (no tracers, no counter) runs as one compiled program, kept per shape and
     solver form: ``K`` (implicit mode, or unrolled below a ``scan_length``), ``K_adj``
@@ -375,8 +382,16 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedCG | ConvergedCG,
         raise ShapeError(
             f"b{tuple(b.shape)} / x0{tuple(b.shape if x0 is None else x0.shape)}: expected "
             f"vectors of length {matrix.shape[0]} to match the operator")
+    from .stationary import TruncatedJacobi, jacobi_solve  # here: it builds on this module
+
+    if isinstance(solver, TruncatedJacobi):
+        if nullspace is not None:
+            raise SolverConfigError("nullspace: TruncatedJacobi solves non-singular systems "
+                                    "only; expected TruncatedCG or ConvergedCG with a nullspace")
+        return jacobi_solve(matrix, b, solver, x0, counter=counter)
     if not isinstance(solver, TruncatedCG | ConvergedCG):
-        raise SolverConfigError(f"solver={solver!r}: expected TruncatedCG or ConvergedCG")
+        raise SolverConfigError(
+            f"solver={solver!r}: expected TruncatedCG, ConvergedCG or TruncatedJacobi")
     dynamic, static = _split_solver(solver, matrix.shape[0])
     if is_traced(matrix.values, b, x0, nullspace, dynamic):
         return _solve_traced(matrix, b, x0, solver, nullspace, counter)

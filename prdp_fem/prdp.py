@@ -24,7 +24,8 @@ an exponential moving average ``s`` (``a = 2 / (window + 1)``, ``s_1 = e_1``,
     \text{refine} \iff t > \delta \;\wedge\; r_t > \tau_\text{step} \;\wedge\;
     \left(s_t / c < \tau_\text{stop} \;\vee\; s_t / c > 1\right),
 
-where the checkpoint ``c`` (initially ``e_1``) becomes ``s_t`` at every refinement: refine when
+where the checkpoint ``c`` (initially ``e_1``, or ``initial_checkpoint``) becomes ``s_t`` at every
+refinement: refine when
 the error has stalled *and* the last refinement bought at least ``1 - tau_stop`` (or things got
 worse); a stall without that gain means "K is enough" (``stopped``). As in the reference code
 the stop is not latched unless ``latch=True``: a later plateau ``>= 10 %`` lower refines again.
@@ -177,7 +178,7 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
          adjoint: Schedule | None = None, tau_step: float = 0.98, tau_stop: float = 0.9,
          ema_window: int = 6, delta: int = 3, latch: bool = False, restart: bool = False,
          stall_on_failure: bool = False, rtol: float | None = None, rtol_factor: float = 0.1,
-         rtol_min: float = 1e-12) -> Refinement:
+         rtol_min: float = 1e-12, initial_checkpoint: float | None = None) -> Refinement:
     """The PRDP controller (reference defaults; see the module docstring for the rule).
 
     Parameters
@@ -214,6 +215,14 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
         Tolerance mode when ``rtol`` is given: solves run to ``||r|| <= rtol ||b||`` (capped at
         ``K_max`` iterations) and refinement multiplies ``rtol`` by ``rtol_factor`` down to
         ``rtol_min``.
+    initial_checkpoint
+        The checkpoint ``c`` before the first refinement. ``None`` (default): the first
+        monitored value ``e_1``, so the first stall refines only if the error fell by at least
+        ``1 - tau_stop`` since the start (or rose above it). The reference notebooks differ
+        here: the 1-D Poisson and Navier-Stokes ones start from ``c = 100``, above any error
+        they watch, so their first stall always refines; the 2-D heat one from the first
+        error. ``initial_checkpoint=100.0`` with ``ema_window=1, delta=2, tau_step=0.92``
+        is the 1-D Poisson notebook's rule (``examples/reference_1d.py``).
     """
     primal = _check_schedule(Schedule(K0, dK, K_max, factor), "schedule")
     dual = None if adjoint is None else _check_schedule(Schedule(*adjoint), "adjoint")
@@ -230,12 +239,20 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
         raise SolverConfigError(
             f"rtol={rtol!r}, rtol_factor={rtol_factor!r}, rtol_min={rtol_min!r}: expected "
             "0 < rtol_min <= rtol < 1 and 0 < rtol_factor < 1")
+    if initial_checkpoint is not None and not (
+            isinstance(initial_checkpoint, int | float) and not isinstance(initial_checkpoint, bool)
+            and math.isfinite(initial_checkpoint) and initial_checkpoint > 0):
+        raise SolverConfigError(
+            f"initial_checkpoint={initial_checkpoint!r}: expected None or a finite number > 0")
+    checkpoint0 = math.nan if initial_checkpoint is None else float(initial_checkpoint)
     a = 2.0 / (ema_window + 1.0)
 
     def init() -> RefinementState:
         if tolerance_mode:  # K and K_adj are caps; the tolerance decides
-            return _initial_state(primal.K_max, primal.K_max, rtol, delta)
-        return _initial_state(primal.K0, primal.K0 if dual is None else dual.K0, 0.0, delta)
+            state = _initial_state(primal.K_max, primal.K_max, rtol, delta)
+        else:
+            state = _initial_state(primal.K0, primal.K0 if dual is None else dual.K0, 0.0, delta)
+        return state._replace(checkpoint=np.asarray(checkpoint0, np.float64))
 
     def update(state: RefinementState, value, failed=False) -> RefinementState:
         xp = _array_module(state, value, failed)
@@ -261,7 +278,9 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
             # arbitrary step size); a later one refines after a real gain, or at K0, where no
             # refinement has been judged yet. Not on gain > 1: after a refinement a truncated
             # loss moves to another level, which is not divergence.
-            failed = xp.asarray(failed, bool) & ~xp.isnan(state.checkpoint)
+            seen = ~xp.isnan(state.checkpoint) if initial_checkpoint is None else (
+                (state.count > 0) | (state.refinements > 0))
+            failed = xp.asarray(failed, bool) & seen
             stalled = stalled | failed
             failure_pays = (gain < tau_stop) | (state.refinements == 0)
             worth_it = xp.where(averaged_stall, worth_it, failure_pays)
