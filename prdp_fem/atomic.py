@@ -1,7 +1,9 @@
 """Atomic file output: write a temporary sibling, then rename it over the target.
 
 A reader (or a resumed run) sees either the old file or the complete new one, never a torn
-write; the rename is atomic on POSIX within one directory.
+write; the rename is atomic on POSIX within one directory. A write that fails (a full disk,
+no permission) raises :class:`~prdp_fem.errors.OutputError` naming the file it was for, not
+the temporary one, and leaves neither behind.
 
 >>> import tempfile, pathlib
 >>> target = pathlib.Path(tempfile.mkdtemp()) / "table.csv"
@@ -19,7 +21,15 @@ import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "write_csv_atomic", "write_text_atomic"]
+from .errors import OutputError
+
+__all__ = ["atomic_path", "output_error", "write_csv_atomic", "write_text_atomic"]
+
+
+def output_error(path: str | os.PathLike, error: OSError) -> OutputError:
+    """``error`` (raised writing ``path``) as an :class:`OutputError` naming ``path``."""
+    return OutputError(path, f"could not be written ({error.strerror or error}); expected a "
+                       "writable path on a disk with free space")
 
 
 @contextlib.contextmanager
@@ -32,8 +42,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as error:  # ENOSPC, EACCES, EROFS...: name the file the user asked for
+        raise output_error(path, error) from error
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
 
 
 def write_text_atomic(path: str | os.PathLike, text: str) -> None:

@@ -59,6 +59,7 @@ from .scene import (
     SceneDataError,
     SceneDiscretizationError,
     SceneSensorError,
+    check_refined_size,
     ema_window_of,
 )
 from .xla_options import solver_options
@@ -80,6 +81,8 @@ __all__ = [
 ]
 
 DIRECT_SOLVE_LIMIT = 200_000  # free dofs up to which synthetic data use SuperLU (else pyamg)
+REFERENCE_RTOL = 1e-12  # the relative residual a forward solve's pyamg reference is asked for
+REFERENCE_ACCEPTED = 1e-8  # above it the reference is reported as failed, not compared with
 
 
 def build_mesh(scene: Scene, level: int | None = None) -> skfem.Mesh:
@@ -94,6 +97,8 @@ def build_mesh(scene: Scene, level: int | None = None) -> skfem.Mesh:
         make = getattr(generators, spec.generator)
         mesh = make(n, spec.cell) if spec.cell is not None else make(n)
         refinements = spec.refine
+    if refinements:  # estimated on the mesh as read, before refining builds it
+        check_refined_size(scene, mesh.nvertices, mesh.dim(), refinements)
     return mesh.refined(refinements) if refinements else mesh  # tags are refined too
 
 
@@ -138,7 +143,8 @@ class ForwardResult(NamedTuple):
     u: np.ndarray              # all dofs (Dirichlet data included)
     solution: Solution         # the CG diagnostics (free dofs)
     solve_time: float          # compiled solve, seconds
-    relative_error: float      # nodal l2 against pyamg (NaN unless reference=True)
+    relative_error: float      # nodal l2 against pyamg (NaN unless reference=True, or failed)
+    reference_failure: str = ""  # why the pyamg reference is no reference ("" if it is one)
 
 
 def forward_solve(scene: Scene, *, reference: bool = False,
@@ -162,11 +168,27 @@ def forward_solve(scene: Scene, *, reference: bool = False,
     solution = jax.block_until_ready(run(A_jax, b_jax))
     elapsed = time.perf_counter() - start
     x = np.asarray(solution.x)
-    error = float("nan")
+    error, failure = float("nan"), ""
     if reference:
-        x_ref = amg_solve(A, b, rtol=1e-12).x
-        error = float(np.linalg.norm(x - x_ref) / max(np.linalg.norm(x_ref), 1e-300))
-    return ForwardResult(disc, kappa, disc.expand(x), solution, elapsed, error)
+        ref = amg_solve(A, b, rtol=REFERENCE_RTOL)
+        failure = reference_failure(ref, b)
+        if not failure:
+            error = float(np.linalg.norm(x - ref.x) / max(np.linalg.norm(ref.x), 1e-300))
+    return ForwardResult(disc, kappa, disc.expand(x), solution, elapsed, error, failure)
+
+
+def reference_failure(ref, b: np.ndarray) -> str:
+    """Why a pyamg solve of ``A x = b`` is no reference, or ``""``: a non-finite solution, or
+    a relative residual above :data:`REFERENCE_ACCEPTED` (it was asked for
+    :data:`REFERENCE_RTOL`; an error measured against it would measure pyamg's)."""
+    scale = max(float(np.linalg.norm(b)), 1e-300)
+    residual = ref.residual_norm / scale
+    if np.isfinite(ref.x).all() and residual <= REFERENCE_ACCEPTED:
+        return ""
+    found = "a non-finite solution" if not np.isfinite(ref.x).all() else \
+        f"relative residual {residual:.3g}"
+    return (f"pyamg did not converge ({found} after {ref.iterations} iterations; asked "
+            f"{REFERENCE_RTOL:g}, accepted up to {REFERENCE_ACCEPTED:g})")
 
 
 def _true_state(disc: Discretization, kappa: np.ndarray, f: np.ndarray) -> np.ndarray:

@@ -17,8 +17,12 @@ Subcommands
 ``bench descent`` how often each refinement rule's steps descend the converged objective
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
-with status 2, no traceback. Ctrl-C during a study lets the running step finish and write
-its record, then exits with 130, every finished record kept; a second Ctrl-C stops at once.
+with status 2, no traceback. Anything else that goes wrong (a bug, memory running out) prints
+one line ``prdp-fem: internal error: TYPE: ...`` and exits with status 1; ``--debug`` shows the
+traceback instead. Ctrl-C during a study lets the running step finish and write its record,
+then exits with 130, every finished record kept; a second Ctrl-C stops at once. A scene whose
+mesh would carry more than ``--max-dofs`` degrees of freedom (default 20,000,000, or the
+environment variable PRDP_FEM_MAX_DOFS) is refused before anything is built.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import gc
 import itertools
 import json
@@ -69,9 +74,24 @@ EXAMPLES = {
 }
 
 
+def _common(defaults: bool) -> argparse.ArgumentParser:
+    """The options every command takes (before or after its name): ``--debug`` and
+    ``--max-dofs``; a command's copy leaves them unset unless given (``SUPPRESS``), so that
+    one given before the command's name is not reset by it."""
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true",
+                        default=False if defaults else argparse.SUPPRESS,
+                        help="show the traceback of an error instead of its one line")
+    common.add_argument("--max-dofs", type=int, metavar="N",
+                        default=None if defaults else argparse.SUPPRESS,
+                        help="refuse a scene whose mesh would carry more than N degrees of "
+                        "freedom (default: PRDP_FEM_MAX_DOFS, else 20000000)")
+    return common
+
+
 def _command(sub, name: str, help_text: str, **kwargs) -> argparse.ArgumentParser:
     return sub.add_parser(name, help=help_text, description=help_text,
-                          epilog=EXAMPLES.get(name),
+                          epilog=EXAMPLES.get(name), parents=[_common(False)],
                           formatter_class=argparse.RawDescriptionHelpFormatter, **kwargs)
 
 
@@ -84,7 +104,7 @@ def _parser() -> argparse.ArgumentParser:
     epilog = __doc__.split("\n\n")[1]  # the module docstring's list of subcommands
     parser = argparse.ArgumentParser(prog="prdp-fem", description=_plain(__doc__.split("\n")[0]),
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
-                                     epilog=_plain(epilog))
+                                     epilog=_plain(epilog), parents=[_common(True)])
     parser.add_argument("--version", action="version", version=f"prdp-fem {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -139,6 +159,7 @@ def _parser() -> argparse.ArgumentParser:
 
     bench = _command(sub, "bench", "benchmarks")
     bench_sub = bench.add_subparsers(dest="bench", required=True)
+    bench_sub.add_parser = functools.partial(bench_sub.add_parser, parents=[_common(False)])
     cg = bench_sub.add_parser("cg", help="PCG iteration time / SciPy SpMV time, and its "
                               "scaling with the number of dofs")
     cg.add_argument("--dim", type=int, choices=(2, 3), default=2,
@@ -488,7 +509,9 @@ def _solve(args) -> None:
           f"{scene.solver.preconditioner}-PCG {int(sol.iterations)} iterations, residual "
           f"{float(sol.residual_norm):.3e} (initial {float(sol.initial_residual_norm):.3e}), "
           f"{result.solve_time:.4f} s")
-    if args.reference:
+    if args.reference and result.reference_failure:
+        print(f"reference: {result.reference_failure}; no error against it to report")
+    elif args.reference:
         print(f"relative l2 error against pyamg (rtol 1e-12): {result.relative_error:.3e}")
     print(f"wrote {out}")
 
@@ -562,8 +585,13 @@ def _forward(args) -> None:
               f"{record.wall_time_s:>10.4f} {record.relative_l2_error:>12.3e} "
               f"{record.relative_energy_error:>15.3e}", flush=True)
         if args.out is not None:
-            with args.out.open("a") as stream:  # one line per record, appended as it lands
-                stream.write(json.dumps({"source": source, **record._asdict()}) + "\n")
+            from .atomic import output_error
+
+            try:
+                with args.out.open("a") as stream:  # one line per record, as it lands
+                    stream.write(json.dumps({"source": source, **record._asdict()}) + "\n")
+            except OSError as error:  # a full disk: name the file
+                raise output_error(args.out, error) from error
 
     study = forward_convergence(scene, args.iterations, preconditioner=args.preconditioner,
                                 on_record=emit)
@@ -1021,32 +1049,65 @@ COMMANDS = {"study": _study, "invert": _invert, "solve": _solve, "mesh-info": _m
             "stability": _stability}
 
 
+def _one_line(text: str) -> str:
+    """``text`` as one line of stderr (a message quoting a file's lines keeps them, joined)."""
+    return " | ".join(line.strip() for line in str(text).splitlines() if line.strip())
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    debug = getattr(args, "debug", False)
+    try:
+        return _main(args)
+    except PrdpFemError as error:
+        if debug:
+            raise
+        print(f"prdp-fem: error: {_one_line(error)}", file=sys.stderr)
+        return 2
+    except OSError as error:  # an output path that cannot be written, a full disk
+        if debug:
+            raise
+        where = error.filename or "output"
+        print(f"prdp-fem: error: {where}: {_one_line(error.strerror or error)}; expected a "
+              "writable path", file=sys.stderr)
+        return 2
+    except _Interrupted as message:
+        print(f"prdp-fem: {message}", file=sys.stderr)
+        return 130
+    except (KeyboardInterrupt, Exception) as error:  # the last guard: never a traceback
+        if _is_interrupt(error):
+            print("prdp-fem: interrupted", file=sys.stderr)
+            return 130
+        if debug:
+            raise
+        detail = _one_line(error)[:300]
+        print(f"prdp-fem: internal error: {type(error).__name__}"
+              + (f": {detail}" if detail else "")
+              + "; rerun with --debug for the traceback", file=sys.stderr)
+        return 1
+
+
+def _main(args) -> int:
+    _set_max_dofs(args.max_dofs)
     from .compilation_cache import enable_compilation_cache
 
     # the program, not the import, switches the persistent compilation cache on: a second
     # run of a command loads the executables the first compiled
     enable_compilation_cache()
-    try:
-        code = COMMANDS[args.command](args)
-    except PrdpFemError as error:
-        print(f"prdp-fem: error: {error}", file=sys.stderr)
-        return 2
-    except OSError as error:  # an output path that cannot be written, a full disk
-        where = error.filename or "output"
-        print(f"prdp-fem: error: {where}: {error.strerror or error}; expected a writable path",
-              file=sys.stderr)
-        return 2
-    except _Interrupted as message:
-        print(f"prdp-fem: {message}", file=sys.stderr)
-        return 130
-    except (KeyboardInterrupt, RuntimeError) as error:
-        if not _is_interrupt(error):
-            raise
-        print("prdp-fem: interrupted", file=sys.stderr)
-        return 130
-    return code or 0
+    return COMMANDS[args.command](args) or 0
+
+
+def _set_max_dofs(value: int | None) -> None:
+    """``--max-dofs N``: the scenes' dof limit for this process (and the ones it starts)."""
+    import os
+
+    from .scene import MAX_DOFS_VARIABLE
+
+    if value is None:
+        return
+    if value < 1:
+        raise SolverConfigError(f"--max-dofs {value}: expected an integer >= 1")
+    os.environ[MAX_DOFS_VARIABLE] = str(value)
 
 
 def run() -> None:

@@ -45,7 +45,7 @@ from .operator import FixedMatrix, ell_layout
 from .sorting import unique_with_inverse
 from .system import LinearSystem
 from .transfer import as_jax
-from .validation import finite_vector, is_traced, positive_coefficient
+from .validation import finite_vector, host_values, is_traced, positive_coefficient, real_array
 
 __all__ = ["Discretization", "discretize"]
 
@@ -368,8 +368,8 @@ class Discretization:
 
     def interpolate(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Nodal values of ``fn`` at the dofs of the solution space (all dofs); finite."""
-        values = np.broadcast_to(np.asarray(fn(self.basis.doflocs), dtype=float),
-                                 (self.n_dofs,))
+        values = host_values(fn(self.basis.doflocs), "interpolate: fn(x)")
+        values = np.broadcast_to(real_array(values, "interpolate: fn(x)"), (self.n_dofs,))
         return finite_vector(values, "interpolate: fn(x)", self.n_dofs)
 
     def project(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
@@ -383,7 +383,8 @@ class Discretization:
         triangles), so a few dozen iterations reach round-off where a sparse LU of a 263k-dof
         mass matrix takes seconds; SuperLU remains the fallback should CG stop short.
         """
-        load = skfem.LinearForm(lambda v, w: fn(w.x) * v).assemble(self.basis)
+        load = skfem.LinearForm(lambda v, w: host_values(fn(w.x), "project: fn(x)") * v
+                                ).assemble(self.basis)
         load = finite_vector(load, "project: fn(x)", self.n_dofs)
         projection = jacobi_pcg(self.mass_matrix, load, PROJECTION_RTOL)
         return spla.spsolve(self.mass_matrix.tocsc(), load) if projection is None \
@@ -397,7 +398,8 @@ class Discretization:
         """
         x = self.mesh.p[:, self.mesh.t].mean(axis=1) if self.kappa_space == "P0" \
             else self.kappa_basis.doflocs
-        values = np.asarray(fn(x), dtype=float)
+        values = real_array(host_values(fn(x), "interpolate_kappa: fn(x)"),
+                            "interpolate_kappa: fn(x)", error=CoefficientError)
         if not np.isfinite(values).all():
             raise CoefficientError("interpolate_kappa: fn(x) has NaN/Inf values; expected a "
                                    "finite coefficient")

@@ -43,6 +43,11 @@ class NonFiniteCoordinatesError(MeshError):
     """A node coordinate is NaN or infinite."""
 
 
+class CoordinateRangeError(MeshError):
+    """A node coordinate so large that cell measures would overflow (see
+    :data:`prdp_fem.mesh.MAX_COORDINATE`)."""
+
+
 class DegenerateCellError(MeshError):
     """A cell has (numerically) zero area or volume."""
 
@@ -97,6 +102,24 @@ class SceneError(PrdpFemError):
 
 class OutputLockedError(PrdpFemError):
     """An output directory another process is writing (names the directory and its pid)."""
+
+
+class OutputError(PrdpFemError):
+    """An output file that could not be written (a full disk, no permission): names the file."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+class ResourceLimitError(PrdpFemError):
+    """An input whose estimated size (dofs, array entries, formula length or depth) exceeds a
+    documented limit: refused before anything that size is allocated."""
+
+
+class TracerError(PrdpFemError):
+    """A JAX tracer where concrete (host) values are required, e.g. inside ``jax.jit``."""
 
 
 class MeshRepairWarning(UserWarning):

@@ -6,6 +6,11 @@ set of nodes is allowed -- arithmetic, comparisons (true = 1), ``if``-expression
 ``where(c, a, b)``, the constants ``pi`` and ``e``, and the NumPy functions in
 :data:`FUNCTIONS` -- so a scene file can never run arbitrary code.
 
+A formula is at most :data:`MAX_FORMULA_LENGTH` characters long and nests at most
+:data:`MAX_FORMULA_DEPTH` levels deep (``a + b + c`` nests two, ``-(-(x))`` two); a longer or
+deeper one raises :class:`FormulaTooLargeError` before Python's parser or compiler could run
+out of stack (``RecursionError``) or memory.
+
 >>> import numpy as np
 >>> f = compile_field("1 + (x**2 + y**2 < 0.25)", where="pde.kappa")
 >>> f(np.array([[0.0, 1.0], [0.0, 1.0]])).tolist()
@@ -19,9 +24,16 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import ResourceLimitError, SceneError
 
-__all__ = ["FUNCTIONS", "ExpressionError", "compile_field"]
+__all__ = ["FUNCTIONS", "MAX_FORMULA_DEPTH", "MAX_FORMULA_LENGTH", "ExpressionError",
+           "FormulaTooLargeError", "compile_field"]
+
+#: The longest formula accepted, in characters.
+MAX_FORMULA_LENGTH = 10_000
+#: The deepest nesting of operators and calls accepted (Python's compiler and the checks
+#: here recurse once per level; a few hundred levels exhaust the interpreter's stack).
+MAX_FORMULA_DEPTH = 200
 
 FUNCTIONS: dict[str, Callable] = {
     name: getattr(np, name) for name in (
@@ -48,32 +60,85 @@ class ExpressionError(SceneError):
     """A field expression that does not parse or uses a name outside the allowed set."""
 
 
+class FormulaTooLargeError(ExpressionError, ResourceLimitError):
+    """A formula longer than :data:`MAX_FORMULA_LENGTH` or nested deeper than
+    :data:`MAX_FORMULA_DEPTH`."""
+
+
+def _shown(text: str) -> str:
+    """A formula as an error message quotes it: the whole of a short one, the ends of a long
+    one (a 200,000-term formula must not become a 200,000-term message)."""
+    return repr(text) if len(text) <= 80 else f"{text[:40]!r} ... {text[-20:]!r}"
+
+
+def _depth(tree: ast.Expression) -> int:
+    """How deeply ``tree``'s expression nodes nest, its body at level 0 (counted iteratively,
+    without recursion to run out of; a count past :data:`MAX_FORMULA_DEPTH` stops early)."""
+    deepest, stack = 0, [(tree.body, 0)]
+    while stack:
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if deepest > MAX_FORMULA_DEPTH:
+            break
+        stack.extend((child, depth + isinstance(child, ast.expr))
+                     for child in ast.iter_child_nodes(node))
+    return deepest
+
+
+def _parse(value: str, where: str) -> ast.Expression:
+    """``value`` parsed, or an :class:`ExpressionError` (a :class:`FormulaTooLargeError` for
+    one too long or too deep)."""
+    expected = (f"expected a formula of at most {MAX_FORMULA_LENGTH} characters nested at "
+                f"most {MAX_FORMULA_DEPTH} levels deep")
+    if len(value) > MAX_FORMULA_LENGTH:
+        raise FormulaTooLargeError(f"{where} = {_shown(value)}: {len(value)} characters; "
+                                   f"{expected}")
+    try:
+        tree = ast.parse(value.strip(), mode="eval")
+    except SyntaxError as exc:
+        if "too many nested" in str(exc.msg):
+            raise FormulaTooLargeError(f"{where} = {_shown(value)}: {exc.msg}; "
+                                       f"{expected}") from None
+        raise ExpressionError(f"{where} = {_shown(value)}: not a formula ({exc.msg})") from None
+    except (RecursionError, MemoryError):  # the parser's own stack ran out
+        raise FormulaTooLargeError(f"{where} = {_shown(value)}: nested too deeply for the "
+                                   f"parser; {expected}") from None
+    if _depth(tree) > MAX_FORMULA_DEPTH:
+        raise FormulaTooLargeError(f"{where} = {_shown(value)}: nested more than "
+                                   f"{MAX_FORMULA_DEPTH} levels deep; {expected}")
+    return tree
+
+
 def _check(tree: ast.AST, text: str, where: str, dim: int) -> None:
     allowed_names = set(FUNCTIONS) | set(CONSTANTS) | set(COORDINATES[:dim])
     for node in ast.walk(tree):
         if not isinstance(node, _ALLOWED_NODES):
-            raise ExpressionError(f"{where} = {text!r}: {type(node).__name__} is not allowed in "
-                                  "a field expression (arithmetic, comparisons and functions)")
+            raise ExpressionError(f"{where} = {_shown(text)}: {type(node).__name__} is not "
+                                  "allowed in a field expression (arithmetic, comparisons and "
+                                  "functions)")
         if isinstance(node, ast.Name) and node.id not in allowed_names:
             raise ExpressionError(
-                f"{where} = {text!r}: unknown name {node.id!r}; expected coordinates "
+                f"{where} = {_shown(text)}: unknown name {node.id!r}; expected coordinates "
                 f"{', '.join(COORDINATES[:dim])}, constants pi, e, or functions "
                 f"{', '.join(sorted(FUNCTIONS))}")
         if isinstance(node, ast.Call) and not (isinstance(node.func, ast.Name)
                                                and node.func.id in FUNCTIONS):
-            raise ExpressionError(f"{where} = {text!r}: only the functions "
+            raise ExpressionError(f"{where} = {_shown(text)}: only the functions "
                                   f"{', '.join(sorted(FUNCTIONS))} can be called")
         if isinstance(node, ast.Call) and len(node.args) != ARITY[node.func.id]:
             raise ExpressionError(
-                f"{where} = {text!r}: {node.func.id}() called with {len(node.args)} "
+                f"{where} = {_shown(text)}: {node.func.id}() called with {len(node.args)} "
                 f"argument(s); expected {ARITY[node.func.id]}")
         if isinstance(node, ast.Constant) and not isinstance(node.value, int | float):
-            raise ExpressionError(f"{where} = {text!r}: only numeric constants are allowed")
+            raise ExpressionError(f"{where} = {_shown(text)}: only numeric constants are allowed")
 
 
-class _FloatConstants(ast.NodeTransformer):
-    def visit_Constant(self, node: ast.Constant) -> ast.Constant:
-        return ast.copy_location(ast.Constant(float(node.value)), node)
+def _float_constants(tree: ast.Expression) -> ast.Expression:
+    """Integer constants as floats, in place (:func:`ast.walk` is iterative: no recursion)."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant):
+            node.value = float(node.value)
+    return tree
 
 
 def compile_field(value: float | int | str, *, where: str,
@@ -90,13 +155,10 @@ def compile_field(value: float | int | str, *, where: str,
         if not np.isfinite(constant):
             raise ExpressionError(f"{where} = {value!r}: expected a finite number")
         return lambda x: np.full(np.shape(x)[1:], constant)
-    try:
-        tree = ast.parse(value.strip(), mode="eval")
-    except SyntaxError as exc:
-        raise ExpressionError(f"{where} = {value!r}: not a formula ({exc.msg})") from None
+    tree = _parse(value, where)
     _check(tree, value, where, dim)
     # integer constants as floats: Python would compute 10**10**10 exactly (for ever)
-    tree = ast.fix_missing_locations(_FloatConstants().visit(tree))
+    tree = _float_constants(tree)
     code = compile(tree, f"<{where}>", "eval")
     namespace = {"__builtins__": {}, **FUNCTIONS, **CONSTANTS}
 
@@ -108,13 +170,13 @@ def compile_field(value: float | int | str, *, where: str,
                 result = eval(code, namespace, names)
             result = np.broadcast_to(np.asarray(result, dtype=float), x.shape[1:]).copy()
         except (ArithmeticError, ValueError, TypeError) as exc:  # 1 % 0, 2.0**1e6, ...
-            raise ExpressionError(f"{where} = {value!r}: could not be evaluated "
+            raise ExpressionError(f"{where} = {_shown(value)}: could not be evaluated "
                                   f"({type(exc).__name__}: {exc}); expected a formula with "
                                   "finite values") from None
         if not np.isfinite(result).all():
             first = np.argmin(np.isfinite(result).ravel())
             at = x.reshape(x.shape[0], -1)[:, first].tolist()
-            raise ExpressionError(f"{where} = {value!r}: non-finite value at x = {at}")
+            raise ExpressionError(f"{where} = {_shown(value)}: non-finite value at x = {at}")
         return result
 
     return field

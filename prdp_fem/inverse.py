@@ -52,7 +52,7 @@ from .regularizers import Regularizer, regularizer
 from .residuals import ResidualFactors, residual_factors
 from .system import LinearSystem
 from .transfer import as_jax
-from .validation import finite_vector
+from .validation import finite_vector, host_values
 
 __all__ = [
     "InverseProblem",
@@ -813,7 +813,8 @@ def _initial_params(problem: InverseProblem, init) -> jax.Array:
             field = np.full(n, 0.5 * sum(problem.parameterization.bounds))
     else:
         unknown = problem.parameterization.unknown
-        field = finite_vector(init, f"init (initial {unknown} field)", n)
+        name = f"init (initial {unknown} field)"
+        field = finite_vector(host_values(init, name), name, n)
         bounds = problem.parameterization.bounds
         if bounds is not None:
             outside = (field < bounds[0]) | (field > bounds[1])

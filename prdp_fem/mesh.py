@@ -15,6 +15,12 @@ Validation raises one typed :mod:`prdp_fem.errors` exception per problem, naming
                                                 :class:`~prdp_fem.errors.UnusedNodeError`
   (``repair=True`` merges / drops them instead, with a :class:`MeshRepairWarning`)
 * zero-measure cells                         -> :class:`~prdp_fem.errors.DegenerateCellError`
+* coordinates beyond ``+-MAX_COORDINATE``    -> :class:`~prdp_fem.errors.CoordinateRangeError`
+  (cell measures would overflow)
+* a Gmsh file whose node ids run past ``max(MIN_NODE_ID_LIMIT, NODE_ID_SLACK * nodes)``, or
+  that declares more nodes than its size can hold -> :class:`~prdp_fem.errors.MeshFileError`
+  (the reader allocates an array as long as the largest id: a few kilobytes with ids near
+  2e9 would take gigabytes); checked before the file is parsed
 * inverted cells: a cell whose node order is reversed (clockwise) is kept as it is, since
   scikit-fem integrates with ``|det J|`` and its operator equals the renumbered cell's; it is
   counted in :func:`mesh_quality` (``n_inverted``). Quads/hexes whose corner Jacobians change
@@ -26,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -35,6 +42,7 @@ import numpy as np
 import skfem
 
 from .errors import (
+    CoordinateRangeError,
     DegenerateCellError,
     DuplicateNodeError,
     InvertedCellError,
@@ -46,6 +54,7 @@ from .errors import (
     UnsupportedCellsError,
     UnusedNodeError,
 )
+from .files import checked_file
 from .sorting import first_of_each, unique_with_inverse
 
 if TYPE_CHECKING:
@@ -84,6 +93,13 @@ NAMED_PREFIXES = ("boundary:", "subdomain:")
 DEGENERACY_TOL = 1e-10
 # nodes closer than this times the bounding-box diameter are duplicates
 DUPLICATE_TOL = 1e-12
+#: The largest coordinate magnitude accepted: a cell's measure (up to its edge cubed) and the
+#: stiffness and mass entries must stay finite in double precision.
+MAX_COORDINATE = 1e50
+#: Gmsh node ids accepted up to ``max(MIN_NODE_ID_LIMIT, NODE_ID_SLACK * number of nodes)``:
+#: the reader allocates one entry per id up to the largest one.
+MIN_NODE_ID_LIMIT = 10_000_000
+NODE_ID_SLACK = 4
 
 
 def load_mesh(path: str | Path, *, repair: bool = False) -> skfem.Mesh:
@@ -107,14 +123,19 @@ def load_mesh(path: str | Path, *, repair: bool = False) -> skfem.Mesh:
     """
     import meshio
 
+    if not isinstance(path, str | os.PathLike):
+        raise MeshFileError(repr(path), f"a {type(path).__name__} given as the mesh path; "
+                            "expected a file path (str or os.PathLike)")
     path = Path(path)
-    if not path.exists():
-        raise MeshFileError(path, "file does not exist; expected a mesh file")
-    if not path.is_file():
-        raise MeshFileError(path, "is not a regular file; expected a mesh file")
-    if path.stat().st_size == 0:
+    size = checked_file(path, "mesh file", MeshFileError)
+    if size == 0:
         raise MeshFileError(path, "file is empty; expected a mesh file")
-    _check_content(path)
+    try:
+        if _check_content(path) == "Gmsh":
+            _check_gmsh_nodes(path, size)
+    except OSError as exc:  # a file it may not read
+        raise MeshFileError(path, f"cannot be read ({exc.strerror}); expected a readable mesh "
+                            "file") from None
     # .msh is also ANSYS's suffix: meshio then tries both and exits the process on failure
     file_format = "gmsh" if path.suffix.lower() == ".msh" else None
     printed, warned = io.StringIO(), io.StringIO()
@@ -152,8 +173,9 @@ _END_MARKERS = {"Gmsh": (b"$End", "an $End... section line"), "Medit": (b"End", 
                 "VTK XML": (b"</VTKFile>", "</VTKFile>"), "XDMF": (b"</Xdmf>", "</Xdmf>")}
 
 
-def _check_content(path: Path) -> None:
-    """Refuse a file whose content contradicts its suffix, or that stops before its end."""
+def _check_content(path: Path) -> str | None:
+    """Refuse a file whose content contradicts its suffix, or that stops before its end;
+    return the kind of content found (``"Gmsh"``, ``"VTK XML"``, ...) or ``None``."""
     with open(path, "rb") as stream:
         head = stream.read(4096)
         stream.seek(max(path.stat().st_size - 256, 0))
@@ -167,7 +189,7 @@ def _check_content(path: Path) -> None:
             raise MeshFileError(
                 path, f"could not be read as a mesh: it does not start with $MeshFormat (first "
                 f"line {_printable(first)}); expected a Gmsh .msh file")
-        return
+        return None
     kind, suffixes = found
     if suffix not in suffixes:
         raise MeshFileError(
@@ -183,6 +205,85 @@ def _check_content(path: Path) -> None:
                 path, f"could not be read as a mesh: the {kind} file ends with "
                 f"{_printable(last)} instead of {what}, so it is truncated; expected a complete "
                 f"{kind} file")
+    return kind
+
+
+def _check_gmsh_nodes(path: Path, size: int) -> None:
+    """Refuse a Gmsh file whose ``$Nodes`` section would make the reader allocate far more
+    than the file holds: ids beyond ``max(MIN_NODE_ID_LIMIT, NODE_ID_SLACK * nodes)`` (it
+    allocates one entry per id up to the largest), or more nodes declared than the file's
+    size can hold. Only the node section is read; a file this scan cannot follow is left to
+    the reader, which reports what is wrong with it."""
+    with open(path, "rb") as stream, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # np.fromfile's "could not be read to its end"
+        try:
+            found = _gmsh_node_ids(stream, size)
+        except (ValueError, IndexError, OverflowError, UnicodeDecodeError):
+            return
+    if found is None:
+        return
+    declared, largest = found
+    if isinstance(declared, str):
+        raise MeshFileError(path, f"could not be read as a mesh: $Nodes declares {declared} "
+                            f"but the file holds {size} bytes; expected a node count the file "
+                            "can hold (is it truncated or corrupt?)")
+    limit = max(MIN_NODE_ID_LIMIT, NODE_ID_SLACK * declared)
+    if largest > limit:
+        raise MeshFileError(
+            path, f"node ids run up to {largest} for {declared} nodes; reading them would "
+            f"allocate {largest} entries; expected node ids at most {limit} "
+            f"(max({MIN_NODE_ID_LIMIT}, {NODE_ID_SLACK} x the node count): renumber the nodes "
+            "1..N, e.g. with Gmsh's renumbering before saving)")
+
+
+def _gmsh_node_ids(stream, size: int) -> tuple[int | str, int] | None:
+    """``(number of nodes, largest node id)`` of an open Gmsh file, or ``(message, 0)``
+    where the declared count cannot fit in ``size`` bytes; ``None`` without a node section."""
+    version, binary, data_size = None, False, 8
+    while True:
+        line = stream.readline()
+        if not line:
+            return None
+        name = line.strip().decode("ascii", "replace")
+        if name == "$MeshFormat":
+            fields = stream.readline().split()
+            version, binary, data_size = fields[0].decode(), fields[1] == b"1", int(fields[2])
+        elif name == "$Nodes":
+            break
+    if version is None:
+        return None
+    integer = np.dtype(f"<u{data_size}") if data_size in (4, 8) else np.dtype("<u8")
+
+    def read(dtype, count: int) -> np.ndarray:
+        return np.fromfile(stream, dtype=dtype, count=count, sep="" if binary else " ")
+
+    if version.startswith("2"):
+        declared = int(stream.readline())
+        per_node = 28 if binary else 8  # int id + 3 doubles; "1 0 0 0\n"
+        if declared * per_node > size:
+            return f"{declared} nodes", 0
+        if binary:  # the reader requires the ids 1..n in order
+            return declared, declared
+        ids = read(float, 4 * declared)[::4]
+        return declared, int(ids.max()) if ids.size else 0
+    header = read(integer if binary else np.int64, 4)
+    blocks, declared = int(header[0]), int(header[1])
+    per_node = data_size + 24 if binary else 8  # tag + 3 doubles; "1\n0 0 0\n"
+    if declared * per_node > size or blocks * 8 > size:
+        return f"{declared} nodes in {blocks} blocks", 0
+    largest = 0
+    for _ in range(blocks):
+        read(np.int32 if binary else np.int64, 3)  # entityDim entityTag parametric
+        count = int(read(integer if binary else np.int64, 1)[0])
+        if count * per_node > size:
+            return f"a block of {count} nodes", 0
+        tags = read(integer if binary else np.int64, count)
+        largest = max(largest, int(tags.max()) if tags.size else 0)
+        if binary:
+            stream.seek(24 * count, os.SEEK_CUR)
+        else:
+            read(float, 3 * count)
+    return declared, largest
 
 
 def _printable(line: bytes) -> str:
@@ -539,6 +640,14 @@ def _checked_points(points: np.ndarray, dim: int, source: str) -> np.ndarray:
         raise NonFiniteCoordinatesError(
             source, f"{int(bad.sum())} node(s) have NaN/Inf coordinates (first: node {first} "
             f"at {points[first].tolist()}); expected finite coordinates")
+    huge = np.abs(points).max(axis=1, initial=0.0) > MAX_COORDINATE
+    if huge.any():
+        first = int(np.flatnonzero(huge)[0])
+        raise CoordinateRangeError(
+            source, f"{int(huge.sum())} node(s) have coordinates beyond +-{MAX_COORDINATE:g} "
+            f"(first: node {first} at {points[first].tolist()}): cell areas and volumes would "
+            f"overflow in double precision; expected |coordinates| <= {MAX_COORDINATE:g} "
+            "(rescale the mesh, e.g. to metres or kilometres)")
     if dim == 2 and points.shape[1] == 3:
         z = points[:, 2]
         if np.ptp(z) > 1e-12 * max(np.ptp(points[:, :2]), 1.0):
@@ -672,7 +781,7 @@ def _check_not_folded(mesh: skfem.Mesh, source: str) -> None:
     centroids = mesh.p[:, mesh.t].mean(axis=1)
     side_left = np.einsum("dn,dn->n", centroids[:, left[interior]] - x0, normal)
     side_right = np.einsum("dn,dn->n", centroids[:, right[interior]] - x0, normal)
-    folded = side_left * side_right >= 0
+    folded = np.sign(side_left) * np.sign(side_right) >= 0  # signs: no overflow at any scale
     if folded.any():
         k = int(np.flatnonzero(folded)[0])
         a, b = int(left[interior][k]), int(right[interior][k])

@@ -42,6 +42,13 @@ takes the default written in the dataclass below):
                   ``target_error``, ``band``, ``reached`` (band | at_or_below: when a run
                   counts as at the target), ``levels``, ``elements``
 
+A scene's size is estimated before anything is built: a ``mesh.n``, ``mesh.refine`` or
+``study.levels`` whose mesh would carry more than :func:`max_dofs` degrees of freedom (default
+:data:`DEFAULT_MAX_DOFS`; the environment variable ``PRDP_FEM_MAX_DOFS`` or the command's
+``--max-dofs`` sets it) raises :class:`SceneResourceLimitError` with the estimate. A mesh
+file's refinements are bounded here by what refining a single cell would give, and by the
+file's own size once it is read (:func:`check_refined_size`, before refining).
+
 Unknown keys and bad values raise :class:`SceneError` naming the file, the key and what is
 allowed. Where the value belongs to a kind the Python API has a typed error for, the error is
 both: a ``kappa`` <= 0 raises :class:`SceneCoefficientError` (a ``SceneError`` *and* a
@@ -61,6 +68,7 @@ import copy
 import dataclasses
 import hashlib
 import json
+import os
 import tomllib
 from importlib import resources
 from pathlib import Path
@@ -70,14 +78,18 @@ from .errors import (
     CoefficientError,
     DataError,
     DiscretizationError,
+    MeshFileError,
+    ResourceLimitError,
     SceneError,
     SensorError,
     SolverConfigError,
 )
 from .expressions import compile_field
+from .files import checked_file
 
 __all__ = [
     "BUILTIN_SCENES",
+    "DEFAULT_MAX_DOFS",
     "LINE_SEARCH_OPTIMIZERS",
     "MONOTONE_EMA_WINDOW",
     "REFERENCE_EMA_WINDOW",
@@ -93,14 +105,17 @@ __all__ = [
     "SceneDataError",
     "SceneDiscretizationError",
     "SceneError",
+    "SceneResourceLimitError",
     "SceneSensorError",
     "SceneSolverConfigError",
     "SolverSpec",
     "StudySpec",
     "builtin_scene_path",
+    "check_refined_size",
     "default_ema_window",
     "ema_window_of",
     "load_scene",
+    "max_dofs",
     "mesh_scene",
     "parse_scene",
     "with_overrides",
@@ -131,6 +146,95 @@ class SceneSolverConfigError(SceneError, SolverConfigError):
 
 class SceneDiscretizationError(SceneError, DiscretizationError):
     """A scene's element, coefficient space or boundary names that do not fit its mesh."""
+
+
+class SceneResourceLimitError(SceneError, ResourceLimitError):
+    """A scene whose mesh would carry more degrees of freedom than :func:`max_dofs`."""
+
+
+#: The most degrees of freedom a scene's mesh may carry unless told otherwise (some 20 GB of
+#: assembled operators, hierarchies and solver vectors in 3-D at second order).
+DEFAULT_MAX_DOFS = 20_000_000
+MAX_DOFS_VARIABLE = "PRDP_FEM_MAX_DOFS"
+
+
+def max_dofs() -> int:
+    """The dof limit: ``PRDP_FEM_MAX_DOFS`` where set (a positive integer), else
+    :data:`DEFAULT_MAX_DOFS`."""
+    text = os.environ.get(MAX_DOFS_VARIABLE)
+    if text is None:
+        return DEFAULT_MAX_DOFS
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise SceneError(f"{MAX_DOFS_VARIABLE}={text!r}: expected a positive integer (the "
+                         "most degrees of freedom a scene may ask for)")
+    return value
+
+
+# an upper bound on the vertices of each generator's mesh at resolution (or level) n
+_GENERATOR_VERTICES = {
+    "unit_square": lambda n: (n + 1) ** 2, "unit_cube": lambda n: (n + 1) ** 3,
+    "rectangle_with_hole": lambda n: (2 * n + 1) * (n + 1),
+    "l_shape": lambda n: 8 * 4 ** n, "disk": lambda n: 5 * 4 ** n}
+
+
+def _dofs_per_vertex(elements, dim: int) -> int:
+    """An upper bound on dofs per mesh vertex: 1 at first order; at second order the edge
+    (and face, cell) dofs add at most 3 (2-D) or 7 (3-D) per vertex."""
+    second = any(element in ("P2", "Q2") for element in elements)
+    return (4 if dim == 2 else 8) if second else 1
+
+
+def _estimated_dofs(vertices: int, dim: int, refinements: int, elements) -> int:
+    """Dofs after ``refinements`` uniform refinements (each at most quadruples the vertices
+    in 2-D, multiplies them by 8 in 3-D) at the highest order among ``elements``."""
+    return vertices * (4 if dim == 2 else 8) ** refinements * _dofs_per_vertex(elements, dim)
+
+
+def _refuse(source: str, key: str, value: int, estimate: int, what: str) -> None:
+    limit = max_dofs()
+    if estimate > limit:
+        raise SceneResourceLimitError(
+            f"{source}: {key} = {value}: {what} would carry about {estimate:.3g} degrees of "
+            f"freedom; expected at most {limit} (the dof limit: set it with --max-dofs or "
+            f"{MAX_DOFS_VARIABLE})")
+
+
+def _check_size(scene: Scene) -> None:
+    """Refuse a scene whose mesh (at any of its levels) would exceed :func:`max_dofs`,
+    estimated from the settings alone, before anything is built."""
+    spec, kind = scene.mesh, scene.study.kind
+    elements = (scene.pde.element, *(scene.study.elements if kind == "h" else ()))
+    levels = scene.study.levels if kind == "h" else ()
+    if spec.file is None:
+        dim = 3 if spec.generator == "unit_cube" else 2
+        vertices = _GENERATOR_VERTICES[spec.generator]
+        for key, n in [("mesh.n", spec.n)] + [("study.levels", n) for n in levels]:
+            _refuse(scene.source, key, n, _estimated_dofs(vertices(n), dim, 0, elements),
+                    f"{spec.generator}(n={n})")
+        refinements = _estimated_dofs(vertices(max([spec.n, *levels])), dim, spec.refine,
+                                      elements)
+        _refuse(scene.source, "mesh.refine", spec.refine, refinements,
+                f"{spec.generator}(n={max([spec.n, *levels])}) refined {spec.refine} times")
+        return
+    for key, r in [("mesh.refine", spec.refine)] + [("study.levels", r) for r in levels]:
+        # a single triangle refined r times has (2^r + 1)(2^r + 2) / 2 vertices
+        _refuse(scene.source, key, r, _estimated_dofs(1, 2, 0, elements)
+                * (2 ** r + 1) * (2 ** r + 2) // 2, f"even one cell refined {r} times")
+
+
+def check_refined_size(scene: Scene, vertices: int, dim: int, refinements: int) -> None:
+    """Refuse refining a mesh of ``vertices`` vertices ``refinements`` times where the result
+    would exceed :func:`max_dofs` (called with the mesh file read, before refining)."""
+    elements = (scene.pde.element,
+                *(scene.study.elements if scene.study.kind == "h" else ()))
+    _refuse(scene.source, "mesh.refine" if refinements == scene.mesh.refine else
+            "study.levels", refinements,
+            _estimated_dofs(vertices, dim, refinements, elements),
+            f"the {vertices}-vertex mesh {scene.mesh.file} refined {refinements} times")
 
 
 class _Table:
@@ -934,6 +1038,7 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         raise SceneSolverConfigError(
             f"{source}: optimizer.name = {scene.optimizer.name!r} with study.kind = 'heat': "
             "expected 'adam' or 'sgd' (heat training runs mini-batches of windows)")
+    _check_size(scene)
     if _with_runs:
         scene.runs()  # validate every configuration now, not halfway through a study
         names = [n for n, _ in scene.study.runs]
@@ -984,15 +1089,18 @@ def load_scene(path_or_name: str | Path) -> Scene:
     """Read a scene file, or a built-in scene by name."""
     text_path = str(path_or_name)
     path = Path(text_path) if text_path.endswith(".toml") or Path(text_path).exists() \
-        else builtin_scene_path(text_path)
-    if not path.is_file():
-        raise SceneError(f"{path}: scene file does not exist")
+        or Path(text_path).is_symlink() else builtin_scene_path(text_path)
+    checked_file(path, "scene .toml file or a built-in scene name", SceneError,
+                 missing="scene file does not exist")
     try:
         table = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML ({exc})") from None
     except UnicodeDecodeError:
         raise SceneError(f"{path}: not a text file (expected TOML)") from None
+    except OSError as exc:  # a file it may not read
+        raise SceneError(f"{path}: cannot be read ({exc.strerror}); expected a readable scene "
+                         "file") from None
     return parse_scene(table, source=str(path), directory=str(path.resolve().parent),
                        default_name=path.stem)
 
@@ -1009,5 +1117,6 @@ def with_overrides(scene: Scene, overrides: dict) -> Scene:
 def mesh_scene(path: str | Path) -> Scene:
     """The default problem on a bare mesh file: ``-lap u = 1``, ``u = 0`` on the boundary."""
     path = Path(path)
+    checked_file(path, "mesh file", MeshFileError)  # Path.resolve raises on a link loop
     return parse_scene({"name": path.stem, "mesh": {"file": str(path.resolve())}},
                        source=str(path), directory=str(path.resolve().parent))

@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import heat, plots
-from .atomic import write_csv_atomic, write_text_atomic
+from .atomic import output_error, write_csv_atomic, write_text_atomic
 from .build import (
     build_discretization,
     build_heat,
@@ -73,7 +73,7 @@ from .forward import forward_convergence
 from .history import History, StepRecord
 from .inverse import invert
 from .learned import train
-from .lock import directory_lock
+from .lock import LOCK_NAME, directory_lock
 from .operator import SparseMatrix
 from .reference import amg_solve, l2_error
 from .scene import Scene
@@ -152,6 +152,12 @@ class ResultsLog:
         return records
 
     def append(self, record: dict) -> None:
+        try:
+            self._append(record)
+        except OSError as error:  # a full disk: name the file, not "output"
+            raise output_error(self.path, error) from error
+
+    def _append(self, record: dict) -> None:
         line = json.dumps({k: _json_safe(v) for k, v in record.items()}) + "\n"
         with open(self.path, "ab") as stream:
             if not self._checked_tail:  # a torn last line must not swallow this record
@@ -383,19 +389,60 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
     if scene.study.kind == "h" and scene.pde.exact is None:
         raise StudyError(f"{scene.source}: study.kind = 'h' needs pde.exact (the exact "
                          "solution to measure the error against)")
+    context = _context(scene)
+    new = not out.exists()
+    if not _holds_records(out):
+        _preflight(scene, context)  # a scene its first problem rejects creates no directory
     with directory_lock(out):  # one writer: a second study on ``out`` fails at once
-        return _run_locked(scene, out, resume, progress)
+        try:
+            return _run_locked(scene, out, resume, progress, context)
+        except PrdpFemError:
+            if not _holds_records(out):  # rejected before its first record: leave nothing
+                for name in (MANIFEST, LOCK_NAME):
+                    (out / name).unlink(missing_ok=True)
+            raise
+        finally:
+            if new and not any(out.iterdir()):
+                out.rmdir()
 
 
-def _run_locked(scene: Scene, out: Path, resume: bool, progress: Progress) -> StudyOutput:
+def _holds_records(out: Path) -> bool:
+    results = out / RESULTS
+    return results.exists() and results.stat().st_size > 0
+
+
+def _context(scene: Scene):
+    """What the runners of ``scene``'s configurations share: the scene (h-studies) or a
+    cache of the problems they build (:class:`_Setups`)."""
+    return {"h": lambda: scene, "learned": lambda: _Setups(build_learned, _learned_key),
+            "heat": lambda: _Setups(build_heat, _heat_key)}.get(
+        scene.study.kind, lambda: _Setups(build_inverse, _inverse_key))()
+
+
+def _preflight(scene: Scene, context) -> None:
+    """Build the first configuration's problem (kept in ``context`` for its run), so that a
+    scene whose mesh, boundary data or coefficient fail on the mesh is refused before the
+    output directory is created; forward and h studies, which build per run, build the
+    first mesh and coefficient here."""
+    first = configurations(scene)[0][1]
+    if isinstance(context, _Setups):
+        if scene.study.kind != "forward":
+            context(first)
+            return
+        coefficient(first, build_discretization(first))
+        return
+    element, level = first
+    disc = build_discretization(scene, build_mesh(scene, level), element)
+    coefficient(scene, disc)
+
+
+def _run_locked(scene: Scene, out: Path, resume: bool, progress: Progress,
+                context) -> StudyOutput:
     log = _open(scene, out, resume)
     records = log.records()
     done = completed(records)
     runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level,
               "learned": _run_learned, "heat": _run_heat}[scene.study.kind]
-    context = {"h": lambda: scene, "learned": lambda: _Setups(build_learned, _learned_key),
-               "heat": lambda: _Setups(build_heat, _heat_key)}.get(
-        scene.study.kind, lambda: _Setups(build_inverse, _inverse_key))()
     ran = []
     for name, config in configurations(scene):
         if name in done:

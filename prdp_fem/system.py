@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from . import cg
 from .errors import CoefficientError, ShapeError
 from .operator import EllLayout, FixedMatrix, SparseMatrix
-from .validation import finite_vector, is_traced
+from .validation import finite_vector, is_traced, real_dtype
 
 __all__ = ["LinearSystem"]
 
@@ -99,6 +99,7 @@ class LinearSystem:
         if f is not None:
             # from the static shape (free under jit): a short f would gather past its end
             # and give a wrong right-hand side without a word
+            real_dtype(f, "f")
             if jnp.shape(f) != (self.source.shape[1],):
                 raise ShapeError(f"f: a nodal source of {self.source.shape[1]} values (the "
                                  f"solution space's dofs) expected, got shape {jnp.shape(f)}")
@@ -107,7 +108,9 @@ class LinearSystem:
 
     def _check_size(self, kappa) -> None:
         """A coefficient of the wrong length, from its static shape (free under ``jit``): a
-        frozen system's product reads ``kappa[0]`` only, and would take a whole field."""
+        frozen system's product reads ``kappa[0]`` only, and would take a whole field; a
+        complex or non-numeric one by its dtype (``float`` would drop an imaginary part)."""
+        real_dtype(kappa, "kappa", error=CoefficientError)
         if jnp.shape(kappa) == (self.n_kappa,):
             return
         hint = (" (this system is frozen at one kappa, Discretization.system_at: pass its "
@@ -123,6 +126,7 @@ class LinearSystem:
         (even where it would not reach the free dofs), and the assembly runs as one compiled
         program, kept per shape (the solve as :func:`~prdp_fem.cg.solve` runs it).
         """
+        real_dtype(kappa, "kappa", error=CoefficientError)  # before NumPy reads its shape
         if jnp.ndim(kappa) == 1:  # a frozen system's hint before the generic length check
             self._check_size(kappa)
         kappa = finite_vector(kappa, "kappa", self.n_kappa, error=CoefficientError)
