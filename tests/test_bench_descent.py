@@ -1,0 +1,82 @@
+"""``prdp-fem bench descent``: the rows it measures and the table it writes."""
+
+import csv
+
+import pytest
+
+from prdp_fem.bench_descent import descent_rows, descent_runs
+from prdp_fem.cli import main
+from prdp_fem.scene import SceneError, load_scene
+
+SCENE = """
+name = "tiny"
+[mesh]
+generator = "unit_square"
+n = 10
+[pde]
+element = "P1"
+kappa_space = "P1"
+source = 1.0
+dirichlet = 0.0
+[inverse]
+unknown = "log_kappa"
+truth = "0.5*sin(3*x)*y"
+observations = "full_field"
+noise = 0.01
+seed = 1
+alpha = 1e-6
+regularization = "h1"
+[refinement]
+kind = "prdp"
+K0 = 2
+dK = 2
+[optimizer]
+name = "lbfgs"
+steps = 12
+"""
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("descent") / "tiny.toml"
+    path.write_text(SCENE)
+    return path
+
+
+def test_the_runs_are_the_reference_the_prdp_run_and_an_added_adaptive_run(scene_file):
+    runs = descent_runs(load_scene(scene_file))
+    assert [(name, variant.refinement.kind) for name, variant in runs] == [
+        ("converged", "converged"), ("tiny", "prdp"), ("adaptive", "adaptive")]
+
+
+def test_the_converged_and_adaptive_runs_descend_at_every_step(scene_file):
+    rows = {row.run: row for row in descent_rows(load_scene(scene_file))}
+    converged, adaptive, prdp = rows["converged"], rows["adaptive"], rows["tiny"]
+    assert converged.fraction == 1.0 and converged.moved == 12
+    assert converged.error_gap == 0.0 and converged.iteration_saving == 0.0
+    assert adaptive.fraction == 1.0 and abs(adaptive.error_gap) < 0.01
+    # K = 2 on a coefficient problem: truncated adjoint gradients that do not all descend
+    assert prdp.moved >= 1 and prdp.descending <= prdp.moved
+    assert prdp.rule == "prdp" and 0.0 <= prdp.fraction <= 1.0
+
+
+def test_the_command_writes_its_table_and_refuses_to_overwrite_it(scene_file, tmp_path,
+                                                                  capsys):
+    out = tmp_path / "bench"
+    assert main(["bench", "descent", "--scene", str(scene_file), "--steps", "4",
+                 "--out", str(out)]) == 0
+    with open(out / "descent.csv") as table:
+        rows = list(csv.DictReader(table))
+    assert [row["run"] for row in rows] == ["converged", "tiny", "adaptive"]
+    assert float(rows[0]["fraction"]) == 1.0 and rows[0]["steps"] == "4"
+    assert "descend" in capsys.readouterr().out
+    assert main(["bench", "descent", "--scene", str(scene_file), "--out", str(out)]) == 2
+    assert "descent.csv" in capsys.readouterr().err
+
+
+def test_a_scene_without_a_converged_reference_is_refused(tmp_path):
+    path = tmp_path / "noref.toml"
+    path.write_text(SCENE + '[study]\nreference = "fixed"\n[[study.runs]]\nname = "fixed"\n'
+                    'refinement = { kind = "fixed", K = 3 }\n')
+    with pytest.raises(SceneError, match="converged"):
+        descent_runs(load_scene(path))
