@@ -46,7 +46,7 @@ from .learned import (
     source_samples,
 )
 from .linesearch import lbfgs
-from .mesh import load_mesh
+from .mesh import load_mesh, refine
 from .newton import newton_cg
 from .observations import boundary_values, full_field, point_sensors, with_noise
 from .operator import SparseMatrix
@@ -99,7 +99,7 @@ def build_mesh(scene: Scene, level: int | None = None) -> skfem.Mesh:
         refinements = spec.refine
     if refinements:  # estimated on the mesh as read, before refining builds it
         check_refined_size(scene, mesh.nvertices, mesh.dim(), refinements)
-    return mesh.refined(refinements) if refinements else mesh  # tags are refined too
+    return refine(mesh, refinements) if refinements else mesh  # tags are refined too
 
 
 def field_function(scene: Scene, key: str, value, dim: int):

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import logging
 import os
 import sys
 import warnings
@@ -945,3 +946,68 @@ def _scaled_jacobian(x: np.ndarray, cell_type: str) -> np.ndarray:
 def _p0_element(mesh: skfem.Mesh) -> skfem.Element:
     return {skfem.MeshTri1: skfem.ElementTriP0, skfem.MeshQuad1: skfem.ElementQuad0,
             skfem.MeshTet1: skfem.ElementTetP0, skfem.MeshHex1: skfem.ElementHex0}[type(mesh)]()
+
+
+# --------------------------------------------------------------------------------------
+# refinement that keeps named boundaries
+# --------------------------------------------------------------------------------------
+
+
+class _DropInvalidatedTags(logging.Filter):
+    """Hides scikit-fem's warning that refinement lost the tags (restored here)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "Named boundaries invalidated" not in record.getMessage()
+
+
+def refine(mesh: skfem.Mesh, times: int) -> skfem.Mesh:
+    """``times`` uniform refinements, named boundaries kept.
+
+    scikit-fem carries the tags of triangle and quadrilateral meshes through a refinement;
+    those of a tetrahedral mesh it drops, and here each tagged facet passes its tag to its
+    four children. A hexahedral mesh's tags are dropped (with scikit-fem's warning).
+    """
+    # the logger of the module that warns (scikit-fem logs by module name)
+    logger = logging.getLogger(skfem.Mesh.refined.__module__)
+    for _ in range(times):
+        tags = mesh.boundaries
+        keeps = isinstance(mesh, skfem.MeshTet1) and bool(tags)
+        quiet = _DropInvalidatedTags()
+        if keeps:
+            logger.addFilter(quiet)
+        try:
+            finer = mesh.refined(1)
+        finally:
+            logger.removeFilter(quiet)
+        if keeps and finer.boundaries is None:
+            finer = finer.with_boundaries(_tet_child_facets(mesh, finer, tags))
+        mesh = finer
+    return mesh
+
+
+def _tet_child_facets(coarse: skfem.Mesh, fine: skfem.Mesh, tags: dict) -> dict:
+    """The facets of ``fine`` (a uniform refinement of the tetrahedral ``coarse``, whose
+    edge midpoints are its nodes ``n_coarse + edge``) that tile each tagged facet."""
+    n_coarse = coarse.p.shape[1]
+    midpoint = n_coarse + np.asarray(coarse.f2e)      # (3, facets): the midpoints' nodes
+    edges = np.asarray(coarse.edges)
+    fine_boundary = fine.boundary_facets()
+    index = {tuple(sorted(v)): i for v, i in zip(fine.facets[:, fine_boundary].T.tolist(),
+                                                 fine_boundary.tolist(), strict=True)}
+    result = {}
+    for name, facets in tags.items():
+        children = []
+        for f in np.asarray(facets).tolist():
+            mids = midpoint[:, f]
+            ends = edges[:, coarse.f2e[:, f]]          # (2, 3): each midpoint's edge ends
+            triples = [tuple(sorted(mids))]
+            for vertex in coarse.facets[:, f]:
+                touching = mids[np.any(ends == vertex, axis=0)]
+                triples.append(tuple(sorted((int(vertex), *touching.tolist()))))
+            try:
+                children.extend(index[t] for t in triples)
+            except KeyError:
+                raise MeshError(f"refining boundary {name!r}: facet {f} has no children on "
+                                "the refined boundary; expected a uniform refinement") from None
+        result[name] = np.sort(np.asarray(children, dtype=np.int64))
+    return result

@@ -7,7 +7,7 @@ import meshio
 import numpy as np
 import pytest
 import skfem
-from conftest import SHIPPED_MESHES
+from conftest import MESH_DIR, SHIPPED_MESHES
 
 import prdp_fem as pf
 from prdp_fem.mesh import _build_facets, _distinct_columns, save_mesh, with_names
@@ -386,3 +386,19 @@ def test_errors_are_value_errors_with_source_and_problem(tmp_path):
         pf.load_mesh(tmp_path / "missing.vtu")
     assert info.value.source.endswith("missing.vtu")
     assert "expected" in info.value.problem
+
+
+def test_refining_a_tetrahedral_mesh_keeps_its_named_boundaries(caplog):
+    from prdp_fem.mesh import refine
+    coarse = pf.load_mesh(MESH_DIR / "cube_tet.msh")
+    fine = refine(coarse, 2)
+    assert "invalidated" not in caplog.text
+    axis = {"left": (0, 0.0), "right": (0, 1.0), "bottom": (1, 0.0), "top": (1, 1.0),
+            "front": (2, 0.0), "back": (2, 1.0)}
+    for name, facets in fine.boundaries.items():
+        assert len(facets) == 16 * len(coarse.boundaries[name])
+        centroids = fine.p[:, fine.facets[:, facets]].mean(axis=1)
+        dim, value = axis[name]
+        np.testing.assert_allclose(centroids[dim], value, atol=1e-12)
+    tagged = np.sort(np.concatenate(list(fine.boundaries.values())))
+    np.testing.assert_array_equal(tagged, np.sort(fine.boundary_facets()))
