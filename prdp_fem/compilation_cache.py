@@ -16,8 +16,7 @@ left alone. Compilations under 0.2 s are not stored (loading would not pay); the
 not capped (JAX's size cap needs one more package): delete it at any time. JAX does not store
 executables that contain host callbacks, such as a solve given an
 :class:`~prdp_fem.cg.IterationCounter` (as the inverse driver does, to count iterations inside
-line searches); :mod:`prdp_fem.program_store` stores those whose only host calls are the
-tally's, in the subdirectory ``tally/`` (its 64 most recently used).
+line searches): those compile in every process.
 
 >>> from pathlib import Path
 >>> cache_directory({"PRDP_FEM_COMPILATION_CACHE": "off"}) is None

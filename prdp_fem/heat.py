@@ -415,7 +415,7 @@ def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, precondi
                       step, counted) -> SharedCompile:
     return SharedCompile(_make_step(optimizer, setup, mode, gradient, tolerance_mode,
                                     preconditioner, step, counted),
-                         static_argnum=5, packed_argnums=(2, 9))
+                         static_argnum=5)
 
 
 #: The compiled step per settings (optimizer object, setup, mode, gradient, tolerance mode,
@@ -497,47 +497,44 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     opt_state, control = optimizer.init(network), refinement.init()
     rng = np.random.default_rng(seed)
     records, run_time, primal = [], 0.0, 0
-    try:
-        for epoch in range(1, epochs + 1):
-            # no solver: one compile, nothing to refine
-            settings = control.settings() if solves else (0, 0, 0.0)
-            K, K_adj, rtol = _device_settings(settings)
-            scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
-            order = rng.permutation(n)
-            losses = []
-            for i in range(0, n - batch_size + 1, batch_size):
-                batch = data[order[i:i + batch_size]]
-                compile_before = step_fn.seconds  # compilation is timed apart from the run
-                start = time.perf_counter()
-                network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                    step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
-                            rtol, *_cycle_argument(preconditioner)))
-                run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
-                if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
-                    raise InversionError(
-                        f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
-                        f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try a "
-                        "smaller learning rate or more CG iterations")
-                losses.append(float(loss))
-                primal += int(iterations)
-            if epoch == 1:  # compile outside the timed region
-                jax.block_until_ready(validate(network, problem, validation_set))
+    for epoch in range(1, epochs + 1):
+        # no solver: one compile, nothing to refine
+        settings = control.settings() if solves else (0, 0, 0.0)
+        K, K_adj, rtol = _device_settings(settings)
+        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
+        order = rng.permutation(n)
+        losses = []
+        for i in range(0, n - batch_size + 1, batch_size):
+            batch = data[order[i:i + batch_size]]
+            compile_before = step_fn.seconds  # compilation is timed apart from the run
             start = time.perf_counter()
-            error = validate(network, problem, validation_set)
-            previous = control
-            if solves:
-                control = refinement.update(control, float(error))
-            run_time += time.perf_counter() - start
-            test_error = math.nan if test_set is None else float(
-                validate(network, problem, test_set))
-            record = HeatRecord(
-                epoch, int(previous.iterations) if solves else 0,
-                int(previous.adjoint_iterations) if solves else 0,
-                float(previous.rtol) if solves else 0.0, primal, run_time,
-                float(np.mean(losses)), float(error), counter.adjoint, test_error)
-            records.append(record)
-            if callback is not None:
-                callback(record)
-    finally:
-        step_fn.release()  # kept for later trainings: without this one's problem
+            network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
+                step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
+                        rtol, *_cycle_argument(preconditioner)))
+            run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
+            if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
+                raise InversionError(
+                    f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
+                    f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try a "
+                    "smaller learning rate or more CG iterations")
+            losses.append(float(loss))
+            primal += int(iterations)
+        if epoch == 1:  # compile outside the timed region
+            jax.block_until_ready(validate(network, problem, validation_set))
+        start = time.perf_counter()
+        error = validate(network, problem, validation_set)
+        previous = control
+        if solves:
+            control = refinement.update(control, float(error))
+        run_time += time.perf_counter() - start
+        test_error = math.nan if test_set is None else float(
+            validate(network, problem, test_set))
+        record = HeatRecord(
+            epoch, int(previous.iterations) if solves else 0,
+            int(previous.adjoint_iterations) if solves else 0,
+            float(previous.rtol) if solves else 0.0, primal, run_time,
+            float(np.mean(losses)), float(error), counter.adjoint, test_error)
+        records.append(record)
+        if callback is not None:
+            callback(record)
     return Training(network, control, records)

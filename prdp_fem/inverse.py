@@ -517,7 +517,7 @@ def _default_optimizer() -> optax.GradientTransformationExtraArgs:
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
-                         static_argnum=4, packed_argnums=(0, 8))
+                         static_argnum=4)
 
 
 #: The compiled step per settings (the optimizer object as given, gradient, tolerance mode,
@@ -531,7 +531,7 @@ def _make_validation(rtol, preconditioner):
     def misfit(problem, counter, z, cycle=None):
         solver = ConvergedCG(rtol=rtol, preconditioner=preconditioner if cycle is None else cycle)
         return problem.loss(z, solver, counter=counter)[1].misfit
-    return SharedCompile(misfit, packed_argnums=(0, 3))
+    return SharedCompile(misfit)
 
 
 #: The validation program per (rtol, preconditioner key), kept as the step is.
@@ -659,71 +659,68 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     rebuild_due = False  # decided after a step, done before the next (none after the last)
     settings = control.settings()
     arguments = _device_settings(settings)
-    try:
-        for k in range(1, steps + 1):
-            previous_K = settings
-            start = time.perf_counter()
-            if rebuild_due:  # pyamg's setup is the method's cost: run time
-                preconditioner = rebuilt.build(_operator(problem, z))
-                step, validate = _programs(given, gradient, refinement.tolerance_mode,
-                                           preconditioner, monitor)
-                compiled.use([step, validate])  # the same kept programs for an AMGCycle
-                rebuilds, rebuild_due = rebuilds + 1, False
-                # a truncated J depends on the preconditioner: the stored value belongs to
-                # the old one (a converged J does not, beyond the tolerance)
-                if _uses_stored_value(opt_state) and not refinement.tolerance_mode:
-                    opt_state = _with_stale_value(opt_state)
-            compile_before = compiled.seconds()
-            z_next, opt_state, packed = step(problem, counter, z, opt_state,
-                                             _scan_length(gradient, settings[0]), *arguments,
-                                             *_cycle_argument(preconditioner))
-            result = _StepScalars.read(packed)
-            monitored = result.grad_norm if monitor == "gradient" else result.value
-            if validate is not None and k % monitor.every == 0:
-                monitored = float(validate(problem, validation_counter, z_next,
-                                           *_cycle_argument(preconditioner)))
-            failed = bool(result.failed)
-            failed_since_update |= failed
-            failed_steps += failed
-            if validate is None or k % monitor.every == 0:
-                control = refinement.update(control, monitored, failed_since_update)
-                settings = control.settings()
-                if settings != previous_K:
-                    arguments = _device_settings(settings)
-                failed_since_update = False
-            if rebuild_state is not None:
-                rebuild_due, rebuild_state = _rebuild_due(rebuilt, rebuild_state,
-                                                          _coefficient(problem, z_next))
-            compile_time = compiled.seconds()
-            run_time += time.perf_counter() - start - (compile_time - compile_before)
-            if not (math.isfinite(result.value) and math.isfinite(result.grad_norm)
-                    and result.finite_params):
-                raise InversionError(
-                    f"step {k}: non-finite loss, gradient or parameters (loss {result.value!r}, "
-                    f"gradient norm {result.grad_norm!r}, "
-                    f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
-                    "smaller step, more CG iterations or another gradient mode")
-            z = z_next
-            if settings != previous_K and _uses_stored_value(opt_state):
-                # the stored value/gradient belong to the old solver: recompute them next step
+    for k in range(1, steps + 1):
+        previous_K = settings
+        start = time.perf_counter()
+        if rebuild_due:  # pyamg's setup is the method's cost: run time
+            preconditioner = rebuilt.build(_operator(problem, z))
+            step, validate = _programs(given, gradient, refinement.tolerance_mode,
+                                       preconditioner, monitor)
+            compiled.use([step, validate])  # the same kept programs for an AMGCycle
+            rebuilds, rebuild_due = rebuilds + 1, False
+            # a truncated J depends on the preconditioner: the stored value belongs to
+            # the old one (a converged J does not, beyond the tolerance)
+            if _uses_stored_value(opt_state) and not refinement.tolerance_mode:
                 opt_state = _with_stale_value(opt_state)
-            evaluations = counter.primal_solves
-            state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
-                                       *previous_K, preconditioner) \
-                if reference_every and k % reference_every == 0 else math.nan
-            record = StepRecord(
-                step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
-                rtol=previous_K[2], refinements=int(control.refinements),
-                primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
-                validation_iterations=validation_counter.primal, evaluations=evaluations,
-                time=run_time, compile_time=compile_time - compiled_before_run,
-                loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,
-                state_error=state_error, failed_steps=failed_steps, rebuilds=rebuilds)
-            history = history.append(record)
-            if callback is not None and callback(record, z):
-                break
-    finally:
-        compiled.release()  # kept for later runs: without this run's problem
+        compile_before = compiled.seconds()
+        z_next, opt_state, packed = step(problem, counter, z, opt_state,
+                                         _scan_length(gradient, settings[0]), *arguments,
+                                         *_cycle_argument(preconditioner))
+        result = _StepScalars.read(packed)
+        monitored = result.grad_norm if monitor == "gradient" else result.value
+        if validate is not None and k % monitor.every == 0:
+            monitored = float(validate(problem, validation_counter, z_next,
+                                       *_cycle_argument(preconditioner)))
+        failed = bool(result.failed)
+        failed_since_update |= failed
+        failed_steps += failed
+        if validate is None or k % monitor.every == 0:
+            control = refinement.update(control, monitored, failed_since_update)
+            settings = control.settings()
+            if settings != previous_K:
+                arguments = _device_settings(settings)
+            failed_since_update = False
+        if rebuild_state is not None:
+            rebuild_due, rebuild_state = _rebuild_due(rebuilt, rebuild_state,
+                                                      _coefficient(problem, z_next))
+        compile_time = compiled.seconds()
+        run_time += time.perf_counter() - start - (compile_time - compile_before)
+        if not (math.isfinite(result.value) and math.isfinite(result.grad_norm)
+                and result.finite_params):
+            raise InversionError(
+                f"step {k}: non-finite loss, gradient or parameters (loss {result.value!r}, "
+                f"gradient norm {result.grad_norm!r}, "
+                f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
+                "smaller step, more CG iterations or another gradient mode")
+        z = z_next
+        if settings != previous_K and _uses_stored_value(opt_state):
+            # the stored value/gradient belong to the old solver: recompute them next step
+            opt_state = _with_stale_value(opt_state)
+        evaluations = counter.primal_solves
+        state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
+                                   *previous_K, preconditioner) \
+            if reference_every and k % reference_every == 0 else math.nan
+        record = StepRecord(
+            step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
+            rtol=previous_K[2], refinements=int(control.refinements),
+            primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
+            validation_iterations=validation_counter.primal, evaluations=evaluations,
+            time=run_time, compile_time=compile_time - compiled_before_run,
+            loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,
+            state_error=state_error, failed_steps=failed_steps, rebuilds=rebuilds)
+        history = history.append(record)
+        if callback is not None and callback(record, z):
+            break
     return Inversion(z, problem.field(z), control, opt_state, history)
 
 
@@ -761,12 +758,7 @@ class _Compiled:
         for old in self._programs:
             if all(old is not p for p in current):
                 self._retired += old.seconds
-                old.release()
         self._programs = current
-
-    def release(self) -> None:
-        for program in self._programs:
-            program.release()
 
 
 def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):

@@ -463,7 +463,7 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
-                         static_argnum=6, packed_argnums=(3, 10))
+                         static_argnum=6)
 
 
 #: The compiled step per settings, kept for the process as ``invert`` keeps its own:
@@ -547,54 +547,51 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     opt_state, control = optimizer.init(layers), refinement.init()
     rng = np.random.default_rng(seed)
     records, run_time, steps = [], 0.0, 0
-    try:
-        for epoch in range(1, epochs + 1):
-            settings = control.settings()
-            K, K_adj, rtol = _device_settings(settings)
-            scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
-            order = rng.permutation(n) if batch_size < n else np.arange(n)
-            batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
-            losses = []
-            for index in batches:
-                batch = train_set.take(index)
-                compile_before = step.seconds  # compilation is timed apart from the run
-                start = time.perf_counter()
-                result = jax.block_until_ready(
-                    step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
-                         rtol, *_cycle_argument(preconditioner)))
-                run_time += time.perf_counter() - start - (step.seconds - compile_before)
-                if not (math.isfinite(float(result.loss))
-                        and math.isfinite(float(result.grad_norm))):
-                    raise InversionError(
-                        f"epoch {epoch}: non-finite loss or gradient (loss {float(result.loss)!r}, "
-                        f"K={int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
-                        "learning rate or more CG iterations")
-                layers, opt_state = result.layers, result.opt_state
-                losses.append(float(result.loss))
-                steps += 1
-            network = network._replace(layers=layers)
-            if epoch == 1:  # compile outside the timed region
-                jax.block_until_ready(validate(network, problem, validation_set))
+    for epoch in range(1, epochs + 1):
+        settings = control.settings()
+        K, K_adj, rtol = _device_settings(settings)
+        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
+        order = rng.permutation(n) if batch_size < n else np.arange(n)
+        batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
+        losses = []
+        for index in batches:
+            batch = train_set.take(index)
+            compile_before = step.seconds  # compilation is timed apart from the run
             start = time.perf_counter()
-            misfit, error = validate(network, problem, validation_set)
-            previous = control
-            control = refinement.update(control, float(misfit))
-            run_time += time.perf_counter() - start
-            if _uses_stored_value(opt_state) and previous.settings() != control.settings():
-                # the stored value/gradient belong to the old solver: recompute them next step
-                # (same shape and dtype as stored: the step is compiled per argument type)
-                stored = optax.tree_utils.tree_get(opt_state, "value")
-                opt_state = optax.tree_utils.tree_set(opt_state,
-                                                      value=jax.lax.full_like(stored, jnp.inf))
-            record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
-                                 float(previous.rtol), counter.primal, run_time,
-                                 float(np.mean(losses)), float(misfit), float(error),
-                                 counter.adjoint, steps)
-            records.append(record)
-            if callback is not None:
-                callback(record)
-    finally:
-        step.release()  # kept for later trainings: without this one's problem and data
+            result = jax.block_until_ready(
+                step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
+                     rtol, *_cycle_argument(preconditioner)))
+            run_time += time.perf_counter() - start - (step.seconds - compile_before)
+            if not (math.isfinite(float(result.loss))
+                    and math.isfinite(float(result.grad_norm))):
+                raise InversionError(
+                    f"epoch {epoch}: non-finite loss or gradient (loss {float(result.loss)!r}, "
+                    f"K={int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
+                    "learning rate or more CG iterations")
+            layers, opt_state = result.layers, result.opt_state
+            losses.append(float(result.loss))
+            steps += 1
+        network = network._replace(layers=layers)
+        if epoch == 1:  # compile outside the timed region
+            jax.block_until_ready(validate(network, problem, validation_set))
+        start = time.perf_counter()
+        misfit, error = validate(network, problem, validation_set)
+        previous = control
+        control = refinement.update(control, float(misfit))
+        run_time += time.perf_counter() - start
+        if _uses_stored_value(opt_state) and previous.settings() != control.settings():
+            # the stored value/gradient belong to the old solver: recompute them next step
+            # (same shape and dtype as stored: the step is compiled per argument type)
+            stored = optax.tree_utils.tree_get(opt_state, "value")
+            opt_state = optax.tree_utils.tree_set(opt_state,
+                                                  value=jax.lax.full_like(stored, jnp.inf))
+        record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
+                             float(previous.rtol), counter.primal, run_time,
+                             float(np.mean(losses)), float(misfit), float(error),
+                             counter.adjoint, steps)
+        records.append(record)
+        if callback is not None:
+            callback(record)
     return Training(network, control, records)
 
 

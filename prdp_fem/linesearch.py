@@ -8,7 +8,9 @@ the search spends all its ``max_linesearch_steps`` evaluations (20 in :func:`opt
 shrinking ``t`` towards zero. For PRDP such a failure is the signal to refine ``K``
 (``stall_on_failure``), so those evaluations buy nothing.
 
-:func:`scale_by_zoom_linesearch` runs optax's own search steps and stops once the values
+:func:`scale_by_zoom_linesearch` runs optax's own search steps (its zoom search's init and
+step functions, which optax's public transform runs inside its loop: a vendored copy in
+:mod:`prdp_fem._zoom`) and stops once the values
 slope *up* at ``t = 0``: three successive trials ``t_1 > t_2 > t_3`` all raise the value,
 the slope at ``t = 0`` of the parabola through ``J(0)`` and two successive trials,
 
@@ -92,7 +94,6 @@ A gradient with the wrong sign: optax's search spends its 20 evaluations, this o
 from __future__ import annotations
 
 import functools
-import warnings
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -100,10 +101,9 @@ import jax
 import jax.numpy as jnp
 import optax
 
-try:  # the search's init/step/stop functions; optax's transform hides them in its loop
-    from optax._src.linesearch import zoom_linesearch as _optax_zoom
-except ImportError:  # pragma: no cover - depends on the installed optax
-    _optax_zoom = None  # optax's own search then (see _optax_search)
+# the search's init/step/stop functions: optax's transform hides them in its loop, so they
+# are a vendored copy of optax's (see prdp_fem._zoom)
+from ._zoom import zoom_linesearch as _optax_zoom
 
 __all__ = ["FIRST_STEPS", "Contradiction", "ZoomSearchState", "lbfgs",
            "scale_by_zoom_linesearch"]
@@ -227,21 +227,16 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
                          "'one' or 'keep'")
     if first_step not in FIRST_STEPS:
         raise ValueError(f"first_step={first_step!r}: expected one of {FIRST_STEPS}")
-    # optax's own search, with the same settings: the state, and so its init, are its own,
-    # and it is what runs where this optax's internals do not fit (see _optax_search)
+    # optax's own search, with the same settings: the state, and so its init, are its own
     optax_search = optax.scale_by_zoom_linesearch(
         max_linesearch_steps, max_learning_rate=max_learning_rate, increase_factor=increase_factor,
         slope_rtol=slope_rtol, curv_rtol=curv_rtol, approx_dec_rtol=approx_dec_rtol,
         stepsize_precision=stepsize_precision, initial_guess_strategy=initial_guess_strategy)
-    try:
-        init_search, step_search, searching = _optax_zoom(
-            max_linesearch_steps=max_linesearch_steps, max_stepsize=max_learning_rate,
-            tol=0.0, increase_factor=increase_factor, slope_rtol=slope_rtol,
-            curv_rtol=curv_rtol, approx_dec_rtol=approx_dec_rtol,
-            interval_threshold=stepsize_precision, verbose=False)
-        _check_search_state(init_search)
-    except (TypeError, AttributeError) as error:  # none (None), other arguments or state
-        return _optax_search(optax_search, first_step, error)
+    init_search, step_search, searching = _optax_zoom(
+        max_linesearch_steps=max_linesearch_steps, max_stepsize=max_learning_rate,
+        tol=0.0, increase_factor=increase_factor, slope_rtol=slope_rtol,
+        curv_rtol=curv_rtol, approx_dec_rtol=approx_dec_rtol,
+        interval_threshold=stepsize_precision, verbose=False)
 
     def init(params):
         return ZoomSearchState(*optax_search.init(params))
@@ -310,11 +305,6 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
 
     return optax.GradientTransformationExtraArgs(init, update)
 
-
-#: The fields of optax's zoom-search state that this module reads or replaces.
-_READ_FIELDS = ("count", "updates", "stepsize", "value", "grad", "slope", "value_init",
-                "slope_init", "decrease_error", "curvature_error", "interval_found", "done",
-                "failed", "safe_stepsize", "safe_value", "safe_grad")
 
 #: optax's zoom discards an interpolated step within this share of the interval from an end
 #: and bisects instead (its ``quad_chk``)
@@ -427,29 +417,6 @@ def _out_of_trials(state):
     ended = state._replace(stepsize=stepsize, value=value, grad=grad,
                            failed=jnp.asarray(True))
     return optax.tree.cast_like(ended, other_tree=state)
-
-
-def _check_search_state(init_search) -> None:
-    """Raise ``AttributeError`` unless optax's search state has every field read here
-    (checked on its shapes: nothing is computed)."""
-    state = jax.eval_shape(lambda: init_search(jnp.ones(1), jnp.zeros(1), value=jnp.ones(()),
-                                               grad=jnp.ones(1), prev_stepsize=1.0,
-                                               initial_guess_strategy="keep"))
-    missing = [name for name in _READ_FIELDS if not hasattr(state, name)]
-    if missing or not hasattr(state, "_replace"):
-        raise AttributeError(f"optax's zoom-search state has no field(s) {missing}")
-
-
-def _optax_search(optax_search, first_step: str, error: Exception):
-    """optax's own zoom search, with a warning, for an optax whose internals this module
-    cannot drive: the same steps where the gradient is right, but 20 evaluations (not 3)
-    where a truncated gradient contradicts the values, and a unit first trial."""
-    ignored = "; first_step='polyak' is ignored" if first_step == "polyak" else ""
-    warnings.warn(f"prdp_fem.linesearch: this optax ({optax.__version__}) does not offer the "
-                  f"zoom search's internals as expected ({error!r}); using "
-                  "optax.scale_by_zoom_linesearch, which does not stop on a contradicted "
-                  f"gradient{ignored}", RuntimeWarning, stacklevel=3)
-    return optax_search
 
 
 def lbfgs(memory_size: int = 10, *, max_linesearch_steps: int = 20,

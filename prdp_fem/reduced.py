@@ -64,8 +64,7 @@ from .inverse import (
     _solver,
 )
 from .prdp import Refinement, fixed
-from .program_store import compile_lowered
-from .xla_options import compiler_options
+from .xla_options import compile_lowered, compiler_options
 
 __all__ = ["ReducedCG", "homogeneous", "reduced_cg"]
 
@@ -117,8 +116,7 @@ def _make_gradient(tolerance_mode: bool, preconditioner: Any):
     """``(problem, f, K, K_adj, rtol, counter[, cycle]) -> (J(f), grad J(f))`` through the
     inner solves; a JAX AMG cycle comes as the last argument (an argument ran 30 % faster than
     the same arrays closed over as constants: :func:`prdp_fem.inverse._preconditioner_key`).
-    The counter is an argument too, so the program's text does not name it and a later
-    process loads the program (:func:`prdp_fem.program_store.compile_lowered`)."""
+    The counter is an argument too, so the program does not depend on which counter counts."""
 
     def gradient(problem, f, K, K_adj, rtol, counter, cycle=None):
         solver = _solver("implicit", tolerance_mode, K, K_adj, rtol,
@@ -147,9 +145,7 @@ class _Riesz:
 
 
 def _compile(fn: Callable, *example) -> tuple[Callable, float]:
-    """``fn`` compiled for arguments like ``example`` (traced values: no recompiles), or loaded
-    from the store of programs with the tally's host calls, which JAX's persistent cache
-    refuses (on the mother problem at n = 256, 1.3-1.5 s of every process); timed."""
+    """``fn`` compiled for arguments like ``example`` (traced values: no recompiles); timed."""
     start = time.perf_counter()
     traced = jax.jit(fn).trace(*example)
     executable = compile_lowered(traced.lower(), compiler_options(traced.jaxpr))

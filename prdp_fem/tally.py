@@ -5,20 +5,10 @@ solves run inside optax's line searches, which call the objective an unknown num
 and return nothing but its value. So the count leaves through a side door: every solve *taps*
 an :class:`IterationCounter`, a host call that adds the count to plain Python integers.
 
-Why a primitive of its own
---------------------------
-``jax.experimental.io_callback`` hands its host function ``jax.Array`` s: every call
-device-puts its operands and the host function converts them back. Inside a busy objective
-on a 2-core CPU that cost about 0.3 ms per call, and an implicit-mode evaluation taps twice
-(primal and adjoint): a quarter of a ``K = 10`` evaluation of the ``inclusion`` scene
-(3.05 ms against 2.30 ms without a counter). The ``iteration_tap`` primitive lowers to the
-same XLA host call, but its host function receives the NumPy scalars as they come: about
-0.06 ms per call (2.58 ms per evaluation). It is built from two pieces of JAX that are public
-in practice but not promised: ``jax.interpreters.mlir.emit_python_callback``, and
-``io_callback``'s own effect, which keeps the tap from being pruned and lets it into loops and
-custom derivative rules exactly where ``io_callback`` may go. A probe at first use lowers and
-runs one tap; where either piece is missing or does not work, every tap goes through
-``io_callback`` instead (the same counts, slower).
+The host call is :func:`jax.experimental.io_callback` (unordered: the counts are sums, so
+the order of the calls does not matter, and an unordered callback may go inside loops, ``vmap``
+and custom derivative rules). Its effect keeps the call from being pruned from a program
+whose outputs do not depend on it.
 
 >>> import jax, jax.numpy as jnp
 >>> counter = IterationCounter()
@@ -33,9 +23,7 @@ runs one tap; where either piece is missing or does not work, every tap goes thr
 
 from __future__ import annotations
 
-import functools
 import itertools
-import logging
 import threading
 import weakref
 from typing import Any, NamedTuple
@@ -45,9 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.experimental import io_callback
 
-__all__ = ["IterationCounter", "is_tally_host_call", "tap"]
-
-_LOG = logging.getLogger(__name__)
+__all__ = ["IterationCounter", "tap"]
 
 
 @jax.tree_util.register_pytree_node_class
@@ -123,19 +109,12 @@ def _tally(kind, slot, iterations, solves) -> tuple:
     """The host side of every tap: add to the counter in ``slot`` (gone: nothing to add to).
 
     Everything it needs arrives as operands (``kind`` as its index in :data:`_KINDS`), so one
-    module-level function serves every program, and a program's text says all that its host
-    calls do (:func:`is_tally_host_call`, :mod:`prdp_fem.executables`).
+    module-level function serves every program.
     """
     counter = _LIVE.get(int(slot))
     if counter is not None:
         counter._add(_KINDS[int(kind)], iterations, solves)
     return ()
-
-
-def is_tally_host_call(callback) -> bool:
-    """Whether a program's host callback (as JAX wraps it) is a tap of this module."""
-    return any(getattr(cell, "cell_contents", None) is _tally
-               for cell in getattr(callback, "__closure__", None) or ())
 
 
 def tap(counter: IterationCounter | _CounterRef | None, kind: str, iterations: jax.Array,
@@ -184,63 +163,13 @@ def _batched_tap_rule(axis_size, in_batched, kind, slot, iterations, solves, anc
 
 
 def _host_call(kind, slot, iterations, solves) -> None:
-    if _primitive_works():
-        _TAP_PRIMITIVE.bind(kind, slot, iterations, solves)
-    else:
-        _io_callback_tap(kind, slot, iterations, solves)
+    # one operand, not four: io_callback transfers each to the host (0.14 against 0.24 ms
+    # per call in a loop)
+    operands = jnp.stack([jnp.asarray(value, jnp.int32)
+                          for value in (kind, slot, iterations, solves)])
+    io_callback(_tally_packed, None, operands, ordered=False)
 
 
-def _io_callback_tap(kind, slot, iterations, solves) -> None:
-    io_callback(_tally, None, kind, slot, iterations, solves, ordered=False)
-
-
-# --------------------------------------------------------------------------------------
-# the iteration_tap primitive: io_callback's host call without its device_put
-# --------------------------------------------------------------------------------------
-
-
-def _tap_primitive():
-    """``iteration_tap(kind, slot, iterations, solves)``: no outputs, :func:`_tally` called
-    on the host with NumPy scalars; ``None`` where this JAX lacks the pieces."""
-    try:
-        from jax._src.callback import _IOEffect
-        from jax.extend.core import Primitive
-        from jax.interpreters import mlir
-        emit = mlir.emit_python_callback
-    except (ImportError, AttributeError):
-        return None
-    primitive = Primitive("iteration_tap")
-    primitive.multiple_results = True
-    primitive.def_effectful_abstract_eval(lambda *avals: ([], {_IOEffect}))
-    primitive.def_impl(lambda *operands: _tally(*operands) and [])
-
-    def lowering(ctx, *operands):
-        emit(ctx, _tally, None, list(operands), ctx.avals_in, [], has_side_effect=True)
-        return []
-
-    mlir.register_lowering(primitive, lowering, cacheable=False)
-    return primitive
-
-
-_TAP_PRIMITIVE = _tap_primitive()
-
-
-@functools.cache
-def _primitive_works() -> bool:
-    """Whether one tap through the primitive lowers, runs and arrives (once per process)."""
-    if _TAP_PRIMITIVE is None:
-        return False
-    probe = IterationCounter()
-    try:
-        with jax.ensure_compile_time_eval():  # a probe that runs, also mid-trace
-            # NumPy constants: a jnp constructor would compile a program of its own here
-            jax.jit(lambda slot, k: _TAP_PRIMITIVE.bind(np.int32(1), slot, k,
-                                                        np.int32(1)))(probe.slot, 3)
-            jax.effects_barrier()
-    except Exception as error:  # any failure means: use io_callback
-        _LOG.debug("iteration_tap does not work here (%r); the tally uses io_callback", error)
-        return False
-    works = (probe.adjoint, probe.adjoint_solves, probe.primal) == (3, 1, 0)
-    if not works:
-        _LOG.debug("iteration_tap lost its count here; the tally uses io_callback")
-    return works
+def _tally_packed(operands) -> tuple:
+    """:func:`_tally` of ``[kind, slot, iterations, solves]``."""
+    return _tally(*np.asarray(operands).tolist())

@@ -24,7 +24,8 @@ unless
   program: set it before the first JAX computation (a ``--flagfile`` is not looked into).
 
 Chosen here: inversion and training steps (:class:`~prdp_fem.executables.SharedCompile`) and
-the reduced-space CG's gradient from their jaxprs (:func:`compiler_options`); an eager
+the reduced-space CG's gradient from their jaxprs (:func:`compiler_options`, compiled by
+:func:`compile_lowered`); an eager
 :func:`~prdp_fem.cg.solve` and the timed solves of forward, h- and scene studies from their
 preconditioner (:func:`solver_options`: a preconditioner pytree may be a cycle, so it keeps
 XLA's emitters without looking). Every other program keeps JAX's options: a ``jax.jit`` of
@@ -40,16 +41,18 @@ False
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Iterator
 from types import MappingProxyType
 from typing import Any
 
 import jax
+import numpy as np
 from jax.extend.core import ClosedJaxpr, Jaxpr
 
 __all__ = ["AMG_CYCLE", "CLASSIC_EMITTERS", "FUSION_EMITTERS", "applies_amg_cycle",
-           "classic_emitters_apply", "compiler_options", "solver_options"]
+           "classic_emitters_apply", "compile_lowered", "compiler_options", "solver_options"]
 
 #: The name of the primitive that applies an AMG V-cycle (:mod:`prdp_fem.amg` binds it).
 AMG_CYCLE = "amg_v_cycle"
@@ -62,9 +65,26 @@ FUSION_EMITTERS = MappingProxyType({_EMITTERS_FLAG: True})
 
 def classic_emitters_apply() -> bool:
     """Whether programs compile for the CPU and the caller's ``XLA_FLAGS`` (read now; XLA
-    read them when its backend started) leave the fusion emitters to this package."""
-    return jax.default_backend() == "cpu" and _EMITTERS_FLAG not in os.environ.get("XLA_FLAGS",
-                                                                                   "")
+    read them when its backend started) leave the fusion emitters to this package, and this
+    XLA knows the option."""
+    return jax.default_backend() == "cpu" and \
+        _EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "") and _option_known()
+
+
+@functools.cache
+def _option_known() -> bool:
+    """Whether this XLA compiles a program with :data:`CLASSIC_EMITTERS` (once per process)."""
+    try:
+        jax.jit(lambda x: x + 1).lower(np.float64(0.0)).compile(
+            compiler_options=dict(CLASSIC_EMITTERS))
+    except Exception:  # "No such compile option": the classic emitters are gone
+        return False
+    return True
+
+
+def compile_lowered(lowered, options: dict[str, Any] | None = None):
+    """``lowered.compile(compiler_options=options)``."""
+    return lowered.compile(compiler_options=dict(options) if options else None)
 
 
 def solver_options(preconditioner: Any) -> dict[str, Any]:

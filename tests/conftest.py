@@ -177,26 +177,26 @@ def shared_compiles_made(monkeypatch) -> list:
 
 
 @pytest.fixture
-def backend_compiles(monkeypatch):
-    """The XLA compilations from here on (the persistent cache off, so none is loaded).
-
-    Patches JAX's private ``backend_compile_and_load`` (as tests/test_program_store.py does):
-    a JAX upgrade that renames it fails here, loudly."""
+def backend_compiles():
+    """The names of the XLA compilations from here on (``jit(name)``; the persistent cache
+    off, so none is loaded), as JAX's monitoring events report them."""
     import jax
-    from jax._src import compiler
 
+    from prdp_fem.xla_options import classic_emitters_apply
+
+    classic_emitters_apply()  # its one-off check of XLA's options compiles before, not here
     compiled = []
-    original = compiler.backend_compile_and_load
 
-    def counting(backend, module, *args):
-        compiled.append(str(module.operation.attributes["sym_name"]))
-        return original(backend, module, *args)
+    def listener(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiled.append(kwargs.get("fun_name"))
 
-    monkeypatch.setattr(compiler, "backend_compile_and_load", counting)
+    jax.monitoring.register_event_duration_secs_listener(listener)
     previous = jax.config.jax_enable_compilation_cache
     jax.config.update("jax_enable_compilation_cache", False)
     yield compiled
     jax.config.update("jax_enable_compilation_cache", previous)
+    jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def count_primitives(fn, arg, name: str) -> int:

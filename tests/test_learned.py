@@ -2,7 +2,6 @@
 of the training gradient, and training that lowers the validation misfit."""
 
 import dataclasses
-from collections import OrderedDict
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +13,7 @@ from conftest import shared_compiles_made
 from skfem.models.poisson import laplace
 
 import prdp_fem as pf
-from prdp_fem import executables, learned
+from prdp_fem import learned
 from prdp_fem.errors import SolverConfigError
 from prdp_fem.learned import EpochRecord
 from prdp_fem.prdp import converged, fixed, prdp
@@ -109,11 +108,11 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
                              refinement=prdp(K0=2, dK=2), epochs=2, batch_size=8)
 
     first, again = train(adam), train(adam)
-    assert len([c for c in made if c._packed_argnums == (3, 10)]) == 1
+    assert len([c for c in made if c._static_argnum == 6]) == 1
     assert [r._replace(time=0.0) for r in again.records] == \
         [r._replace(time=0.0) for r in first.records]
     train(optax.adam(3e-3))
-    assert len([c for c in made if c._packed_argnums == (3, 10)]) == 2
+    assert len([c for c in made if c._static_argnum == 6]) == 2
 
 
 def test_trainings_with_amg_cycles_of_equal_shapes_share_one_step(small, monkeypatch):
@@ -129,7 +128,7 @@ def test_trainings_with_amg_cycles_of_equal_shapes_share_one_step(small, monkeyp
                           refinement=prdp(K0=2, dK=2), epochs=2, batch_size=8,
                           preconditioner=pf.amg_preconditioner(matrix))
             for matrix in (operator, operator.with_values(2.0 * operator.values))]
-    [step] = [c for c in made if c._packed_argnums == (3, 10)]
+    [step] = [c for c in made if c._static_argnum == 6]
     assert len(step._cache) == 1
     np.testing.assert_allclose([r.train_loss for r in runs[1].records],
                                [r.train_loss for r in runs[0].records], rtol=1e-10)
@@ -400,18 +399,20 @@ def test_trainings_of_one_program_compile_once_and_keep_their_own_tallies(tiny, 
     for itself counts."""
     problem, train_set, validation_set, network = tiny
 
-    def run(refinement):
+    def run(optimizer, refinement):
         return learned.train(problem, network, train_set, validation_set,
-                             optimizer=optax.adam(1e-3), refinement=refinement, epochs=2,
+                             optimizer=optimizer, refinement=refinement, epochs=2,
                              batch_size=4)
 
-    monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
-    run(fixed(3))
-    assert len(executables._EXECUTABLES) == 1
-    shared = run(prdp(K0=5, dK=5))
-    assert len(executables._EXECUTABLES) == 1
-    monkeypatch.setattr(executables, "_EXECUTABLES", OrderedDict())
-    alone = run(prdp(K0=5, dK=5))
+    learned._step_program.cache_clear()
+    made = shared_compiles_made(monkeypatch)
+    adam = optax.adam(1e-3)
+    run(adam, fixed(3))
+    shared = run(adam, prdp(K0=5, dK=5))
+    [step] = [c for c in made if c._static_argnum == 6]
+    assert len(step._cache) == 1
+    learned._step_program.cache_clear()
+    alone = run(adam, prdp(K0=5, dK=5))
     tallies = [[(r.primal_iterations, r.adjoint_iterations_total, r.steps) for r in t.records]
                for t in (shared, alone)]
     assert tallies[0] == tallies[1] and tallies[0][-1][0] > 0

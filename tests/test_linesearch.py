@@ -326,41 +326,6 @@ def test_a_polyak_first_step_needs_a_positive_value_and_a_descent_slope():
         pf.lbfgs(first_step="half")
 
 
-@pytest.mark.parametrize("break_it", ["no internals", "other arguments", "other state"])
-def test_an_optax_without_the_expected_internals_gets_optax_search_and_a_warning(
-        monkeypatch, break_it):
-    """prdp_fem drives optax's private zoom functions; where an optax moved, renamed or
-    reshaped them, `pf.lbfgs()` runs optax's own search (its steps exactly) and says so,
-    instead of failing at import or inside a step."""
-    from prdp_fem import linesearch
-
-    def other_arguments(**kwargs):
-        raise TypeError("zoom_linesearch() got an unexpected keyword argument 'tol'")
-
-    zoom = linesearch._optax_zoom
-
-    def other_state(**kwargs):  # a state without one of the fields read
-        init, step, stop = zoom(**kwargs)
-        fields = [name for name in init(jnp.ones(1), jnp.zeros(1), value=jnp.ones(()),
-                                        grad=jnp.ones(1))._fields if name != "safe_grad"]
-        reduced = collections.namedtuple("ZoomLinesearchState", fields)
-
-        def reduced_init(*args, **kw):
-            return reduced(*(getattr(init(*args, **kw), name) for name in fields))
-        return reduced_init, step, stop
-
-    monkeypatch.setattr(linesearch, "_optax_zoom", {"no internals": None,
-                                                    "other arguments": other_arguments,
-                                                    "other state": other_state}[break_it])
-    z = jnp.array([-3.0, 4.0, -2.0, 3.0])
-    with pytest.warns(RuntimeWarning, match="does not stop on a contradicted gradient; "
-                      "first_step='polyak' is ignored"):
-        ours, our_searches = _run(pf.lbfgs(first_step="polyak"), _rosenbrock, z, 6)
-    theirs, their_searches = _run(optax.lbfgs(), _rosenbrock, z, 6)
-    np.testing.assert_array_equal(ours, theirs)
-    assert our_searches == their_searches
-
-
 # --- the first search after the objective changed ----------------------------------------
 
 

@@ -1,10 +1,9 @@
-"""The iteration tally: both host paths count the same, under every transformation."""
+"""The iteration tally counts what ran, under every transformation."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax.extend.core import Primitive
 
 import prdp_fem as pf
 from prdp_fem import tally
@@ -22,44 +21,15 @@ def system():
     return disc.system.operator(kappa), b, B
 
 
-@pytest.fixture(params=["primitive", "io_callback"])
-def host_path(request, monkeypatch):
-    """Run the test through the iteration_tap primitive, then through io_callback."""
-    if request.param == "io_callback":
-        monkeypatch.setattr(tally, "_primitive_works", lambda: False)
-    return request.param
-
-
 def _counted(counter):
     jax.effects_barrier()
     return counter.snapshot(), counter.primal_solves, counter.adjoint_solves
 
 
-# --- which path runs -------------------------------------------------------------------
-
-
-def test_the_primitive_lowers_on_this_jax_and_replaces_io_callback(system):
-    A, b, _ = system
-    assert tally._primitive_works()
-    counter = IterationCounter()
-    jaxpr = str(jax.make_jaxpr(lambda b: solve(A, b, TruncatedCG(3), counter=counter).x)(b))
-    assert "iteration_tap" in jaxpr and "callback" not in jaxpr
-
-
-def test_the_probe_falls_back_when_the_primitive_is_missing_or_does_not_lower(monkeypatch):
-    monkeypatch.setattr(tally, "_TAP_PRIMITIVE", None)
-    assert not tally._primitive_works.__wrapped__()
-    unlowerable = Primitive("unlowerable_tap")
-    unlowerable.multiple_results = True
-    unlowerable.def_abstract_eval(lambda *avals, kind: [])
-    monkeypatch.setattr(tally, "_TAP_PRIMITIVE", unlowerable)
-    assert not tally._primitive_works.__wrapped__()
-
-
 # --- eager, jit, loops ------------------------------------------------------------------
 
 
-def test_eager_solve_counts_what_ran(system, host_path):
+def test_eager_solve_counts_what_ran(system):
     A, b, _ = system
     counter = IterationCounter()
     sol = solve(A, b, ConvergedCG(rtol=1e-10), counter=counter)
@@ -67,7 +37,7 @@ def test_eager_solve_counts_what_ran(system, host_path):
     assert int(sol.iterations) > 5
 
 
-def test_a_loop_of_unknown_length_counts_every_trip(system, host_path):
+def test_a_loop_of_unknown_length_counts_every_trip(system):
     A, b, _ = system
     counter = IterationCounter()
 
@@ -88,7 +58,7 @@ def test_a_loop_of_unknown_length_counts_every_trip(system, host_path):
     (TruncatedCG(7, gradient="implicit", adjoint_iterations=3), 3),
     (TruncatedCG(5, gradient="unrolled"), 5),
 ])
-def test_grad_counts_the_primal_and_the_backward_solve(system, host_path, solver, adjoint):
+def test_grad_counts_the_primal_and_the_backward_solve(system, solver, adjoint):
     A, b, _ = system
     counter = IterationCounter()
     loss = jax.jit(jax.grad(lambda b: jnp.sum(solve(A, b, solver, counter=counter).x ** 2)))
@@ -99,7 +69,7 @@ def test_grad_counts_the_primal_and_the_backward_solve(system, host_path, solver
 # --- vmap -------------------------------------------------------------------------------
 
 
-def test_vmap_counts_every_member_in_one_host_call(system, host_path):
+def test_vmap_counts_every_member_in_one_host_call(system):
     A, _, B = system
     counter = IterationCounter()
     solver = ConvergedCG(rtol=1e-10)
@@ -114,8 +84,7 @@ def test_vmap_counts_every_member_in_one_host_call(system, host_path):
 # --- a counter as an argument -----------------------------------------------------------
 
 
-def test_counters_passed_as_arguments_share_one_program_and_keep_their_tallies(system,
-                                                                               host_path):
+def test_counters_passed_as_arguments_share_one_program_and_keep_their_tallies(system):
     A, b, _ = system
     run = jax.jit(lambda counter, b: solve(A, b, TruncatedCG(4), counter=counter).x)
     one, two = IterationCounter(), IterationCounter()
@@ -134,7 +103,7 @@ def test_a_tap_for_a_counter_that_is_gone_adds_nowhere():
     assert slot not in tally._LIVE
 
 
-def test_a_vmap_over_a_stack_of_counters_counts_into_each(system, host_path):
+def test_a_vmap_over_a_stack_of_counters_counts_into_each(system):
     A, _, B = system
     counters = [IterationCounter() for _ in range(2)]
     stacked = jax.tree_util.tree_map(lambda *slots: jnp.stack(slots), *counters)

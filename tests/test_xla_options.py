@@ -81,6 +81,17 @@ def test_the_caller_s_xla_flags_choose_the_emitters_for_every_program(poisson, m
     assert solver_options(pf.jacobi(operator)) == {}
 
 
+def test_an_xla_without_the_option_keeps_its_own_emitters(poisson, monkeypatch,
+                                                          emitters_left_to_the_package):
+    from prdp_fem import xla_options
+
+    disc, kappa, _, _ = poisson
+    jacobi = _gradient_jaxpr(disc, kappa, pf.TruncatedCG(5, "jacobi"))
+    assert xla_options._option_known()  # this XLA has it
+    monkeypatch.setattr(xla_options, "_option_known", lambda: False)
+    assert compiler_options(jacobi) == {} and solver_options("jacobi") == {}
+
+
 def _recorded(monkeypatch, module) -> list:
     """The options each ``module.compile_lowered`` call passes."""
     passed, compile_lowered = [], module.compile_lowered
@@ -134,7 +145,7 @@ from prdp_fem import cg, executables
 index = np.array([0, 2, 2, 1])
 step = executables.SharedCompile(jax.grad(lambda x: jnp.sum(x[index] ** 2)))
 gradient = step(jnp.arange(3.0))
-compiled = list(executables._EXECUTABLES.values())[-1]
+compiled = list(step._cache.values())[-1]
 # the eager solve's two programs: the classic one must carry its option into XLA
 disc = pf.discretize(pf.unit_square(4), element="P1", dirichlet=0.0)
 A, b = disc.system.operator(jnp.ones(disc.n_kappa)), jnp.ones(disc.n_free)
