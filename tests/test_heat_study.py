@@ -162,6 +162,7 @@ def test_build_heat_splits_one_draw_of_trajectories_and_passes_kappa_and_source(
 # --------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow  # the learned and inverse studies check the same records and resume
 def test_heat_study_records_every_epoch_matches_train_and_resumes(tiny, tmp_path,
                                                                   monkeypatch):
     out = tmp_path / "out"

@@ -223,6 +223,7 @@ def test_bench_memory_table_and_checkpointed_peak_below_plain(capsys):
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator settings")
+@pytest.mark.slow  # spawns processes per allocator setting
 def test_the_reuse_allocator_keeps_an_unrolled_gradient_s_scratch_mapped(capsys, monkeypatch):
     # 4096 dofs, K = 800: one 81 MB scratch block per evaluation, above what glibc keeps in
     # a thread's arena (64 MB); under glibc's defaults each evaluation maps it afresh and

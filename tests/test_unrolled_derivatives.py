@@ -247,7 +247,7 @@ def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
             (argnum, iterations, reverse, reference, spread)
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=5, deadline=None)
 @given(kind=st.sampled_from(["mode", "modes", "constant", "random", "smooth+noise"]),
        k=st.integers(1, 6), l=st.integers(1, 6),
        iterations=st.sampled_from([1, 2, 4, 8, 16, 32, 64, 128, 256]))

@@ -1,0 +1,42 @@
+"""One source of defaults: a scene's refinement keys default to the controllers' own
+arguments, except where a difference is deliberate and named here."""
+
+import inspect
+
+from prdp_fem.prdp import adaptive_tolerance, converged, fixed, prdp
+from prdp_fem.scene import ADAPTIVE_RTOL_MIN, RefinementSpec
+
+#: scene key -> (the API's argument, why the scene differs; None: it must not)
+PRDP_KEYS = {
+    "K0": "K0", "dK": "dK", "K_max": "K_max", "factor": "factor", "tau_step": "tau_step",
+    "tau_stop": "tau_stop", "delta": "delta", "latch": "latch",
+    "stall_on_failure": "stall_on_failure", "rtol_factor": "rtol_factor",
+    "rtol_min": "rtol_min",
+}
+#: deliberate: an inversion's loss moves when K does (restart, see prdp()'s docstring), and
+#: the window depends on what is watched (scene.default_ema_window)
+DIFFERENT = {"restart": (True, False), "ema_window": (None, 6)}
+
+
+def _defaults(function) -> dict:
+    return {name: p.default for name, p in inspect.signature(function).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+def test_scene_prdp_defaults_are_the_controller_s():
+    spec, api = RefinementSpec(), _defaults(prdp)
+    for key, argument in PRDP_KEYS.items():
+        assert getattr(spec, key) == api[argument], key
+    for key, (scene_value, api_value) in DIFFERENT.items():
+        assert (getattr(spec, key), api[key]) == (scene_value, api_value), key
+
+
+def test_scene_adaptive_defaults_are_the_controller_s():
+    spec, api = RefinementSpec(), _defaults(adaptive_tolerance)
+    assert (spec.rtol0, spec.power, spec.failure_factor, ADAPTIVE_RTOL_MIN) == (
+        api["rtol0"], api["power"], api["failure_factor"], api["rtol_min"])
+
+
+def test_scene_converged_and_fixed_defaults_are_the_controllers_():
+    assert _defaults(converged)["rtol"] == 1e-10 == RefinementSpec().validation_rtol
+    assert _defaults(fixed)["K_adj"] is None is RefinementSpec().K_adj
