@@ -18,7 +18,8 @@ Subcommands
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
 with status 2, no traceback. Anything else that goes wrong (a bug, memory running out) prints
-one line ``prdp-fem: internal error: TYPE: ...`` and exits with status 1; ``--debug`` shows the
+one line ``prdp-fem: internal error: TYPE: ...`` and exits with status 2 too (1 is kept for a
+check that ran and failed: ``stability``); ``--debug`` shows the
 traceback instead. Ctrl-C during a study lets the running step finish and write its record,
 then exits with 130, every finished record kept; a second Ctrl-C stops at once. A scene whose
 mesh would carry more than ``--max-dofs`` degrees of freedom (default 20,000,000, or the
@@ -1084,7 +1085,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"prdp-fem: internal error: {type(error).__name__}"
               + (f": {detail}" if detail else "")
               + "; rerun with --debug for the traceback", file=sys.stderr)
-        return 1
+        return 2  # every failure of the command is 2; 1 means a check ran and failed
 
 
 def _main(args) -> int:

@@ -156,9 +156,10 @@ def load_mesh(path: str | Path, *, repair: bool = False) -> skfem.Mesh:
             f"could not be read as a mesh ({detail[:200]}); expected a complete file in a meshio "
             "format such as Gmsh .msh, .vtu, .xdmf or Medit .mesh",
         ) from exc
+    mesh = _mesh_from_meshio(raw, str(path), repair=repair)  # a refusal says it alone
     sys.stdout.write(printed.getvalue())  # a successful read's notes are passed on as they were
     sys.stderr.write(warned.getvalue())
-    return _mesh_from_meshio(raw, str(path), repair=repair)
+    return mesh
 
 
 # (a marker near the start of the file, what the content is, the suffixes it goes with)

@@ -123,7 +123,8 @@ def _tallies(inversion):
              r.validation_iterations) for r in inversion.history]
 
 
-@pytest.mark.parametrize("monitor", ["loss", Validation(every=2, rtol=1e-10)])
+@pytest.mark.parametrize("monitor", ["loss", pytest.param(Validation(every=2, rtol=1e-10),
+                                                   marks=pytest.mark.slow)])
 def test_inversions_of_one_program_compile_once_and_keep_their_own_tallies(
         source_problem, monitor, backend_compiles):
     def run(refinement):

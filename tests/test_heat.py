@@ -283,6 +283,7 @@ def test_unrolled_training_refines_k_within_one_compiled_step(small, monkeypatch
     assert last.adjoint_iterations_total == sum(k * 60 for k in ks)
 
 
+@pytest.mark.slow  # compile sharing; the inversion test keeps it in the default suite
 def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     """A study's PRDP and converged runs of one mode call train with equal settings: the
     step is traced once and the trainings are what they were alone; another optimizer

@@ -216,6 +216,7 @@ def test_heat_study_records_every_epoch_matches_train_and_resumes(tiny, tmp_path
         rows["prediction"]["test_error"], rel=1e-9)
 
 
+@pytest.mark.slow  # the study command is covered by the inverse and learned studies
 def test_the_cli_runs_a_heat_study_with_epochs_from_steps(tmp_path, capsys):
     path = tmp_path / "two_runs.toml"  # the tiny scene's first two runs
     path.write_text(TINY_HEAT[:TINY_HEAT.index('[[study.runs]]\nname = "wig prdp"')])

@@ -203,6 +203,7 @@ def test_bad_memory_cost_options(kwargs, message):
         memory_cost(**{"side": 8, "iterations": (1,), **kwargs})
 
 
+@pytest.mark.slow  # spawns a process per mode; the sqrt(K) memory test stays
 def test_bench_memory_table_and_checkpointed_peak_below_plain(capsys):
     # 4096 dofs, K = 400: plain stores ~120 MB, checkpointed ~10 MB, far apart from the few MB
     # by which a resident-set reading can wander (implicit mode: tested on XLA's figures above)

@@ -558,7 +558,7 @@ def test_energy_error_is_non_increasing_in_k(case, kappa_space, amplitude, sigma
                                           seed))
 
 
-@settings(max_examples=40, **SETTINGS)
+@settings(max_examples=15, **SETTINGS)
 @given(case=st.sampled_from(GRADIENT_CASES), amplitude=jitters, sigma=sigmas, seed=seeds)
 def test_converged_gradients_agree_across_modes_and_with_finite_differences(case, amplitude,
                                                                             sigma, seed):

@@ -150,14 +150,14 @@ def test_huge_formulas_raise_a_typed_error_not_recursion_or_memory(text, found):
     assert len(message) < 400  # the formula is quoted by its ends, not whole
 
 
-def test_an_unexpected_error_is_one_line_exit_1_and_debug_shows_it(monkeypatch, capsys):
+def test_an_unexpected_error_is_one_line_exit_2_and_debug_shows_it(monkeypatch, capsys):
     from prdp_fem import cli
 
     def broken(args):
         raise RecursionError("maximum recursion depth exceeded\nsecond line")
 
     monkeypatch.setitem(cli.COMMANDS, "scenes", broken)
-    assert cli.main(["scenes"]) == 1
+    assert cli.main(["scenes"]) == 2
     err = capsys.readouterr().err
     assert err == ("prdp-fem: internal error: RecursionError: maximum recursion depth exceeded "
                    "| second line; rerun with --debug for the traceback\n")

@@ -203,6 +203,7 @@ learned = { batch_size = 8 }
 """
 
 
+@pytest.mark.slow  # records and resume are checked on the inverse study
 def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, monkeypatch):
     from prdp_fem.build import build_learned, train_options
     from prdp_fem.learned import train

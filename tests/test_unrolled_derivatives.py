@@ -169,7 +169,8 @@ def test_flag_fires_where_finite_differences_disagree():
     assert Status(int(diagnostics(b)[0])) == Status.UNRELIABLE_DERIVATIVE
 
 
-@pytest.mark.parametrize("iterations", [5, 30, 100])
+@pytest.mark.parametrize("iterations", [5, pytest.param(30, marks=pytest.mark.slow),
+                                        pytest.param(100, marks=pytest.mark.slow)])
 def test_checkpointed_and_bounded_scans_agree(iterations):
     """Checkpointed segments and a traced K below a scan length: the same derivative and the
     same status as the plain scan."""
@@ -197,7 +198,8 @@ def coefficient_problem():
     return disc, kappa, f
 
 
-@pytest.mark.parametrize("iterations", [3, 20, 60, 300])
+@pytest.mark.parametrize("iterations", [3, pytest.param(20, marks=pytest.mark.slow), 60,
+                                        pytest.param(300, marks=pytest.mark.slow)])
 def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
     """Derivatives in kappa and in the Dirichlet data, unrolled, against settled finite
     differences (or flagged), from a few iterations to past convergence."""
@@ -247,7 +249,7 @@ def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
             (argnum, iterations, reverse, reference, spread)
 
 
-@settings(max_examples=5, deadline=None)
+@settings(max_examples=3, deadline=None)
 @given(kind=st.sampled_from(["mode", "modes", "constant", "random", "smooth+noise"]),
        k=st.integers(1, 6), l=st.integers(1, 6),
        iterations=st.sampled_from([1, 2, 4, 8, 16, 32, 64, 128, 256]))
