@@ -36,6 +36,7 @@ import gc
 import itertools
 import json
 import math
+import os
 import shlex
 import signal
 import sys
@@ -1089,26 +1090,35 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(args) -> int:
-    _set_max_dofs(args.max_dofs)
     from .compilation_cache import enable_compilation_cache
 
-    # the program, not the import, switches the persistent compilation cache on: a second
-    # run of a command loads the executables the first compiled
-    enable_compilation_cache()
-    return COMMANDS[args.command](args) or 0
+    with _max_dofs(args.max_dofs):
+        # the program, not the import, switches the persistent compilation cache on: a
+        # second run of a command loads the executables the first compiled
+        enable_compilation_cache()
+        return COMMANDS[args.command](args) or 0
 
 
-def _set_max_dofs(value: int | None) -> None:
-    """``--max-dofs N``: the scenes' dof limit for this process (and the ones it starts)."""
-    import os
-
+@contextlib.contextmanager
+def _max_dofs(value: int | None):
+    """``--max-dofs N``: the scenes' dof limit while the command runs (and in the processes it
+    starts); the caller's environment is as it was afterwards (``main`` called from Python)."""
     from .scene import MAX_DOFS_VARIABLE
 
     if value is None:
+        yield
         return
     if value < 1:
         raise SolverConfigError(f"--max-dofs {value}: expected an integer >= 1")
+    before = os.environ.get(MAX_DOFS_VARIABLE)
     os.environ[MAX_DOFS_VARIABLE] = str(value)
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop(MAX_DOFS_VARIABLE, None)
+        else:
+            os.environ[MAX_DOFS_VARIABLE] = before
 
 
 def run() -> None:

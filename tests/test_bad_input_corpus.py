@@ -156,7 +156,6 @@ def test_bad_input_exits_2_with_one_line(corpus, capsys, argv, message):
     assert err.startswith("prdp-fem: error: ")
     assert re.search(message, err), err
     assert sorted(p.name for p in corpus.iterdir()) == before  # nothing written
-    os.environ.pop("PRDP_FEM_MAX_DOFS", None)  # --max-dofs sets it for the process
 
 
 def test_the_reference_files_load(corpus):

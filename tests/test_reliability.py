@@ -365,3 +365,17 @@ def test_coordinates_too_large_for_cell_measures_are_named(tmp_path):
             pf.mesh_from_arrays(points * 1e300, cells, "triangle")
     mesh = pf.mesh_from_arrays(points * MAX_COORDINATE, cells, "triangle")  # at the bound
     assert pf.mesh_quality(mesh).total_measure == pytest.approx(MAX_COORDINATE ** 2)
+
+
+def test_max_dofs_holds_for_the_command_and_leaves_the_callers_environment(monkeypatch,
+                                                                          tmp_path, capsys):
+    from prdp_fem.cli import main
+    monkeypatch.setenv("PRDP_FEM_MAX_DOFS", "777")
+    scene = tmp_path / "big.toml"
+    scene.write_text("[mesh]\nn = 40\n")  # about 1.7e3 dofs
+    assert main(["solve", str(scene), "--max-dofs", "100"]) == 2
+    assert "expected at most 100" in capsys.readouterr().err
+    assert os.environ["PRDP_FEM_MAX_DOFS"] == "777"
+    monkeypatch.delenv("PRDP_FEM_MAX_DOFS")
+    assert main(["solve", str(scene), "--max-dofs", "100"]) == 2
+    assert "PRDP_FEM_MAX_DOFS" not in os.environ
