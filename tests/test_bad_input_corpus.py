@@ -4,7 +4,6 @@ no traceback. Each case is one check; removing the check turns its case into a t
 different exit code or a message that no longer names the fault.
 """
 
-import os
 import re
 import struct
 
