@@ -164,6 +164,7 @@ def test_matrix_free_matches_explicit_on_a_rank_k_network():
     assert _rel(free, explicit) < 1e-9
 
 
+@pytest.mark.slow  # the matrix-free product is checked on a network in the default suite
 def test_matrix_free_through_an_unrolled_solve_matches_explicit():
     """Five point sensors of a source problem: the misfit Jacobian has rank 5."""
     disc = pf.discretize(pf.unit_square(8), element="P1", dirichlet=0.0)

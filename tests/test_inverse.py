@@ -339,6 +339,7 @@ def _step_programs_made(monkeypatch) -> list:
     return shared_compiles_made(monkeypatch)
 
 
+@pytest.mark.slow  # compile sharing; test_executables keeps one such case in the default suite
 def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once(
         monkeypatch):
     """A study's runs or an alpha sweep call invert again and again with equal settings: the
@@ -417,6 +418,7 @@ def _compiled_step_host_calls(problem, optimizer) -> int:
     return lowered.compile().as_text().count("custom-call(")
 
 
+@pytest.mark.slow  # the program's structure, not a number a user sees
 def test_an_l_bfgs_step_holds_its_objective_once(monkeypatch):
     """A step whose stored value is stale (none yet, or PRDP refined K) gets the value and
     gradient at its start from the line search's own trial (``pf.lbfgs``'s search refreshes
