@@ -39,7 +39,7 @@ import scipy.sparse.linalg as spla
 import skfem
 from skfem.helpers import dot, grad
 
-from .errors import CoefficientError, DataError, DiscretizationError
+from .errors import CoefficientError, DataError, DiscretizationError, ShapeError
 from .host_cg import jacobi_pcg
 from .operator import FixedMatrix, ell_layout
 from .sorting import unique_with_inverse
@@ -368,9 +368,10 @@ class Discretization:
 
     def interpolate(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """Nodal values of ``fn`` at the dofs of the solution space (all dofs); finite."""
-        values = host_values(fn(self.basis.doflocs), "interpolate: fn(x)")
-        values = np.broadcast_to(real_array(values, "interpolate: fn(x)"), (self.n_dofs,))
-        return finite_vector(values, "interpolate: fn(x)", self.n_dofs)
+        values = real_array(host_values(fn(self.basis.doflocs), "interpolate: fn(x)"),
+                            "interpolate: fn(x)")
+        return finite_vector(_broadcast(values, (self.n_dofs,), "interpolate: fn(x)"),
+                             "interpolate: fn(x)", self.n_dofs)
 
     def project(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
         """L2 projection of ``fn`` onto the solution space, all dofs (``M p = int fn v``).
@@ -404,7 +405,7 @@ class Discretization:
             raise CoefficientError("interpolate_kappa: fn(x) has NaN/Inf values; expected a "
                                    "finite coefficient")
         if self.kappa_kind == "scalar":
-            return np.array(np.broadcast_to(values, x.shape[1:]))
+            return np.array(_broadcast(values, x.shape[1:], "interpolate_kappa: fn(x)"))
         dim = self.mesh.dim()
         if values.shape[:2] != (dim, dim):
             raise CoefficientError(f"tensor kappa: fn(x) has shape {values.shape}; expected "
@@ -666,3 +667,12 @@ def _summed_map(r, c, n_cols, kappa_idx, data, n_kappa):
     structural = diagonal | (row_size > _STRUCTURAL_ZERO * scale)
     keys = keys[structural]
     return assembly[structural].tocsr(), (keys // n_cols, keys % n_cols)
+
+
+def _broadcast(values: np.ndarray, shape: tuple[int, ...], where: str) -> np.ndarray:
+    """``values`` as ``shape`` (a scalar or that shape), or a :class:`ShapeError`."""
+    try:
+        return np.broadcast_to(values, shape)
+    except ValueError:
+        raise ShapeError(f"{where}: shape {values.shape}; expected a scalar or {shape} (one "
+                         "value per point it was given)") from None

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from conftest import SMALL_STUDY
 
+import prdp_fem as pf
 from prdp_fem.atomic import atomic_path
 from prdp_fem.errors import OutputLockedError, SceneError, ShapeError
 from prdp_fem.lock import directory_lock
@@ -379,3 +380,11 @@ def test_max_dofs_holds_for_the_command_and_leaves_the_callers_environment(monke
     monkeypatch.delenv("PRDP_FEM_MAX_DOFS")
     assert main(["solve", str(scene), "--max-dofs", "100"]) == 2
     assert "PRDP_FEM_MAX_DOFS" not in os.environ
+
+
+@pytest.mark.parametrize("method", ["interpolate", "interpolate_kappa"])
+def test_a_field_function_of_the_wrong_shape_is_a_shape_error(method):
+    disc = pf.discretize(pf.unit_square(4), element="P1", kappa_space="P1", dirichlet=0.0)
+    with pytest.raises(ShapeError, match=rf"{method}: fn\(x\): shape \(3,\)"):
+        getattr(disc, method)(lambda x: np.ones(3))
+    assert getattr(disc, method)(lambda x: 2.0).shape == (25,)
