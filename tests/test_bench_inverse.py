@@ -215,6 +215,7 @@ def test_mother_processes_start_cold_without_either_compilation_cache(monkeypatc
     assert "JAX_COMPILATION_CACHE_DIR" not in warm
 
 
+@pytest.mark.slow  # fresh processes of a benchmark
 def test_warm_mother_processes_share_a_cache_an_untimed_process_filled(monkeypatch):
     """cache="warm": one untimed process fills a cache of the benchmark's own (JAX's
     persistent cache), the timed one reads it, and no goal is judged (its time includes

@@ -227,6 +227,7 @@ def test_scenes_lists_and_prints(capsys):
     assert 'generator = "unit_cube"' in capsys.readouterr().out
 
 
+@pytest.mark.slow  # a whole study for the progress bars
 def test_progress_is_quiet_when_not_a_terminal(scene, tmp_path):
     done = cli("invert", scene, "--out", tmp_path / "inv", "--steps", "3")
     assert done.returncode == 0, done.stderr

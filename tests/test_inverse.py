@@ -384,6 +384,7 @@ def test_an_unrolled_run_compiles_one_step_per_scan_length(monkeypatch):
         assert run.history[0].iterations == K
 
 
+@pytest.mark.slow  # the program's structure (trace count)
 def test_a_step_traces_its_objective_once(monkeypatch):
     """The stored value's check and both branches of the zoom search's step evaluate
     ``value_and_grad``: one nested program, traced once (three traces before), with the

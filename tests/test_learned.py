@@ -94,6 +94,7 @@ def test_training_gradient_passes_a_taylor_test(small, gradient):
     assert result.passed(), result.rates
 
 
+@pytest.mark.slow  # compile sharing (start-up time)
 def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     """Equal settings (the same optimizer object): one step, traced once, and the same
     records; another optimizer object is another step."""
@@ -115,6 +116,7 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     assert len([c for c in made if c._static_argnum == 6]) == 2
 
 
+@pytest.mark.slow  # compile sharing (start-up time)
 def test_trainings_with_amg_cycles_of_equal_shapes_share_one_step(small, monkeypatch):
     """The JAX AMG cycle is an argument of the step: the hierarchy of 2 A (M / 2, the same
     PCG iterates) runs the step compiled for A's."""
@@ -301,6 +303,7 @@ FULL_BATCH_OPTIMIZERS = {
 }
 
 
+@pytest.mark.slow  # the parametrisation over optimisers: each compiles a training
 @pytest.mark.parametrize("name", [
     pytest.param("gauss_newton", marks=pytest.mark.slow),  # the learned study trains with it
     pytest.param("newton_cg", marks=pytest.mark.slow),
@@ -393,6 +396,7 @@ def test_bad_optimiser_combinations_are_refused(tiny):
                                pf.TruncatedCG(4)).residual(network.layers)
 
 
+@pytest.mark.slow  # compile sharing; test_executables keeps the inversion case
 def test_trainings_of_one_program_compile_once_and_keep_their_own_tallies(tiny, monkeypatch):
     """The counter and K are step arguments: a second training with another K and another
     controller runs the first one's executable, and counts exactly what a training compiled

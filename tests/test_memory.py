@@ -169,6 +169,7 @@ def _scratch_mb(mode: str, iterations: int, side: int = SIDE) -> float:
     return analysis.temp_size_in_bytes / 1e6
 
 
+@pytest.mark.slow  # a process per mode and K
 def test_checkpointed_memory_grows_like_sqrt_k_and_implicit_not_at_all():
     scratch = {(mode, k): _scratch_mb(mode, k) for mode, k in (
         ("unrolled", 100), ("unrolled", 400), ("checkpointed", 100), ("checkpointed", 400),

@@ -541,7 +541,7 @@ def test_truncated_solves_and_gradients_are_finite_and_correct(case, amplitude, 
     check_finite_truncated(case, amplitude, sigma, seed, source, boundary)
 
 
-@settings(max_examples=50, **SETTINGS)
+@settings(max_examples=25, **SETTINGS)
 @given(case=forward_cases, kappa_space=kappa_spaces, amplitude=amplitudes, sigma=sigmas,
        seed=seeds)
 def test_converged_solves_match_the_direct_solve(case, kappa_space, amplitude, sigma, seed):
@@ -549,7 +549,7 @@ def test_converged_solves_match_the_direct_solve(case, kappa_space, amplitude, s
     check_converged(forward_problem(kind, size, element, kappa_space, amplitude, sigma, seed))
 
 
-@settings(max_examples=30, **SETTINGS)
+@settings(max_examples=15, **SETTINGS)
 @given(case=forward_cases, kappa_space=kappa_spaces, amplitude=amplitudes, sigma=sigmas,
        seed=seeds)
 def test_energy_error_is_non_increasing_in_k(case, kappa_space, amplitude, sigma, seed):
@@ -565,7 +565,7 @@ def test_converged_gradients_agree_across_modes_and_with_finite_differences(case
     check_gradients_agree(case, amplitude, sigma, seed)
 
 
-@settings(max_examples=50, **SETTINGS)
+@settings(max_examples=25, **SETTINGS)
 @given(case=forward_cases, kappa_space=kappa_spaces, amplitude=amplitudes,
        sigma=st.floats(0.0, 3.0), log_anisotropy=st.floats(0.0, 6.0), aligned=st.booleans(),
        seed=seeds)

@@ -124,7 +124,8 @@ def test_the_reported_case():
 
 
 @pytest.mark.parametrize("n_side,dim", [(33, 2), (9, 3)])
-@pytest.mark.parametrize("iterations", [1, 10, 30, 400])
+@pytest.mark.parametrize("iterations", [1, pytest.param(10, marks=pytest.mark.slow),
+                                        pytest.param(30, marks=pytest.mark.slow), 400])
 def test_family_of_right_hand_sides(n_side, dim, iterations):
     kinds = ("smooth", "constant", "rough", "random", "smooth+noise")
     flags = {kind: check_derivative(n_side, dim, kind, iterations) for kind in kinds}

@@ -104,6 +104,7 @@ def _recorded(monkeypatch, module) -> list:
     return passed
 
 
+@pytest.mark.slow  # a fresh process per program kind
 def test_inversion_steps_and_the_reduced_gradient_compile_with_the_chosen_options(
         poisson, monkeypatch, emitters_left_to_the_package):
     disc, _, operator, _ = poisson
@@ -159,8 +160,9 @@ print(json.dumps({"scatters": compiled.as_text().count(" scatter("),
 """
 
 
-@pytest.mark.parametrize("flags, chosen", [("", True),
-                                           ("--xla_cpu_use_fusion_emitters=true", False)])
+@pytest.mark.parametrize("flags, chosen", [
+    ("", True), pytest.param("--xla_cpu_use_fusion_emitters=true", False,
+                             marks=pytest.mark.slow)])
 def test_programs_compiled_in_a_fresh_process_have_the_emitters_chosen(flags, chosen):
     """With XLA_FLAGS silent a step is compiled with the classic emitters (no scatter left) and
     an eager Jacobi solve takes its classic program; a user who asks for XLA's emitters gets
