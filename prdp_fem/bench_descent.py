@@ -48,11 +48,6 @@ class DescentRow(NamedTuple):
     iteration_saving: float
 
 
-def _comparable(variant, reference) -> bool:
-    return all(getattr(variant, part) == getattr(reference, part)
-               for part in ("mesh", "pde", "inverse", "optimizer"))
-
-
 def descent_runs(scene) -> list[tuple[str, Any]]:
     """The converged reference first, then the comparable PRDP, adaptive and fixed runs, and
     an ``adaptive`` run where the scene has none."""
@@ -66,7 +61,7 @@ def descent_runs(scene) -> list[tuple[str, Any]]:
                          "expected a run with refinement.kind = 'converged'")
     chosen = [(scene.study.reference, reference)] + [
         (name, variant) for name, variant in runs.items()
-        if name != scene.study.reference and _comparable(variant, reference)
+        if name != scene.study.reference and variant.same_problem(reference)
         and variant.refinement.kind in ("prdp", "adaptive", "fixed")]
     if not any(variant.refinement.kind == "adaptive" for _, variant in chosen):
         chosen.append((ADAPTIVE_RUN, reference.variant({"refinement": {"kind": "adaptive"}},

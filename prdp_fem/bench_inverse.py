@@ -414,12 +414,6 @@ class SavingRow(NamedTuple):
 
 
 
-def _comparable(variant, reference) -> bool:
-    """Same problem and optimiser as the reference: only the solver and refinement differ."""
-    return all(getattr(variant, part) == getattr(reference, part)
-               for part in ("mesh", "pde", "inverse", "optimizer"))
-
-
 def saving_configurations(scene) -> list[str]:
     """The reference and the PRDP runs comparable with it (the order of the scene)."""
     if scene.study.kind != "inverse":
@@ -431,7 +425,7 @@ def saving_configurations(scene) -> list[str]:
         raise SceneError(f"{scene.source}: study.reference = {scene.study.reference!r} is not "
                          f"one of its runs {list(runs)}; expected the converged baseline")
     chosen = [name for name, variant in runs.items() if name == scene.study.reference or (
-        variant.refinement.kind in ("prdp", "adaptive") and _comparable(variant, reference))]
+        variant.refinement.kind in ("prdp", "adaptive") and variant.same_problem(reference))]
     if len(chosen) < 2:
         raise SceneError(f"{scene.source}: no PRDP run comparable with the reference "
                          f"{scene.study.reference!r}; expected a run with refinement.kind = "

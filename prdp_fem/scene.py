@@ -580,6 +580,12 @@ class Scene:
             path = Path(self.directory) / path
         return path
 
+    def same_problem(self, other: Scene) -> bool:
+        """Whether ``other`` has this scene's mesh, PDE, data and optimiser: runs that differ
+        only in the solver and the refinement, whose costs and errors compare."""
+        return all(getattr(self, part) == getattr(other, part)
+                   for part in ("mesh", "pde", "inverse", "optimizer"))
+
     def variant(self, overrides: dict, name: str) -> Scene:
         """This scene with a study run's ``overrides`` (``{"refinement": {...}, "solver":
         {...}}``: ``refinement`` replaces the scene's, other tables update it), named
