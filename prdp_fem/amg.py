@@ -35,16 +35,14 @@ Two implementations of the same cycle:
     ``jax.pure_callback`` into pyamg's own compiled cycle (``ml.aspreconditioner(cycle='V')``)
     on the CPU, symmetric Gauss-Seidel by default (fewer iterations than Jacobi).
 
-Default: ``"jax"`` (:data:`DEFAULT_IMPLEMENTATION`), on every backend. Measured with
-``prdp-fem bench amg`` (P1 Poisson to rtol 1e-10, 2 CPU cores, single-threaded BLAS), solve
-time of our jitted PCG, JAX cycle / callback: 0.09 / 0.19 s at 65k dofs (2-D), 0.83 / 0.85 s
-at 261k, 0.055 / 0.20 s at 30k (3-D). Jacobi needs 19-22 iterations where symmetric
-Gauss-Seidel needs 11-14, but a JAX cycle is a few fused products per level while pyamg's cycle
-is driven from Python (per-level calls, two extra residual norms per application through
-``aspreconditioner``) with a sequential smoother; on an accelerator a callback would add a
-device-host round trip per iteration as well. The JAX cycle costs more to compile (1.2-1.6 s
-against 0.5-0.8 s). Setup, either way, is 0.6-1.0x pyamg's own: it adds the levels' kernels
-on the device and estimates each level's spectral radius once, by Lanczos
+Default: ``"jax"`` (:data:`DEFAULT_IMPLEMENTATION`), on every backend: ``prdp-fem bench amg``
+(``docs/benchmarks.md``) measures our jitted PCG solving faster with the JAX cycle than with
+pyamg's. Jacobi smoothing needs more iterations than symmetric Gauss-Seidel, but a JAX cycle is
+a few fused products per level while pyamg's cycle is driven from Python (per-level calls, two
+extra residual norms per application through ``aspreconditioner``) with a sequential smoother;
+on an accelerator a callback would add a device-host round trip per iteration as well. The JAX
+cycle costs more to compile. Setup is about pyamg's own: it adds the levels' kernels on the
+device and estimates each level's spectral radius once, by Lanczos
 (:func:`_smoothed_aggregation`), where pyamg estimates it twice by restarted Arnoldi. The
 callback stays as the reference cycle and for smoothers the JAX cycle lacks.
 

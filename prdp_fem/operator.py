@@ -24,11 +24,11 @@ entry), so that
 is one fused loop of ``w`` contiguous gathers, multiplies and adds -- no scatter, no
 segment sum, and the diagonal needs no gather. Rows longer than ``w`` keep their extra
 entries in a short COO tail (``w`` minimises the padded work, see :func:`ell_layout`).
-Measured on 2 CPU cores against one SciPy CSR SpMV of the 2-D P1 Laplacian:
-0.7x (65k dofs) / 0.5x (261k); the sorted segment sum it replaces took 2.3x (XLA runs the fused
-loop on both cores). ELL slot-major is also the coalesced layout on GPUs: on an H100 a whole
-Jacobi-PCG iteration with it costs about one cuSPARSE CSR SpMV and beats CG with cuSPARSE
-inside by 1.3-1.4x, so :func:`default_kernel` is ELL on every backend.
+``prdp-fem bench cg`` (``docs/benchmarks.md``) measures it against one SciPy CSR SpMV of the
+2-D P1 Laplacian: faster than the SpMV from tens of thousands of unknowns, where the sorted
+segment sum it replaced was slower (XLA runs the fused loop on every core). ELL slot-major is
+also the coalesced layout on GPUs, where a whole Jacobi-PCG iteration with it costs about one
+cuSPARSE CSR SpMV, so :func:`default_kernel` is ELL on every backend.
 
 ``CsrMatrix`` (``kernel="csr"``): ``jax.experimental.sparse.csr_matvec``, cuSPARSE's SpMV on
 NVIDIA GPUs, for comparisons (no ``vmap``).

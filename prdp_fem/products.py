@@ -21,12 +21,11 @@ The tangent is ``A(v) dx + A(dv) x``, both terms the primitive again, so derivat
 any order. Under ``vmap`` the batch axis of each operand is recorded and the product is JAX's
 ``vmap`` of the kernel (one fused call); the rules carry the batch axes along.
 
-Measured side by side with JAX's own transposes (2 CPU cores): through CG's symmetric
-product, a jitted unrolled ``value_and_grad`` in kappa takes 0.54x the time at 4k P2 dofs
-(``K = 50``; 44 -> 12 scatters in the compiled gradient) and 0.58x at 65k P1 dofs
-(``K = 100``), and reverse mode stores 3 n-vectors per iteration instead of 7. Through the
-paired assembly map, an implicit ``value_and_grad`` on the inclusion scene (4k P2 dofs, 149k
-entries in ``G``) takes 0.7x the time at ``K = 0`` (see the README's PRDP saving section).
+Against JAX's own transposes (measured in ``docs/performance-log.md``): through CG's symmetric
+product a jitted unrolled ``value_and_grad`` in kappa has a fraction of the scatters and takes
+a little over half the time, and reverse mode stores 3 n-vectors per iteration instead of 7;
+through the paired assembly map an implicit ``value_and_grad`` at ``K = 0`` takes less time
+too.
 
 Only CG's operator goes through :func:`symmetric_product` (CG requires ``A`` symmetric; a
 non-symmetric ``A`` would get the wrong transpose). A paired product is exact for any ``A``,

@@ -1,9 +1,8 @@
 """Host data onto the accelerator as JAX arrays, without compiling anything.
 
-With the pinned JAX, ``jnp.asarray`` of a NumPy array or a Python number runs a small
-compiled program per new shape and dtype (12-15 ms each on 2 CPU cores): ten of them were
-0.15 s of the mother problem's setup at n = 256. :func:`as_jax` converts on the host and
-copies with ``jax.device_put``, which compiles nothing.
+``jnp.asarray`` of a NumPy array or a Python number can run a small compiled program per new
+shape and dtype, which adds up over a setup that converts many arrays. :func:`as_jax` converts
+on the host and copies with ``jax.device_put``, which compiles nothing.
 """
 
 from __future__ import annotations

@@ -1,18 +1,16 @@
 """The XLA options this package compiles its own programs with, chosen per program.
 
 On the CPU, XLA's classic fusion emitters (``xla_cpu_use_fusion_emitters=False``) compile this
-package's programs faster than its default emitters and run their PCG iterations faster: a
-Jacobi-PCG iteration took 0.66-0.80x as long from 65k to 261k unknowns in 2-D (about the same
-at 2k-16k, within the noise), and the mother problem's gradient compiled in 0.90-1.19 s
-against 1.02-1.44 s (2 CPU cores; ``docs/performance-log.md``). The arithmetic is the
-same IEEE arithmetic, but a fusion may order a sum differently, as another CPU would: the
-mother problem's error and the inclusion scene's losses agreed to every digit compared (seven
-and eleven), while the inclusion scene's unpreconditioned PRDP run took another path (20020 CG
-iterations against 22220).
+package's programs faster than its default emitters and run their PCG iterations faster at
+tens of thousands of unknowns and more (measured in ``docs/performance-log.md``, "XLA's
+classic CPU fusion emitters, per program"). The arithmetic is the same IEEE arithmetic, but
+a fusion may order a sum differently, as another CPU would: results agree to round-off, and
+a run that amplifies round-off (unpreconditioned PRDP on an ill-conditioned scene) may take
+another path.
 
 One kind of program must not get them: the classic emitters fuse a chain of gathers into one
-loop that recomputes every coarser level per fine entry, so a JAX AMG V-cycle at 261k unknowns
-took 142 ms instead of 5.3 ms. Options are per executable (``Lowered.compile``'s
+loop that recomputes every coarser level per fine entry, which makes a JAX AMG V-cycle many
+times slower. Options are per executable (``Lowered.compile``'s
 ``compiler_options``, ``jax.jit``'s), so each program is compiled with the classic emitters
 unless
 

@@ -63,3 +63,22 @@ def test_readme_scripts_run(monkeypatch, capsys):
     assert rates.size and np.all(np.abs(rates - 2.0) < 0.25)
     history = namespace["result"].history
     assert history[-1].loss < history[0].loss
+
+
+def test_module_docstrings_carry_no_timings_machines_or_dates():
+    """Docstrings are for users: figures belong in docs/benchmarks.md and the performance
+    log (benchmark modules describe their procedure, and are skipped)."""
+    import ast
+    import re
+    from pathlib import Path
+
+    pattern = re.compile(r"\b\d+(?:\.\d+)?\s?(?:ms|us|µs)\b|\bCPU cores?\b|Xeon|EPYC|H100|H200|"
+                         r"\b20\d\d-\d\d-\d\d\b")
+    package = Path(__file__).resolve().parent.parent / "prdp_fem"
+    found = []
+    for path in sorted(package.glob("*.py")):
+        if path.name.startswith("bench"):
+            continue
+        doc = ast.get_docstring(ast.parse(path.read_text())) or ""
+        found += [f"{path.name}: {m.group(0)}" for m in pattern.finditer(doc)]
+    assert not found, found
