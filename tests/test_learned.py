@@ -326,6 +326,7 @@ def test_full_batch_optimisers_lower_the_validation_misfit(tiny, name):
     assert last.adjoint_iterations_total > 0
 
 
+@pytest.mark.slow  # the refresh is checked on inversions (test_inverse) in the default suite
 def test_an_l_bfgs_training_refreshes_its_stale_value_in_the_search(tiny, monkeypatch):
     """``pf.lbfgs`` trains through the step that holds the objective once (its search
     refreshes the value at a step's start, see ``prdp_fem.inverse``): the same losses to

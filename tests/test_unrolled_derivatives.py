@@ -199,7 +199,8 @@ def coefficient_problem():
     return disc, kappa, f
 
 
-@pytest.mark.parametrize("iterations", [3, pytest.param(20, marks=pytest.mark.slow), 60,
+@pytest.mark.parametrize("iterations", [3, pytest.param(20, marks=pytest.mark.slow),
+                                        pytest.param(60, marks=pytest.mark.slow),
                                         pytest.param(300, marks=pytest.mark.slow)])
 def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
     """Derivatives in kappa and in the Dirichlet data, unrolled, against settled finite
