@@ -232,10 +232,7 @@ def _parser() -> argparse.ArgumentParser:
         description="run each scene's converged reference and its PRDP configurations (a "
         "study) and print the saving: time and CG iterations to reach the converged run's "
         "final error, against the converged run's totals")
-    saving.add_argument("--scene", nargs="+", default=None, metavar="SCENE",
-                        help="scene files or built-in names (default: mother inclusion "
-                        "plate_hole cube)")
-    saving.add_argument("--steps", type=int, help="optimiser steps (overrides the scenes)")
+    _add_inverse_scenes(saving)
     saving.add_argument("--repeats", type=int, default=1,
                         help="studies per scene, run one after another; the table shows "
                         "medians and the range of the time saving (default 1)")
@@ -257,13 +254,18 @@ def _parser() -> argparse.ArgumentParser:
         "adaptive run (refinement.kind = 'adaptive', residual-aware) and check every step "
         "against a converged gradient: the fraction of steps that descend the converged "
         "objective, and each run's same-target saving")
-    descent.add_argument("--scene", nargs="+", default=None, metavar="SCENE",
-                         help="scene files or built-in names (default: mother inclusion "
-                         "plate_hole cube)")
-    descent.add_argument("--steps", type=int, help="optimiser steps (overrides the scenes)")
+    _add_inverse_scenes(descent)
     descent.add_argument("--out", type=Path, help="where descent.csv goes (default: a new "
                          "./bench-descent)")
     return parser
+
+
+def _add_inverse_scenes(parser: argparse.ArgumentParser) -> None:
+    """``--scene`` and ``--steps`` of the benchmarks that run the built-in inverse scenes."""
+    parser.add_argument("--scene", nargs="+", default=None, metavar="SCENE",
+                        help="scene files or built-in names (default: mother inclusion "
+                        "plate_hole cube)")
+    parser.add_argument("--steps", type=int, help="optimiser steps (overrides the scenes)")
 
 
 # --------------------------------------------------------------------------------------
