@@ -54,7 +54,8 @@ MESH_SUFFIXES = (".msh", ".vtu", ".vtk", ".xdmf", ".xmf", ".mesh", ".med", ".inp
 
 EXAMPLES = {
     "study": """examples:
-  prdp-fem study                               # the mother problem, into ./study-mother
+  prdp-fem study                               # the main job (cube_kappa), into ./study-cube_kappa
+  prdp-fem study mother                        # dolfin-adjoint's mother problem
   prdp-fem study inclusion --out runs/incl     # a built-in scene
   prdp-fem study my_scene.toml --steps 20      # your scene, fewer optimiser steps
   prdp-fem study my_scene.toml --out runs/a --resume   # continue a killed study""",
@@ -112,8 +113,9 @@ def _parser() -> argparse.ArgumentParser:
 
     study = _command(sub, "study", "sweep a scene's configurations; tables and figures of "
                      "error against run time and CG iterations")
-    study.add_argument("scene", nargs="?", default="mother",
-                       help="a scene .toml file or a built-in scene name (default: mother)")
+    study.add_argument("scene", nargs="?", default="cube_kappa",
+                       help="a scene .toml file or a built-in scene name (default: cube_kappa, "
+                       "the main job)")
     study.add_argument("--out", type=Path, help="output directory (default: ./study-SCENE, "
                        "numbered when it exists)")
     study.add_argument("--resume", action="store_true",
@@ -231,7 +233,7 @@ def _parser() -> argparse.ArgumentParser:
         "prdp", help="PRDP saving against the converged run, per built-in inverse scene",
         description="run each scene's converged reference and its PRDP configurations (a "
         "study) and print the saving: time and CG iterations to reach the converged run's "
-        "final error, against the converged run's totals")
+        "final error, against the converged run's own time and iterations to it")
     _add_inverse_scenes(saving)
     saving.add_argument("--repeats", type=int, default=1,
                         help="studies per scene, run one after another; the table shows "
@@ -445,11 +447,11 @@ def _run_study(scene, out: Path | None, resume: bool, prefix: str) -> None:
                                f"with: {continued})"):
         result = run_study(scene, out, resume=resume, progress=bars)
     bars.close()
+    # the table opens with its plain reading: the scene's PRDP run against its reference
+    headline = _headline(scene, result.summary) if scene.study.kind == "inverse" else None
+    if headline:
+        print(headline)
     _print_table(result.summary, SUMMARY_COLUMNS[scene.study.kind])
-    if scene.study.kind == "inverse":
-        headline = _headline(scene, result.summary)
-        if headline:
-            print(headline)
     figures = ", ".join(str(p.relative_to(out)) for p in result.figures)
     print(f"\nwrote {out}/: {RESULTS}, {SUMMARY}, {figures}"
           + (", fields/*.vtu" if scene.study.kind == "inverse" else ""))

@@ -121,7 +121,7 @@ __all__ = [
     "with_overrides",
 ]
 
-BUILTIN_SCENES = ("mother", "inclusion", "plate_hole", "cube", "poisson_h")
+BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h")
 GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
 PACKAGE_MESH_PREFIX = "@meshes/"
 

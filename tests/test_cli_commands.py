@@ -84,7 +84,10 @@ def test_study_writes_every_output_and_they_parse(finished_study):
     # one plain line on the PRDP run, by the summary's same-target rule
     with open(out / "summary.csv") as stream:
         prdp_row = {r["run"]: r for r in csv.DictReader(stream)}["prdp"]
-    [headline] = [line for line in done.stdout.splitlines() if line.startswith("PRDP (prdp)")]
+    lines = done.stdout.splitlines()
+    [headline] = [line for line in lines if line.startswith("PRDP (prdp)")]
+    # the table opens with it: the line comes before the table's header
+    assert lines.index(headline) < next(i for i, line in enumerate(lines) if "time_saving" in line)
     if prdp_row["reached_step"]:
         assert headline.startswith("PRDP (prdp) reached the converged run's error in ")
         assert f"{100 * float(prdp_row['time_saving']):.0f} % less wall time" in headline
