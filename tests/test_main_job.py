@@ -5,6 +5,8 @@ scene at one refinement less keeps its point -- PRDP reaches the converged run's
 with a fraction of the CG iterations -- at a size a test can run.
 """
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -26,6 +28,20 @@ def test_the_main_job_has_at_least_100k_free_dofs():
     free = int(np.count_nonzero((x > 1e-12) & (x < 1 - 1e-12)))
     assert free >= 100_000, free
     assert scene.inverse.unknown == "log_kappa" and scene.optimizer.steps >= 100
+
+
+def test_the_references_example_is_the_main_job_problem_with_converged_solvers_only():
+    """``examples/scenes/cube_kappa_references.toml`` (the fastest converged solver for the
+    main job, in docs/benchmarks.md) must stay the main job's problem, fewer steps apart."""
+    example = Path(__file__).resolve().parent.parent / "examples" / "scenes" / \
+        "cube_kappa_references.toml"
+    references, main = load_scene(example), load_scene("cube_kappa")
+    steps = references.optimizer.steps
+    main = with_overrides(main, {"optimizer": {"steps": steps}})
+    runs = dict(references.runs())
+    assert len(runs) == 4 and all(v.refinement.kind == "converged" for v in runs.values())
+    assert all(main.same_problem(v) for v in runs.values())
+    assert {v.solver.preconditioner for v in runs.values()} == {"jacobi", "amg"}
 
 
 @pytest.mark.slow(reason="two 150-step inversions on 13k dofs, about a minute on 2 cores")
