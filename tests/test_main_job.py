@@ -20,14 +20,43 @@ def test_study_runs_the_main_job_by_default():
     assert _parser().parse_args(["study"]).scene == "cube_kappa"
 
 
+def _free_dofs_after_refinement(mesh, refinements: int) -> int:
+    """P1 free dofs of a tetrahedral mesh after uniform (red) refinements, Dirichlet on the
+    faces x = 0 and x = 1, counted from the coarse mesh: each refinement adds a vertex per
+    edge, splits an edge in 2, a triangle into 4 (3 new edges) and a tetrahedron into 8
+    (3 x 4 face edges and one interior edge)."""
+    vertices, edges = mesh.p.shape[1], mesh.edges.shape[1]
+    faces, cells = mesh.facets.shape[1], mesh.t.shape[1]
+    x = mesh.p[0]
+    on_plane = [np.all(np.isclose(x[mesh.facets], side), axis=0) for side in (0.0, 1.0)]
+    planes = []
+    for tags in on_plane:  # vertices, edges, triangles of each Dirichlet face
+        tris = mesh.facets[:, tags]
+        tri_edges = {tuple(sorted(e)) for t in tris.T for e in ((t[0], t[1]), (t[1], t[2]),
+                                                                 (t[0], t[2]))}
+        planes.append([len(np.unique(tris)), len(tri_edges), tris.shape[1]])
+    for _ in range(refinements):
+        vertices, edges, faces, cells = (vertices + edges, 2 * edges + 3 * faces + cells,
+                                         4 * faces + 8 * cells, 8 * cells)
+        planes = [[v + e, 2 * e + 3 * f, 4 * f] for v, e, f in planes]
+    return vertices - sum(v for v, _, _ in planes)
+
+
 def test_the_main_job_has_at_least_100k_free_dofs():
     scene = load_scene("cube_kappa")
-    mesh = build_mesh(scene)
-    x = mesh.p[0]
-    # P1, Dirichlet on the faces x = 0 and x = 1 only: the free dofs are the other nodes
-    free = int(np.count_nonzero((x > 1e-12) & (x < 1 - 1e-12)))
+    coarse = build_mesh(scene, level=0)
+    free = _free_dofs_after_refinement(coarse, scene.mesh.refine)
     assert free >= 100_000, free
     assert scene.inverse.unknown == "log_kappa" and scene.optimizer.steps >= 100
+
+
+@pytest.mark.slow(reason="refines the mesh three times: 5 s")
+def test_the_counted_free_dofs_match_the_refined_mesh():
+    scene = load_scene("cube_kappa")
+    x = build_mesh(scene).p[0]
+    # P1, Dirichlet on the faces x = 0 and x = 1 only: the free dofs are the other nodes
+    free = int(np.count_nonzero((x > 1e-12) & (x < 1 - 1e-12)))
+    assert free == _free_dofs_after_refinement(build_mesh(scene, level=0), scene.mesh.refine)
 
 
 def test_the_references_example_is_the_main_job_problem_with_converged_solvers_only():
