@@ -190,7 +190,7 @@ class Solution(NamedTuple):
 _MAX_COUNT = int(np.iinfo(np.int32).max)
 
 
-def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
+def check_count(value: Any, name: str, allow_none: bool = False) -> None:
     if value is None and allow_none:
         return
     if isinstance(value, jax.core.Tracer):
@@ -200,6 +200,43 @@ def _check_count(value: Any, name: str, allow_none: bool = False) -> None:
         raise SolverConfigError(f"{name}={value!r}: expected an integer >= 0")
     if int(value) > _MAX_COUNT:  # the loops count in int32
         raise SolverConfigError(f"{name}={value!r}: expected an integer <= {_MAX_COUNT}")
+
+
+def check_truncation(solver: Any) -> None:
+    """The checks a truncated solver (:class:`TruncatedCG`,
+    :class:`~prdp_fem.stationary.TruncatedJacobi`) makes at construction, and the
+    normalisation of its counts: ``gradient``, ``scan_length``, ``iterations``,
+    ``adjoint_iterations``, ``history_size``. Run from a frozen dataclass's ``__post_init__``.
+    """
+    if solver.gradient not in GRADIENT_MODES:
+        raise SolverConfigError(
+            f"gradient={solver.gradient!r}: expected one of {GRADIENT_MODES}")
+    check_count(solver.scan_length, "scan_length", allow_none=True)
+    if solver.scan_length is not None:
+        if solver.gradient != "unrolled":
+            raise SolverConfigError(
+                f"scan_length={solver.scan_length!r} with gradient={solver.gradient!r}: a scan "
+                "length is for gradient='unrolled' (implicit mode takes a traced K as is)")
+        object.__setattr__(solver, "scan_length", int(solver.scan_length))
+    if solver.gradient == "unrolled" and solver.scan_length is None:
+        if isinstance(solver.iterations, jax.core.Tracer):
+            raise SolverConfigError(
+                "iterations is traced but gradient='unrolled' needs a static K (reverse "
+                "mode through a loop needs its length); give a static scan_length >= K "
+                "(see unrolled_length), use gradient='implicit' for a traced K, or mark K "
+                "static in jax.jit")
+        check_count(solver.iterations, "iterations")
+        object.__setattr__(solver, "iterations", int(solver.iterations))
+    else:
+        check_count(solver.iterations, "iterations")
+        if solver.scan_length is not None and not isinstance(solver.iterations, jax.core.Tracer) \
+                and int(solver.iterations) > solver.scan_length:
+            raise SolverConfigError(
+                f"iterations={solver.iterations!r} > scan_length={solver.scan_length}: "
+                "expected K <= scan_length (see unrolled_length)")
+    check_count(solver.adjoint_iterations, "adjoint_iterations", allow_none=True)
+    check_count(solver.history_size, "history_size")
+    object.__setattr__(solver, "history_size", int(solver.history_size))
 
 
 def _check_preconditioner(spec: Any) -> None:
@@ -276,36 +313,8 @@ class TruncatedCG:
     scan_length: int | None = None
 
     def __post_init__(self):
-        if self.gradient not in GRADIENT_MODES:
-            raise SolverConfigError(
-                f"gradient={self.gradient!r}: expected one of {GRADIENT_MODES}")
+        check_truncation(self)
         _check_preconditioner(self.preconditioner)
-        _check_count(self.scan_length, "scan_length", allow_none=True)
-        if self.scan_length is not None:
-            if self.gradient != "unrolled":
-                raise SolverConfigError(
-                    f"scan_length={self.scan_length!r} with gradient={self.gradient!r}: a scan "
-                    "length is for gradient='unrolled' (implicit mode takes a traced K as is)")
-            object.__setattr__(self, "scan_length", int(self.scan_length))
-        if self.gradient == "unrolled" and self.scan_length is None:
-            if isinstance(self.iterations, jax.core.Tracer):
-                raise SolverConfigError(
-                    "iterations is traced but gradient='unrolled' needs a static K (reverse "
-                    "mode through a loop needs its length); give a static scan_length >= K "
-                    "(see unrolled_length), use gradient='implicit' for a traced K, or mark K "
-                    "static in jax.jit")
-            _check_count(self.iterations, "iterations")
-            object.__setattr__(self, "iterations", int(self.iterations))
-        else:
-            _check_count(self.iterations, "iterations")
-            if self.scan_length is not None and not isinstance(self.iterations, jax.core.Tracer) \
-                    and int(self.iterations) > self.scan_length:
-                raise SolverConfigError(
-                    f"iterations={self.iterations!r} > scan_length={self.scan_length}: "
-                    "expected K <= scan_length (see unrolled_length)")
-        _check_count(self.adjoint_iterations, "adjoint_iterations", allow_none=True)
-        _check_count(self.history_size, "history_size")
-        object.__setattr__(self, "history_size", int(self.history_size))
         object.__setattr__(self, "checkpoint", _checked_checkpoint(self.checkpoint))
 
 
@@ -342,8 +351,8 @@ class ConvergedCG:
             raise SolverConfigError(
                 f"rtol={self.rtol!r}, atol={self.atol!r}: expected finite, non-negative "
                 "tolerances, not both zero")
-        _check_count(self.max_iterations, "max_iterations", allow_none=True)
-        _check_count(self.history_size, "history_size")
+        check_count(self.max_iterations, "max_iterations", allow_none=True)
+        check_count(self.history_size, "history_size")
         _check_preconditioner(self.preconditioner)
         object.__setattr__(self, "history_size", int(self.history_size))
 
@@ -395,7 +404,7 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: Any,
     dynamic, static = _split_solver(solver, matrix.shape[0])
     if is_traced(matrix.values, b, x0, nullspace, dynamic):
         return _solve_traced(matrix, b, x0, solver, nullspace, counter)
-    _check_finite_inputs(matrix, b, x0)
+    check_finite_inputs(matrix, b, x0)
     if nullspace is not None:
         _check_nullspace(nullspace, b)  # inside the compiled solve it is traced
     if counter is None and _compilable(dynamic):
@@ -431,7 +440,7 @@ def _split_solver(solver: TruncatedCG | ConvergedCG, n: int) -> tuple[dict, tupl
 
 # the types of the dynamic numbers in a compiled eager solve: a NumPy integer against a Python
 # one (or an int rtol) would otherwise be another signature, another program. The loops count
-# in int32 (_check_count keeps counts within it)
+# in int32 (check_count keeps counts within it)
 _NUMBER_TYPES = {"rtol": np.float64, "atol": np.float64, "max_iterations": np.int32,
                  "iterations": np.int32, "adjoint_iterations": np.int32}
 
@@ -483,7 +492,7 @@ def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:
         sol = _unrolled(matrix, precond, b, start, solver.iterations, solver.checkpoint,
                         solver.scan_length)
         if counter is not None:
-            sol = sol._replace(x=_adjoint_tap(sol.x, sol.iterations, counter))
+            sol = sol._replace(x=adjoint_tap(sol.x, sol.iterations, counter))
     elif isinstance(solver, TruncatedCG):
         k_adj = solver.iterations if solver.adjoint_iterations is None \
             else solver.adjoint_iterations
@@ -505,7 +514,7 @@ def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:
 # --------------------------------------------------------------------------------------
 
 
-def _check_finite_inputs(matrix: SparseMatrix, b: jax.Array, x0: jax.Array | None) -> None:
+def check_finite_inputs(matrix: SparseMatrix, b: jax.Array, x0: jax.Array | None) -> None:
     for name, value in (("operator values", matrix.values), ("b", b), ("x0", x0)):
         if value is None:
             continue
@@ -1022,7 +1031,7 @@ def unrolled_length(iterations: int, smallest: int = 16) -> int:
     >>> [unrolled_length(k) for k in (0, 10, 16, 17, 60, 600)]
     [16, 16, 16, 32, 64, 1024]
     """
-    _check_count(iterations, "iterations")
+    check_count(iterations, "iterations")
     return max(int(smallest), 1 << max(int(iterations) - 1, 0).bit_length())
 
 
@@ -1135,7 +1144,7 @@ def _frozen_jvp(form, primals, tangents):
 
 
 @partial(jax.custom_jvp, nondiff_argnums=(2,))
-def _adjoint_tap(x, iterations, counter):
+def adjoint_tap(x, iterations, counter):
     """Identity on ``x`` whose transpose (the backward pass) counts the reversed scan.
 
     A ``custom_jvp`` whose tangent is the identity written as a ``custom_linear_solve``: its
@@ -1146,7 +1155,7 @@ def _adjoint_tap(x, iterations, counter):
     return x
 
 
-@_adjoint_tap.defjvp
+@adjoint_tap.defjvp
 def _adjoint_tap_jvp(counter, primals, tangents):
     x, iterations = primals
 
@@ -1156,7 +1165,7 @@ def _adjoint_tap_jvp(counter, primals, tangents):
 
     x_dot = jax.lax.custom_linear_solve(lambda v: v, tangents[0], lambda _, v: v,
                                         count_backward)
-    return _adjoint_tap(x, iterations, counter), x_dot
+    return adjoint_tap(x, iterations, counter), x_dot
 
 
 # --------------------------------------------------------------------------------------

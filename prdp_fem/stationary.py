@@ -74,15 +74,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cg import Solution, Status, _adjoint_tap, _check_count, _check_finite_inputs
+from .cg import Solution, Status, adjoint_tap, check_finite_inputs, check_truncation
 from .errors import DataError, ShapeError, SolverBreakdownError, SolverConfigError
 from .operator import SparseMatrix, diagonal, prepare, rmatvec
 from .tally import IterationCounter, tap
 from .validation import is_traced
 
 __all__ = ["TruncatedJacobi", "jacobi_solve"]
-
-GRADIENT_MODES = ("unrolled", "implicit")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,9 +114,7 @@ class TruncatedJacobi:
     scan_length: int | None = None
 
     def __post_init__(self):
-        if self.gradient not in GRADIENT_MODES:
-            raise SolverConfigError(
-                f"gradient={self.gradient!r}: expected one of {GRADIENT_MODES}")
+        check_truncation(self)  # gradient, scan_length and the counts, as TruncatedCG's
         if not isinstance(self.omega, jax.core.Tracer):
             if isinstance(self.omega, bool) or np.ndim(self.omega) != 0 or not (
                     np.issubdtype(np.asarray(self.omega).dtype, np.number)
@@ -127,29 +123,6 @@ class TruncatedJacobi:
                     f"omega={self.omega!r}: expected a number with 0 < omega < 2 (outside, "
                     "the sweep diverges on every symmetric positive definite matrix)")
             object.__setattr__(self, "omega", float(self.omega))
-        _check_count(self.scan_length, "scan_length", allow_none=True)
-        if self.scan_length is not None:
-            if self.gradient != "unrolled":
-                raise SolverConfigError(
-                    f"scan_length={self.scan_length!r} with gradient={self.gradient!r}: a scan "
-                    "length is for gradient='unrolled' (implicit mode takes a traced K as is)")
-            object.__setattr__(self, "scan_length", int(self.scan_length))
-        _check_count(self.iterations, "iterations")
-        if self.gradient == "unrolled" and self.scan_length is None:
-            if isinstance(self.iterations, jax.core.Tracer):
-                raise SolverConfigError(
-                    "iterations is traced but gradient='unrolled' needs a static K; give a "
-                    "static scan_length >= K, use gradient='implicit', or mark K static in "
-                    "jax.jit")
-            object.__setattr__(self, "iterations", int(self.iterations))
-        elif (self.scan_length is not None and not isinstance(self.iterations, jax.core.Tracer)
-              and int(self.iterations) > self.scan_length):
-            raise SolverConfigError(
-                f"iterations={self.iterations!r} > scan_length={self.scan_length}: expected "
-                "K <= scan_length")
-        _check_count(self.adjoint_iterations, "adjoint_iterations", allow_none=True)
-        _check_count(self.history_size, "history_size")
-        object.__setattr__(self, "history_size", int(self.history_size))
 
 
 def jacobi_solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedJacobi,
@@ -174,7 +147,7 @@ def jacobi_solve(matrix: SparseMatrix, b: jax.Array, solver: TruncatedJacobi,
     dynamic, static = _split(solver)
     if counter is not None or is_traced(matrix.values, b, x0, dynamic):
         return _solve_traced(matrix, b, x0, solver, counter)
-    _check_finite_inputs(matrix, b, x0)
+    check_finite_inputs(matrix, b, x0)
     sol = _COMPILED(matrix, b, x0, dynamic, static)
     _raise_on_status(sol)
     return sol
@@ -327,7 +300,7 @@ def _solve_traced(matrix, b, x0, solver: TruncatedJacobi, counter) -> Solution:
         d_x = jax.lax.stop_gradient(diagonal(matrix) * x)
         diverged = _diverged(weight, norm0, norm, b, d_x)
         if counter is not None:
-            x = _adjoint_tap(x, moved, counter)
+            x = adjoint_tap(x, moved, counter)
         sol = Solution(x, moved, jnp.linalg.norm(jax.lax.stop_gradient(r)),
                        history[0], history, jnp.int32(0))
     else:
