@@ -5,7 +5,7 @@
 on the unit square, u in P2, m in P1, true m = log(8 - 4 [|x - (0.5, 0.5)| < 0.2]), data = the true
 state on all dofs plus 5 % Gaussian noise (sigma = 0.05 max|u|), L2 misfit, H1 regularisation with
 gamma = 1e-8 (hIPPYlib's value; the discrepancy principle lands close to it here, see
-prdp_fem.parameter_choice.morozov). A second scene inverts on the shipped unstructured mesh
+prdp_fem.inverse.parameter_choice.morozov). A second scene inverts on the shipped unstructured mesh
 meshes/plate_hole.msh from 60 point sensors, u = 0 on the outer sides and a unit source.
 
     python examples/coefficient_recovery.py [n] [steps]
@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 
 import prdp_fem as pf
-from prdp_fem.comparison import compare, format_table
-from prdp_fem.inverse import inverse_problem
-from prdp_fem.observations import full_field, point_sensors, with_noise
-from prdp_fem.prdp import converged, fixed, prdp
+from prdp_fem.fem.observations import full_field, point_sensors, with_noise
+from prdp_fem.inverse.comparison import compare, format_table
+from prdp_fem.inverse.driver import inverse_problem
+from prdp_fem.inverse.refinement import converged, fixed, prdp
 
 GAMMA = 1e-8
 NOISE = 0.05

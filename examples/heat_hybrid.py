@@ -9,7 +9,8 @@ with ONE, NOG and WIG over a 3-step unroll, PRDP on the inner PCG solves.
 Seeded smooth initial fields (three positive Gaussian bumps each), trajectories of 10 steps of
 dt = 0.02: 32 for training (windows of unroll + 1 states: 8 per trajectory), 8 for validation
 (the PRDP signal), 8 held out for the table. An MLP [n_free, hidden, n_free] applied
-homogeneously (see prdp_fem.heat), Adam with a cosine-decayed step (3e-3 to 0), mini-batches of
+homogeneously (see prdp_fem.learning.heat), Adam with a cosine-decayed step (3e-3 to 0),
+mini-batches of
 16 windows. Every correction run trains with PRDP in tolerance mode (see refinement()) and
 with converged solves (rtol 1e-10); the saving compares the two. Table errors: rollouts
 of the held-out trajectories from u*_0 over all 10 steps, with converged coarse solves, mean of
@@ -27,8 +28,8 @@ import numpy as np
 import optax
 
 import prdp_fem as pf
-from prdp_fem import heat, learned
-from prdp_fem.prdp import converged, prdp
+from prdp_fem.inverse.refinement import converged, prdp
+from prdp_fem.learning import heat, learned
 
 ROWS = tuple((setup, mode) for setup in heat.SETUPS for mode in heat.MODES)
 

@@ -5,7 +5,7 @@ full P2 state, H1 regularisation with gamma = 1e-8) on an n x n mesh, ``steps`` 
 from m = 0, with a converged solver (rtol 1e-10) and with a truncated one (K = K_adj = 10).
 
 * Adam: learning rate from {0.03, 0.1, 0.3}; L-BFGS: optax's, with its zoom line search;
-* gradient descent (p = +1), Gauss-Newton (p = -1) and HIG (p = -1/2): :func:`prdp_fem.hig.hig`
+* gradient descent (p = +1), Gauss-Newton (p = -1) and HIG (p = -1/2): :func:`prdp_fem.optim.hig`
   with ``tau = 1e-6``; GD and HIG with ``relative=True`` and ``eta`` from {0.3, 1} (``eta = 1``:
   the full Gauss-Newton step along the top singular direction), Gauss-Newton with ``eta = 1``.
 
@@ -26,11 +26,11 @@ import time
 import jax.numpy as jnp
 import optax
 
-from prdp_fem import build
-from prdp_fem.hig import hig
-from prdp_fem.inverse import invert
-from prdp_fem.prdp import converged, fixed
-from prdp_fem.scene import load_scene, with_overrides
+from prdp_fem.inverse.driver import invert
+from prdp_fem.inverse.refinement import converged, fixed
+from prdp_fem.optim.hig import hig
+from prdp_fem.scene import build
+from prdp_fem.scene.spec import load_scene, with_overrides
 
 METHODS = ("adam", "lbfgs", "gradient descent", "gauss-newton", "hig")
 SOLVERS = {"converged": lambda: converged(1e-10), "K=10": lambda: fixed(10)}

@@ -20,8 +20,8 @@ import numpy as np
 import optax
 
 import prdp_fem as pf
-from prdp_fem import learned
-from prdp_fem.prdp import converged, prdp
+from prdp_fem.inverse.refinement import converged, prdp
+from prdp_fem.learning import learned
 
 
 def build(n: int, n_train: int = 128, n_validation: int = 32, seed: int = 0):

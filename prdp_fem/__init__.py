@@ -13,29 +13,8 @@ if _os.environ.get("PRDP_FEM_KEEP_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 from ._version import __version__
-from .amg import (
-    AMGCycle,
-    PyamgCycle,
-    RebuildPolicy,
-    RebuildState,
-    RebuiltAMG,
-    amg_hierarchy,
-    amg_preconditioner,
-    rebuild_policy,
-)
-from .bench_amg import AMGCost, amg_cost
-from .cg import (
-    ConvergedCG,
-    IterationCounter,
-    Solution,
-    Status,
-    TruncatedCG,
-    solve,
-    unrolled_length,
-)
-from .comparison import ComparisonRow, compare, format_table
+from .bench.amg import AMGCost, amg_cost
 from .compilation_cache import enable_compilation_cache
-from .discretization import Discretization, discretize
 from .errors import (
     CoefficientError,
     CoordinateRangeError,
@@ -62,19 +41,25 @@ from .errors import (
     UnsupportedCellsError,
     UnusedNodeError,
 )
-from .generators import (
-    disk,
-    geometric_spacing,
-    l_shape,
-    rectangle_with_hole,
-    tensor_mesh,
-    unit_cube,
-    unit_square,
+from .fem.discretization import Discretization, discretize
+from .fem.observations import Observation, boundary_values, full_field, point_sensors, with_noise
+from .fem.parameters import Parameterization
+from .fem.reference import (
+    ReferenceSolution,
+    amg_solve,
+    direct_solve,
+    h1_error,
+    h1_seminorm,
+    l2_error,
+    l2_norm,
+    relative_h1_error,
+    relative_l2_error,
 )
-from .heat import HeatProblem, heat_problem, heat_step
-from .hig import HigInfo, HigState, hig, hig_update, randomized_svd, residual_jacobian
-from .history import History, StepRecord
-from .inverse import (
+from .fem.regularizers import Regularizer, regularizer
+from .fem.residuals import ResidualFactors
+from .fem.system import LinearSystem
+from .inverse.comparison import ComparisonRow, compare, format_table
+from .inverse.driver import (
     InverseProblem,
     Inversion,
     InversionError,
@@ -83,11 +68,34 @@ from .inverse import (
     inverse_problem,
     invert,
 )
-from .linesearch import lbfgs, scale_by_zoom_linesearch
-from .mesh import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
-from .newton import NewtonCGState, gauss_newton, newton_cg, regularization_preconditioner
-from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
-from .operator import (
+from .inverse.history import History, StepRecord
+from .inverse.parameter_choice import AlphaChoice, l_curve, morozov
+
+# the controllers themselves stay in their module (prdp_fem.inverse.prdp, .fixed, .converged):
+# a top-level function named prdp would shadow the submodule
+from .inverse.refinement import Refinement, RefinementState, Schedule
+from .inverse.taylor import TaylorResult, taylor_test
+from .learning.heat import HeatProblem, heat_problem, heat_step
+from .linalg.amg import (
+    AMGCycle,
+    PyamgCycle,
+    RebuildPolicy,
+    RebuildState,
+    RebuiltAMG,
+    amg_hierarchy,
+    amg_preconditioner,
+    rebuild_policy,
+)
+from .linalg.cg import (
+    ConvergedCG,
+    IterationCounter,
+    Solution,
+    Status,
+    TruncatedCG,
+    solve,
+    unrolled_length,
+)
+from .linalg.operator import (
     KERNELS,
     CooMatrix,
     CsrMatrix,
@@ -101,29 +109,21 @@ from .operator import (
     rmatvec,
     symmetric_matvec,
 )
-from .parameter_choice import AlphaChoice, l_curve, morozov
-from .parameters import Parameterization
-
-# the controllers themselves stay in their module (prdp_fem.prdp.prdp, .fixed, .converged):
-# a top-level function named prdp would shadow the submodule
-from .prdp import Refinement, RefinementState, Schedule
-from .precond import IdentityPreconditioner, JacobiPreconditioner, jacobi
-from .reference import (
-    ReferenceSolution,
-    amg_solve,
-    direct_solve,
-    h1_error,
-    h1_seminorm,
-    l2_error,
-    l2_norm,
-    relative_h1_error,
-    relative_l2_error,
+from .linalg.precond import IdentityPreconditioner, JacobiPreconditioner, jacobi
+from .linalg.stationary import TruncatedJacobi, jacobi_solve
+from .mesh.generators import (
+    disk,
+    geometric_spacing,
+    l_shape,
+    rectangle_with_hole,
+    tensor_mesh,
+    unit_cube,
+    unit_square,
 )
-from .regularizers import Regularizer, regularizer
-from .residuals import ResidualFactors
-from .stationary import TruncatedJacobi, jacobi_solve
-from .system import LinearSystem
-from .taylor import TaylorResult, taylor_test
+from .mesh.io import MeshQuality, load_mesh, mesh_from_arrays, mesh_quality, save_mesh
+from .optim.hig import HigInfo, HigState, hig, hig_update, randomized_svd, residual_jacobian
+from .optim.linesearch import lbfgs, scale_by_zoom_linesearch
+from .optim.newton import NewtonCGState, gauss_newton, newton_cg, regularization_preconditioner
 
 __all__ = [
     "KERNELS",

@@ -15,7 +15,7 @@ An explicit ``jax.config.update("jax_compilation_cache_dir", ...)`` made before 
 left alone. Compilations under 0.2 s are not stored (loading would not pay); the directory is
 not capped (JAX's size cap needs one more package): delete it at any time. JAX does not store
 executables that contain host callbacks, such as a solve given an
-:class:`~prdp_fem.cg.IterationCounter` (as the inverse driver does, to count iterations inside
+:class:`~prdp_fem.linalg.IterationCounter` (as the inverse driver does, to count iterations inside
 line searches): those compile in every process.
 
 >>> from pathlib import Path

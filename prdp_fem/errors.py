@@ -45,7 +45,7 @@ class NonFiniteCoordinatesError(MeshError):
 
 class CoordinateRangeError(MeshError):
     """A node coordinate so large that cell measures would overflow (see
-    :data:`prdp_fem.mesh.MAX_COORDINATE`)."""
+    :data:`prdp_fem.mesh.io.MAX_COORDINATE`)."""
 
 
 class DegenerateCellError(MeshError):

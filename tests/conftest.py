@@ -130,10 +130,11 @@ def load_example():
 
 def resume_after_losing_done(scene, out: Path, run: str, runner: str, monkeypatch):
     """Drop ``run``'s ``done`` record from the study in ``out``, resume it, and check that
-    only ``run`` ran again (through ``prdp_fem.study.<runner>``); the resumed StudyOutput."""
+    only ``run`` ran again (through ``prdp_fem.studies.runner.<runner>``); the resumed
+    StudyOutput."""
     import json
 
-    from prdp_fem import study
+    from prdp_fem.studies import runner as study
 
     records = study.ResultsLog(out / study.RESULTS).records()
     kept = [r for r in records if not (r["type"] == "done" and r["run"] == run)]
@@ -164,7 +165,7 @@ def json_from_a_process(script: str, cache_setting: str) -> dict:
 def shared_compiles_made(monkeypatch) -> list:
     """The ``SharedCompile`` programs built from now on (the test's ``monkeypatch`` undoes
     the recording)."""
-    from prdp_fem.executables import SharedCompile
+    from prdp_fem._executables import SharedCompile
 
     made, original = [], SharedCompile.__init__
 
@@ -182,7 +183,7 @@ def backend_compiles():
     off, so none is loaded), as JAX's monitoring events report them."""
     import jax
 
-    from prdp_fem.xla_options import classic_emitters_apply
+    from prdp_fem._xla_options import classic_emitters_apply
 
     classic_emitters_apply()  # its one-off check of XLA's options compiles before, not here
     compiled = []

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.cg import ConvergedCG
-from prdp_fem.descent import IterateRecorder, descent_check
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.inverse import Objective, initial_params, inverse_problem, invert
-from prdp_fem.observations import full_field, with_noise
-from prdp_fem.prdp import adaptive_tolerance, converged, fixed
+from prdp_fem.fem.observations import full_field, with_noise
+from prdp_fem.inverse.descent import IterateRecorder, descent_check
+from prdp_fem.inverse.driver import Objective, initial_params, inverse_problem, invert
+from prdp_fem.inverse.refinement import adaptive_tolerance, converged, fixed
+from prdp_fem.linalg.cg import ConvergedCG
 
 
 def _coefficient_problem(n=12):
@@ -115,7 +115,7 @@ def test_the_controller_picks_its_monitor_and_refuses_another(problem):
 def test_training_refuses_a_controller_fed_the_gradient():
     import jax
 
-    from prdp_fem import learned
+    from prdp_fem.learning import learned
     disc = pf.discretize(pf.unit_square(4), element="P1", kappa_space="P0", dirichlet=0.0)
     problem = learned.learned_inverse(disc, pf.full_field(disc, data=np.zeros(disc.n_dofs)),
                                       kappa=2.0, supervised=1e-2)

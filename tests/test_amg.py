@@ -1,4 +1,5 @@
-"""AMG preconditioner (prdp_fem.amg): construction, the map M, PCG against pyamg, then grouped
+"""AMG preconditioner (prdp_fem.linalg.amg): construction, the map M, PCG against pyamg, then
+grouped
 by transformation (jit, vmap, jvp, vjp in both gradient modes), the rebuild policy, the command."""
 
 import os
@@ -15,9 +16,16 @@ import pytest
 import scipy.sparse as sp
 
 import prdp_fem as pf
-from prdp_fem.amg import AMGCycle, PyamgCycle, amg_hierarchy, amg_preconditioner, rebuild_policy
-from prdp_fem.cli import main
-from prdp_fem.prdp import fixed
+from prdp_fem.bench import cg as pf_bench_cg
+from prdp_fem.cli.main import main
+from prdp_fem.inverse.refinement import fixed
+from prdp_fem.linalg.amg import (
+    AMGCycle,
+    PyamgCycle,
+    amg_hierarchy,
+    amg_preconditioner,
+    rebuild_policy,
+)
 
 IMPLEMENTATIONS = ["jax", "callback"]
 SMOOTHER = {"jax": "jacobi", "callback": "gauss_seidel"}  # the cycle each implementation runs
@@ -116,7 +124,7 @@ def test_bad_matrices_raise_typed_errors(problems):
                                                ("_pyamg_solver", {"kind": "rs"})])
 def test_a_hierarchy_with_a_non_finite_cycle_is_refused_at_build(problems, monkeypatch, builder,
                                                                  options):
-    build = getattr(pf.amg, builder)
+    build = getattr(pf.linalg.amg, builder)
 
     def broken(*args, **kwargs):  # as Ruge-Stueben can break down on 3-D tetrahedra
         built = build(*args, **kwargs)
@@ -124,7 +132,7 @@ def test_a_hierarchy_with_a_non_finite_cycle_is_refused_at_build(problems, monke
         ml.levels[-1].A = ml.levels[-1].A * np.nan
         return built
 
-    monkeypatch.setattr(pf.amg, builder, broken)
+    monkeypatch.setattr(pf.linalg.amg, builder, broken)
     kind = options.get("kind", "sa")
     with pytest.raises(pf.SolverConfigError, match=rf"kind='{kind}': the V-cycle of this "
                        r"hierarchy is not finite and positive"):
@@ -172,7 +180,7 @@ def _random_spd(n, seed):
 
 @pytest.mark.parametrize("name", ["square", "cube", "contrast", "levels", "random"])
 def test_the_smoothers_spectral_radius_is_within_a_percent_below_the_exact_one(problems, name):
-    from prdp_fem.amg import _rho_jacobi
+    from prdp_fem.linalg.amg import _rho_jacobi
     if name == "levels":  # every level of a hierarchy, coarse ones included
         matrices = [level.A for level in amg_hierarchy(problems["contrast"].operator).levels]
     elif name == "random":
@@ -187,7 +195,7 @@ def test_the_smoothers_spectral_radius_is_within_a_percent_below_the_exact_one(p
 
 
 def test_the_smoothers_spectral_radius_is_deterministic_and_exact_on_an_invariant_subspace():
-    from prdp_fem.amg import _rho_jacobi
+    from prdp_fem.linalg.amg import _rho_jacobi
     matrix = _random_spd(200, 7)
     np.random.seed(1)  # noqa: NPY002 (the estimate must not read the global generator)
     first = _rho_jacobi(matrix)
@@ -203,7 +211,7 @@ def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(proble
                                                                          monkeypatch):
     import pyamg.aggregation.smooth
 
-    from prdp_fem.amg import _smoothed_aggregation, seeded_numpy_random
+    from prdp_fem.linalg.amg import _smoothed_aggregation, seeded_numpy_random
 
     def exact_radius(matrix):  # of D^-1 A, pyamg's prolongation smoother's operator
         return float(np.max(np.abs(np.linalg.eigvals(sp.csr_matrix(matrix).toarray()))))
@@ -211,7 +219,7 @@ def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(proble
     csr = problems[name].operator.to_scipy()
     monkeypatch.setattr(pyamg.aggregation.smooth, "approximate_spectral_radius",
                         lambda matrix, **_: exact_radius(matrix))
-    monkeypatch.setattr(pf.amg, "_rho_jacobi", _exact_rho_jacobi)  # the same radii in ours
+    monkeypatch.setattr(pf.linalg.amg, "_rho_jacobi", _exact_rho_jacobi)  # the same radii in ours
     with seeded_numpy_random():
         theirs = pyamg.smoothed_aggregation_solver(
             csr.copy(), symmetry="symmetric", strength=("symmetric", {"theta": theta}),
@@ -227,13 +235,13 @@ def test_smoothed_aggregation_step_by_step_is_pyamgs_given_the_same_radii(proble
 
 def test_the_smoothers_radius_is_the_prolongators_one_estimate(problems, monkeypatch):
     estimates = []
-    rho_jacobi = pf.amg._rho_jacobi
+    rho_jacobi = pf.linalg.amg._rho_jacobi
 
     def counted(matrix):
         estimates.append(rho_jacobi(matrix))
         return estimates[-1]
 
-    monkeypatch.setattr(pf.amg, "_rho_jacobi", counted)
+    monkeypatch.setattr(pf.linalg.amg, "_rho_jacobi", counted)
     ml = amg_hierarchy(problems["contrast"].operator, omega=1.2)
     assert len(estimates) == len(ml.levels) - 1  # one per level, shared
     omegas = [level.presmoother.keywords["omega"] for level in ml.levels[:-1]]
@@ -253,7 +261,7 @@ def test_the_default_strength_spelt_out_builds_the_same_hierarchy(problems, spel
 
 
 def test_a_level_with_a_non_finite_diagonal_gets_a_nan_radius():
-    from prdp_fem.amg import _rho_jacobi
+    from prdp_fem.linalg.amg import _rho_jacobi
     assert np.isnan(_rho_jacobi(sp.diags([1.0, np.nan, 2.0])))
     assert np.isnan(_rho_jacobi(sp.diags([1.0, np.inf, 2.0])))
 
@@ -261,7 +269,7 @@ def test_a_level_with_a_non_finite_diagonal_gets_a_nan_radius():
 def test_a_level_without_a_positive_diagonal_gets_pyamgs_estimate():
     from pyamg.relaxation.smoothing import rho_D_inv_A
 
-    from prdp_fem.amg import _rho_jacobi, seeded_numpy_random
+    from prdp_fem.linalg.amg import _rho_jacobi, seeded_numpy_random
     matrix = sp.csr_matrix(np.array([[2.0, 1.0, 0.0], [1.0, -1.0, 0.5], [0.0, 0.5, 3.0]]))
     with seeded_numpy_random():
         expected = float(rho_D_inv_A(matrix.copy()))
@@ -290,8 +298,8 @@ def test_cycle_is_pyamgs_cycle_on_the_same_hierarchy(problems, name, implementat
 ])
 def test_the_dense_tail_of_the_jax_cycle_is_pyamgs_cycle(monkeypatch, fraction, rows,
                                                         sparse_levels):
-    monkeypatch.setattr(pf.amg, "_DENSE_FRACTION", fraction)
-    monkeypatch.setattr(pf.amg, "_DENSE_ROWS", rows)
+    monkeypatch.setattr(pf.linalg.amg, "_DENSE_FRACTION", fraction)
+    monkeypatch.setattr(pf.linalg.amg, "_DENSE_ROWS", rows)
     problem = Problem(pf.unit_square(40))
     ml = amg_hierarchy(problem.operator)
     sizes = [level.A.shape[0] for level in ml.levels]
@@ -311,11 +319,11 @@ def test_the_dense_tail_starts_at_the_first_level_small_enough():
     """A level goes dense once its dense matrix holds at most half the finest
     matrix's entries (or it has at most 64 rows): on 2-D P1 at 65k dofs (324105 entries),
     from 136 rows (18496 entries; the level above has 1224 rows, 1.5M entries)."""
-    operator, _ = pf.bench.poisson_operator(256)
+    operator, _ = pf_bench_cg.poisson_operator(256)
     ml = amg_hierarchy(operator)
     sizes = [level.A.shape[0] for level in ml.levels]
     assert sizes[:4] == [65025, 10943, 1224, 136] and len(sizes) > 4
-    assert pf.amg._first_dense_level(ml) == 3
+    assert pf.linalg.amg._first_dense_level(ml) == 3
     assert len(AMGCycle.from_pyamg(ml).levels) == 3
 
 
@@ -624,7 +632,7 @@ def test_after_a_rebuild_l_bfgs_evaluates_with_the_new_hierarchy():
 def test_a_validation_monitor_with_rebuilds_compiles_its_programs_once(monkeypatch):
     from conftest import shared_compiles_made
 
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     inverse._step_program.cache_clear()
     inverse._validation_program.cache_clear()
@@ -667,7 +675,7 @@ def test_bench_amg_reports_iterations_and_ratios(capsys):
 
 
 def test_bench_amg_bad_option_is_one_line_and_exit_2(tmp_path):
-    done = subprocess.run([sys.executable, "-m", "prdp_fem.cli", "bench", "amg", "--repeats",
+    done = subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", "bench", "amg", "--repeats",
                            "0"], cwd=tmp_path, capture_output=True, text=True, timeout=120,
                           env=ENV)
     assert done.returncode == 2, done.stderr

@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem import build
-from prdp_fem.bench import cg_iteration_cost
-from prdp_fem.expressions import ExpressionError, compile_field
-from prdp_fem.forward import build_scene, forward_convergence
-from prdp_fem.history import History
-from prdp_fem.inverse import Validation, inverse_problem, invert
-from prdp_fem.observations import boundary_values, full_field, point_sensors, with_noise
-from prdp_fem.parameter_choice import l_curve, morozov
-from prdp_fem.parameters import Parameterization
-from prdp_fem.prdp import fixed, prdp
-from prdp_fem.regularizers import regularizer
-from prdp_fem.scene import (
+from prdp_fem.bench.cg import cg_iteration_cost
+from prdp_fem.fem.observations import boundary_values, full_field, point_sensors, with_noise
+from prdp_fem.fem.parameters import Parameterization
+from prdp_fem.fem.regularizers import regularizer
+from prdp_fem.inverse.driver import Validation, inverse_problem, invert
+from prdp_fem.inverse.history import History
+from prdp_fem.inverse.parameter_choice import l_curve, morozov
+from prdp_fem.inverse.refinement import fixed, prdp
+from prdp_fem.mesh.vtu import write_vtu
+from prdp_fem.scene import build
+from prdp_fem.scene.expressions import ExpressionError, compile_field
+from prdp_fem.scene.spec import (
     SceneCoefficientError,
     SceneDataError,
     SceneDiscretizationError,
@@ -38,7 +38,7 @@ from prdp_fem.scene import (
     SceneSolverConfigError,
     load_scene,
 )
-from prdp_fem.vtu import write_vtu
+from prdp_fem.studies.forward import build_scene, forward_convergence
 
 ROOT = Path(__file__).resolve().parent.parent
 NAN, INF = float("nan"), float("inf")
@@ -519,7 +519,7 @@ def test_formula_with_the_wrong_number_of_arguments_is_refused_at_load(tmp_path,
 
 
 def test_huge_integer_powers_are_evaluated_as_floats_not_for_ever():
-    code = ("from prdp_fem.expressions import ExpressionError, compile_field\n"
+    code = ("from prdp_fem.scene.expressions import ExpressionError, compile_field\n"
             "import numpy as np\n"
             "try:\n"
             "    compile_field('10**10**10 + x', where='f')(np.zeros((2, 3)))\n"
@@ -624,7 +624,7 @@ def test_scene_with_a_truncated_mesh_file_names_the_mesh(tmp_path):
 
 
 def cli(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=300, env=_checkout_env())
 
 

@@ -10,8 +10,8 @@ import struct
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.cli import main
-from prdp_fem.expressions import MAX_FORMULA_DEPTH, MAX_FORMULA_LENGTH
+from prdp_fem.cli.main import main
+from prdp_fem.scene.expressions import MAX_FORMULA_DEPTH, MAX_FORMULA_LENGTH
 
 SQUARE_22 = """$MeshFormat
 2.2 0 8

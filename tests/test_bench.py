@@ -10,7 +10,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 import prdp_fem as pf
-from prdp_fem.bench import (
+from prdp_fem.bench.cg import (
     CGIterationCost,
     cg_iteration_cost,
     device_iteration_cost,
@@ -48,7 +48,7 @@ def test_cost_fields_and_slope():
 
 
 def test_bench_cg_prints_one_row_per_size_and_the_slope():
-    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli", "bench", "cg", "--sides", "8",
+    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", "bench", "cg", "--sides", "8",
                           "12", "--iterations", "2", "--repeats", "1"], env=ENV,
                          capture_output=True, text=True, timeout=300, check=True).stdout
     rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
@@ -71,7 +71,7 @@ def test_device_cost_times_every_kernel_against_the_csr_spmv():
 
 
 def test_bench_cg_device_reference_prints_one_column_per_kernel():
-    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli", "bench", "cg", "--sides", "8",
+    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", "bench", "cg", "--sides", "8",
                           "--iterations", "2", "--repeats", "1", "--reference", "device"],
                          env=ENV, capture_output=True, text=True, timeout=300,
                          check=True).stdout

@@ -20,8 +20,8 @@ import scipy.sparse.linalg as spla
 from conftest import SMALL_STUDY
 
 import prdp_fem as pf
-from prdp_fem import bench_inverse, reduced, study
-from prdp_fem.bench_inverse import (
+from prdp_fem.bench import inverse as bench_inverse
+from prdp_fem.bench.inverse import (
     PEER,
     check_mother_options,
     mother_problem,
@@ -33,12 +33,14 @@ from prdp_fem.bench_inverse import (
     seed_variants,
     solve_mother,
 )
-from prdp_fem.cli import main
+from prdp_fem.cli.main import main
 from prdp_fem.errors import SceneError, SolverConfigError
-from prdp_fem.history import History, StepRecord
-from prdp_fem.prdp import converged, fixed
-from prdp_fem.reduced import homogeneous, reduced_cg
-from prdp_fem.scene import load_scene, parse_scene
+from prdp_fem.inverse import reduced
+from prdp_fem.inverse.history import History, StepRecord
+from prdp_fem.inverse.reduced import homogeneous, reduced_cg
+from prdp_fem.inverse.refinement import converged, fixed
+from prdp_fem.scene.spec import load_scene, parse_scene
+from prdp_fem.studies import runner as study
 
 
 def kkt_optimum(problem) -> np.ndarray:
@@ -203,7 +205,7 @@ def test_mother_whole_process_times_a_fresh_process():
 def test_mother_processes_start_cold_without_either_compilation_cache(monkeypatch):
     """The whole-process figure includes JIT compilation: a child process must not load
     programs from the package's persistent cache (on by default) nor from JAX's."""
-    from prdp_fem.bench_inverse import _child_environment
+    from prdp_fem.bench.inverse import _child_environment
     from prdp_fem.compilation_cache import cache_directory
     monkeypatch.setenv("PRDP_FEM_COMPILATION_CACHE", "/some/cache")
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", "/some/jax/cache")
@@ -385,7 +387,7 @@ def test_saving_rows_are_the_study_summary(tmp_path):
 
 
 def test_saving_goal_needs_both_the_time_and_the_error():
-    from prdp_fem.bench_inverse import SavingRow
+    from prdp_fem.bench.inverse import SavingRow
 
     row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, True, 1.0, 1.005)
     assert row.goal_met
@@ -396,7 +398,7 @@ def test_saving_goal_needs_both_the_time_and_the_error():
 
 
 def test_repeated_studies_give_medians_and_the_time_saving_range():
-    from prdp_fem.bench_inverse import SavingRow, median_row
+    from prdp_fem.bench.inverse import SavingRow, median_row
 
     row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, True, 1.0, 1.005)
     rows = [row._replace(converged_s=12.0, time_saving=0.7),
@@ -423,7 +425,7 @@ NOISY_SENSORS = {"mesh": {"n": 8}, "inverse": {"truth": "x*y", "observations": "
 
 
 def test_seed_variants_draw_other_noise_and_sensors():
-    from prdp_fem.build import build_inverse
+    from prdp_fem.scene.build import build_inverse
 
     scene = parse_scene(NOISY_SENSORS)
     variants = seed_variants(scene, [1, 2])
@@ -462,7 +464,7 @@ def test_seed_variants_refuse_bad_seeds(seeds):
 
 
 def test_seed_summary_counts_the_instances_that_meet_the_goal():
-    from prdp_fem.bench_inverse import SavingRow, median_row
+    from prdp_fem.bench.inverse import SavingRow, median_row
 
     row = SavingRow("s", "prdp", 10.0, 1000, 1.0, 100, 5, 0.9, 0.9, True, 1.0, 1.005)
     rows = [row._replace(seed=1),                                        # met
@@ -486,7 +488,7 @@ def _stand_in_saving(seen, directories=None):
     """``prdp_saving`` without the studies: one row per scene, its seed stamped as the real
     one stamps it, the goal missed in the band for seed 2; ``directories`` receives each
     call's ``(out, resume)``."""
-    from prdp_fem.bench_inverse import SavingRow, _seeded
+    from prdp_fem.bench.inverse import SavingRow, _seeded
 
     directories = [] if directories is None else directories
 
@@ -507,7 +509,7 @@ def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, c
     """The command runs every instance's study (here: stand-in rows) into a directory of its
     own and prints the seed column and the per-run summary, which it also writes as CSV; a
     scene whose data draw nothing runs once."""
-    from prdp_fem import bench_inverse
+    from prdp_fem.bench import inverse as bench_inverse
 
     seen, directories = [], []
     monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
@@ -544,7 +546,7 @@ def test_bench_prdp_seeds_prints_a_row_per_instance_and_a_summary(monkeypatch, c
 def test_bench_prdp_without_seeds_has_no_seed_column_or_summary(monkeypatch, capsys,
                                                                 tmp_path):
     """Without --out the studies go to a new ./bench-prdp (never into an earlier one)."""
-    from prdp_fem import bench_inverse
+    from prdp_fem.bench import inverse as bench_inverse
 
     seen, directories = [], []
     monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
@@ -564,7 +566,7 @@ def test_bench_prdp_resumes_only_its_own_run(monkeypatch, capsys, tmp_path):
     """An output directory is refused unless resumed, and resumed only with the options it
     was run with (else its studies would start afresh beside the old ones); the table says
     how many runs were read back."""
-    from prdp_fem import bench_inverse
+    from prdp_fem.bench import inverse as bench_inverse
 
     seen, directories = [], []
     monkeypatch.setattr(bench_inverse, "prdp_saving", _stand_in_saving(seen, directories))
@@ -612,7 +614,7 @@ def test_an_interrupted_bench_prdp_says_how_to_resume_it(monkeypatch, capsys, tm
     """Ctrl-C in the second instance: the first one's rows are in its study; the message
     gives the command that continues the run (a scene path with a space quoted), and the
     exit code is 130."""
-    from prdp_fem import bench_inverse
+    from prdp_fem.bench import inverse as bench_inverse
 
     seen = []
     stand_in = _stand_in_saving(seen)

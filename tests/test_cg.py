@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.cg import ConvergedCG, TruncatedCG, solve
+from prdp_fem.linalg.cg import ConvergedCG, TruncatedCG, solve
 
 
 def solve_problem(disc, kappa, f, solver, x0=None):
@@ -39,7 +39,7 @@ def test_zero_iterations_return_x0(small_problem):
 
 
 def _count_products(jaxpr) -> int:
-    """Sparse products (the primitive of prdp_fem.products) in a jaxpr, nested ones too."""
+    """Sparse products (the primitive of prdp_fem.linalg._products) in a jaxpr, nested ones too."""
     count = 0
     for eqn in jaxpr.eqns:
         count += eqn.primitive.name == "sparse_product"
@@ -99,8 +99,8 @@ def test_forward_iterates_agree_between_modes(small_problem, k):
 @pytest.mark.parametrize("n_side", [64, 130])  # 3969 and 16641 unknowns: both r.r reductions
 def test_stacked_and_paired_states_take_the_same_iterations(n_side, jacobi):
     # the while loops keep [d, r] stacked in one array, the scan keeps a pair: one iteration
-    from prdp_fem.bench import poisson_operator
-    from prdp_fem.cg import _ROW_REDUCTION_FROM, _init, _krylov, _step
+    from prdp_fem.bench.cg import poisson_operator
+    from prdp_fem.linalg.cg import _ROW_REDUCTION_FROM, _init, _krylov, _step
 
     op, b = poisson_operator(n_side)
     b = jnp.asarray(b)
@@ -145,7 +145,7 @@ def test_a_while_loop_stacks_only_for_the_row_reduction(solver, n_side, stacked)
     """Stacked, a while loop copies the row r out of [d, r] every iteration for its dot
     products (and its norm); that pays off only where r.r is the row reduction of the
     stacked state (the measurements: cg._stacks)."""
-    from prdp_fem.bench import poisson_operator
+    from prdp_fem.bench.cg import poisson_operator
 
     op, b = poisson_operator(n_side)
     b = jnp.asarray(b)
@@ -157,8 +157,8 @@ def test_a_while_loop_stacks_only_for_the_row_reduction(solver, n_side, stacked)
                                     ConvergedCG(rtol=1e-10, preconditioner="identity"),
                                     TruncatedCG(200, gradient="implicit")])
 def test_a_while_loop_takes_the_same_iterates_paired_or_stacked(monkeypatch, solver):
-    from prdp_fem import cg
-    from prdp_fem.bench import poisson_operator
+    from prdp_fem.bench.cg import poisson_operator
+    from prdp_fem.linalg import cg
 
     op, b = poisson_operator(128)
     paired = jax.jit(lambda b: solve(op, b, solver))(jnp.asarray(b))
@@ -672,7 +672,7 @@ def test_the_scaled_norm_is_the_plain_norm_bit_for_bit_where_that_one_is_finite(
     overflows this is ``||v||`` to the last bit, so no iterate moves (a norm rounded otherwise
     sent a fragile inversion down another path); beyond, it is finite and accurate where the
     plain norm gives 0 or inf, up to the largest float64, eagerly and under jit."""
-    from prdp_fem.cg import _norm, _robust_norm
+    from prdp_fem.linalg.cg import _norm, _robust_norm
 
     v = jnp.asarray(np.random.default_rng(0).standard_normal(1000))
     for norm in (_robust_norm, jax.jit(_robust_norm)):

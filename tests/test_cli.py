@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from prdp_fem.cli import main, run
+from prdp_fem.cli.main import main, run
 
 
 def test_forward_study_writes_records(tmp_path, capsys):
@@ -70,7 +70,7 @@ def test_ctrl_c_inside_a_jax_host_callback_counts_as_an_interrupt():
     CLI as a JaxRuntimeError naming KeyboardInterrupt, which must exit 130 like any Ctrl-C."""
     import jax
 
-    from prdp_fem.cli import _is_interrupt
+    from prdp_fem.cli.main import _is_interrupt
     wrapped = jax.errors.JaxRuntimeError(
         "INTERNAL: CpuCallback error calling callback: ... KeyboardInterrupt: ")
     assert _is_interrupt(KeyboardInterrupt()) and _is_interrupt(wrapped)
@@ -126,7 +126,7 @@ def test_the_program_switches_the_compilation_cache_on(tmp_path, monkeypatch, ca
 
     script = ("import jax, prdp_fem\n"
               "before = jax.config.jax_compilation_cache_dir\n"
-              "from prdp_fem.cli import main\n"
+              "from prdp_fem.cli.main import main\n"
               "main(['scenes'])\n"
               "print(repr(before), repr(jax.config.jax_compilation_cache_dir))\n")
     env = {**__import__("os").environ, "PRDP_FEM_COMPILATION_CACHE": str(tmp_path / "c")}

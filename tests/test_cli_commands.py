@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from conftest import SMALL_STUDY as SMALL
 
-from prdp_fem.cli import _Bars, _stop_between_steps, main
+from prdp_fem.cli.main import _Bars, _stop_between_steps, main
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = sorted((ROOT / "meshes").glob("*.msh"))
@@ -28,12 +28,12 @@ ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
 
 
 def cli(*args, cwd=None, timeout=300):
-    return subprocess.run([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", *map(str, args)], cwd=cwd,
                           capture_output=True, text=True, timeout=timeout, env=ENV)
 
 
 def start(*args, cwd=None):
-    return subprocess.Popen([sys.executable, "-m", "prdp_fem.cli", *map(str, args)], cwd=cwd,
+    return subprocess.Popen([sys.executable, "-m", "prdp_fem.cli.main", *map(str, args)], cwd=cwd,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
 
 

@@ -3,8 +3,8 @@ arguments, except where a difference is deliberate and named here."""
 
 import inspect
 
-from prdp_fem.prdp import adaptive_tolerance, converged, fixed, prdp
-from prdp_fem.scene import ADAPTIVE_RTOL_MIN, RefinementSpec
+from prdp_fem.inverse.refinement import adaptive_tolerance, converged, fixed, prdp
+from prdp_fem.scene.spec import ADAPTIVE_RTOL_MIN, RefinementSpec
 
 #: scene key -> (the API's argument, why the scene differs; None: it must not)
 PRDP_KEYS = {

@@ -11,7 +11,7 @@ from conftest import MESH_DIR
 from skfem.helpers import dot, grad
 
 import prdp_fem as pf
-from prdp_fem.sorting import unique_with_inverse
+from prdp_fem._sorting import unique_with_inverse
 
 
 def skfem_reference(disc, kappa):

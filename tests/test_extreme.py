@@ -8,8 +8,8 @@ import pytest
 import scipy.sparse as sp
 
 import prdp_fem as pf
-from prdp_fem.cg import ConvergedCG, Status, TruncatedCG, solve
-from prdp_fem.conditioning import condition_estimate
+from prdp_fem.linalg.cg import ConvergedCG, Status, TruncatedCG, solve
+from prdp_fem.studies.conditioning import condition_estimate
 
 MODES = ("unrolled", "implicit")
 # the unrolled twin of a slow case runs with -m slow; the implicit one in the default suite

@@ -11,17 +11,17 @@ import pytest
 import scipy.sparse as sp
 
 import prdp_fem as pf
-from prdp_fem import build
-from prdp_fem.cg import ConvergedCG, TruncatedCG
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.hig import hig, hig_direction, hig_update, randomized_svd, residual_jacobian
-from prdp_fem.inverse import inverse_problem, invert
-from prdp_fem.observations import full_field, point_sensors, with_noise
-from prdp_fem.prdp import converged
-from prdp_fem.regularizers import regularizer
-from prdp_fem.residuals import square_root_factor
-from prdp_fem.scene import SceneSolverConfigError, parse_scene
-from prdp_fem.taylor import taylor_test
+from prdp_fem.fem.observations import full_field, point_sensors, with_noise
+from prdp_fem.fem.regularizers import regularizer
+from prdp_fem.fem.residuals import square_root_factor
+from prdp_fem.inverse.driver import inverse_problem, invert
+from prdp_fem.inverse.refinement import converged
+from prdp_fem.inverse.taylor import taylor_test
+from prdp_fem.linalg.cg import ConvergedCG, TruncatedCG
+from prdp_fem.optim.hig import hig, hig_direction, hig_update, randomized_svd, residual_jacobian
+from prdp_fem.scene import build
+from prdp_fem.scene.spec import SceneSolverConfigError, parse_scene
 
 
 def _linear_least_squares(m=30, n=12, seed=0):

@@ -11,8 +11,9 @@ _CHILD = """
 import json, sys
 import numpy as np
 import prdp_fem as pf
-import prdp_fem.cli, prdp_fem.study  # what `prdp-fem study` imports before a scene's needs
-from prdp_fem.bench_inverse import solve_mother
+# what `prdp-fem study` imports before a scene's needs
+import prdp_fem.cli.main, prdp_fem.studies.runner
+from prdp_fem.bench.inverse import solve_mother
 
 def loaded():
     return sorted(name for name in ("pyamg", "meshio") if name in sys.modules)

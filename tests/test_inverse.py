@@ -12,15 +12,21 @@ import scipy.sparse.linalg as spla
 from conftest import json_from_a_process, shared_compiles_made
 
 import prdp_fem as pf
-from prdp_fem.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
-from prdp_fem.comparison import settled
 from prdp_fem.errors import PrdpFemError, SolverConfigError
-from prdp_fem.history import History
-from prdp_fem.inverse import InversionError, Validation, _step_failed, inverse_problem, invert
-from prdp_fem.observations import boundary_values, full_field, point_sensors, with_noise
-from prdp_fem.parameter_choice import l_curve, morozov
-from prdp_fem.prdp import converged, fixed, prdp
-from prdp_fem.regularizers import regularizer
+from prdp_fem.fem.observations import boundary_values, full_field, point_sensors, with_noise
+from prdp_fem.fem.regularizers import regularizer
+from prdp_fem.inverse.comparison import settled
+from prdp_fem.inverse.driver import (
+    InversionError,
+    Validation,
+    _step_failed,
+    inverse_problem,
+    invert,
+)
+from prdp_fem.inverse.history import History
+from prdp_fem.inverse.parameter_choice import l_curve, morozov
+from prdp_fem.inverse.refinement import converged, fixed, prdp
+from prdp_fem.linalg.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
 
 
 def _coefficient_problem(n=10, kappa_space="P1", noise=0.0, alpha=1e-6, reg="h1",
@@ -243,7 +249,7 @@ def test_invert_reaches_the_discrete_optimum_and_records_costs():
 def test_a_controller_written_with_jnp_runs_in_the_host_loop():
     """invert updates its controller eagerly on the host state; a user's controller written
     with jnp (device arrays from its first update on) steers the same run as the NumPy one."""
-    from prdp_fem.prdp import Refinement
+    from prdp_fem.inverse.refinement import Refinement
 
     _disc, problem = _source_problem(n=6)
     base = prdp(K0=2, dK=3, tau_step=0.5, tau_stop=0.99)
@@ -307,8 +313,8 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
     """When K changes, the line search's stored value and gradient belong to the old solver:
     invert marks them stale (inf), so the next step's loss is the new solver's, and the
     line search knows the objective changed (pf.scale_by_zoom_linesearch's restart)."""
-    from prdp_fem.inverse import Objective
-    from prdp_fem.prdp import Refinement
+    from prdp_fem.inverse.driver import Objective
+    from prdp_fem.inverse.refinement import Refinement
 
     _disc, problem = _coefficient_problem(n=8, alpha=1e-6)
     base = fixed(2, 2)
@@ -333,7 +339,7 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
 
 def _step_programs_made(monkeypatch) -> list:
     """The step programs (SharedCompile with a static scan length) built from now on."""
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     inverse._step_program.cache_clear()
     return shared_compiles_made(monkeypatch)
@@ -389,7 +395,7 @@ def test_a_step_traces_its_objective_once(monkeypatch):
     """The stored value's check and both branches of the zoom search's step evaluate
     ``value_and_grad``: one nested program, traced once (three traces before), with the
     same losses."""
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     reference = invert(problem, refinement=fixed(8), steps=3)
@@ -408,7 +414,7 @@ def test_a_step_traces_its_objective_once(monkeypatch):
 
 def _compiled_step_host_calls(problem, optimizer) -> int:
     """The host calls (the tally's, one per CG solve) in a compiled implicit-mode step."""
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     optimizer = optax.with_extra_args_support(optimizer)
     z = jnp.zeros(problem.n_parameters)
@@ -426,7 +432,7 @@ def test_an_l_bfgs_step_holds_its_objective_once(monkeypatch):
     a non-finite value), so the compiled step holds the objective -- a CG solve and its
     adjoint, each compiled anew where it appears -- once: as many host calls as one
     ``value_and_grad``, where the evaluation before the update held it twice."""
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     solver = TruncatedCG(8, "jacobi", gradient="implicit", adjoint_iterations=8)
@@ -446,7 +452,7 @@ def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(mon
     """A PRDP run that refines K (the stored value goes stale) gives the same losses, to
     round-off (the objective is compiled in another place), evaluations and iterations with
     the value refreshed by the search as with an evaluation before the update."""
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     refreshed = invert(problem, refinement=prdp(), steps=30).history
@@ -548,7 +554,7 @@ def test_non_finite_parameters_raise_with_the_step():
 
 
 def test_settled_ignores_pass_throughs():
-    from prdp_fem.history import StepRecord
+    from prdp_fem.inverse.history import StepRecord
     errors = [1.0, 0.5, 0.2, 0.31, 0.298, 0.301, 0.3]
     records = [StepRecord(i + 1, 1, 1, 0.0, 0, 0, 0, 0, 0, float(i), 0.0, 0.0, 0.0, e,
                           math.nan) for i, e in enumerate(errors)]

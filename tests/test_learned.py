@@ -13,10 +13,10 @@ from conftest import shared_compiles_made
 from skfem.models.poisson import laplace
 
 import prdp_fem as pf
-from prdp_fem import learned
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.learned import EpochRecord
-from prdp_fem.prdp import converged, fixed, prdp
+from prdp_fem.inverse.refinement import converged, fixed, prdp
+from prdp_fem.learning import learned
+from prdp_fem.learning.learned import EpochRecord
 
 
 @pytest.fixture(scope="module")
@@ -329,9 +329,9 @@ def test_full_batch_optimisers_lower_the_validation_misfit(tiny, name):
 @pytest.mark.slow  # the refresh is checked on inversions (test_inverse) in the default suite
 def test_an_l_bfgs_training_refreshes_its_stale_value_in_the_search(tiny, monkeypatch):
     """``pf.lbfgs`` trains through the step that holds the objective once (its search
-    refreshes the value at a step's start, see ``prdp_fem.inverse``): the same losses to
+    refreshes the value at a step's start, see ``prdp_fem.inverse.driver``): the same losses to
     round-off and the same tally as with an evaluation before the update."""
-    from prdp_fem import inverse
+    from prdp_fem.inverse import driver as inverse
 
     problem, train_set, validation_set, network = tiny
 

@@ -1,4 +1,4 @@
-"""The zoom line search that gives up on a contradicted gradient (prdp_fem.linesearch).
+"""The zoom line search that gives up on a contradicted gradient (prdp_fem.optim.linesearch).
 
 Where the gradient is right it must take optax's steps exactly; where the values rise against
 the gradient's slope it must stop after three trials with a failure optax's state reports.
@@ -15,8 +15,8 @@ import optax.tree_utils as otu
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.inverse import _step_failed
-from prdp_fem.linesearch import Contradiction, ZoomSearchState, _nothing_seen, _watch
+from prdp_fem.inverse.driver import _step_failed
+from prdp_fem.optim.linesearch import Contradiction, ZoomSearchState, _nothing_seen, _watch
 
 
 def _rosenbrock(z):

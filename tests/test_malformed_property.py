@@ -10,7 +10,7 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from prdp_fem.cli import main
+from prdp_fem.cli.main import main
 
 BASE_SCENE = {
     "name": "p",

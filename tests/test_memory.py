@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem import bench_memory
-from prdp_fem.bench_memory import (
+from prdp_fem.bench import memory as bench_memory
+from prdp_fem.bench.memory import (
     REUSE_ENVIRONMENT,
     _gradient_problem,
     child_environment,
     memory_cost,
 )
-from prdp_fem.cg import TruncatedCG, _scan_iterations, segment_length, solve
-from prdp_fem.cli import main
+from prdp_fem.cli.main import main
+from prdp_fem.linalg.cg import TruncatedCG, _scan_iterations, segment_length, solve
 
 # ------------------------------------------------------------------------------------------
 # the segmented scan is the plain scan

@@ -10,7 +10,7 @@ import skfem
 from conftest import MESH_DIR, SHIPPED_MESHES
 
 import prdp_fem as pf
-from prdp_fem.mesh import _build_facets, _distinct_columns, save_mesh, with_names
+from prdp_fem.mesh.io import _build_facets, _distinct_columns, save_mesh, with_names
 
 EXPECTED_TAGS = {
     "square_tri.msh": ("MeshTri1", {"left", "right", "bottom", "top"}),
@@ -203,7 +203,7 @@ def test_tagged_node_sets_are_found_among_the_facets_in_any_node_order():
                              axis=1).astype(np.int64)
         where = {frozenset(row): i for i, row in enumerate(reference.tolist())}
         expected = [where.get(frozenset(row), -1) for row in query.tolist()]
-        got = pf.mesh._match_rows(reference.astype(np.int32), query)
+        got = pf.mesh.io._match_rows(reference.astype(np.int32), query)
         assert got.tolist() == expected and -1 in expected and len(set(expected)) > 20
 
 
@@ -389,7 +389,7 @@ def test_errors_are_value_errors_with_source_and_problem(tmp_path):
 
 
 def test_refining_a_tetrahedral_mesh_keeps_its_named_boundaries(caplog):
-    from prdp_fem.mesh import refine
+    from prdp_fem.mesh.io import refine
     coarse = pf.load_mesh(MESH_DIR / "cube_tet.msh")
     fine = refine(coarse, 2)
     assert "invalidated" not in caplog.text

@@ -1,4 +1,5 @@
-"""Newton-CG and Gauss-Newton (prdp_fem.newton): against dense solves, closed forms and hIPPYlib."""
+"""Newton-CG and Gauss-Newton (prdp_fem.optim.newton): against dense solves, closed forms and
+hIPPYlib."""
 
 import math
 
@@ -9,11 +10,11 @@ import optax
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.cg import ConvergedCG
-from prdp_fem.inverse import inverse_problem, invert
-from prdp_fem.newton import gauss_newton, newton_cg
-from prdp_fem.observations import full_field, point_sensors, with_noise
-from prdp_fem.prdp import converged
+from prdp_fem.fem.observations import full_field, point_sensors, with_noise
+from prdp_fem.inverse.driver import inverse_problem, invert
+from prdp_fem.inverse.refinement import converged
+from prdp_fem.linalg.cg import ConvergedCG
+from prdp_fem.optim.newton import gauss_newton, newton_cg
 
 
 def update(optimizer, state, z, fn, **extra):
@@ -299,7 +300,7 @@ def test_newton_cg_on_the_hippylib_problem_at_16(load_example):
 
 
 def newton_scene(**optimizer):
-    from prdp_fem.scene import parse_scene
+    from prdp_fem.scene.spec import parse_scene
     return parse_scene({"mesh": {"n": 4},
                         "inverse": {"unknown": "source", "truth": "x*y", "alpha": 1e-4,
                                     "regularization": "h1"},
@@ -308,7 +309,7 @@ def newton_scene(**optimizer):
 
 
 def test_scene_selects_newton_and_its_options():
-    from prdp_fem import build
+    from prdp_fem.scene import build
     scene = newton_scene(name="gauss_newton", steps=1, max_cg=300, forcing=1e-12,
                          c1=1e-3, max_backtracking=4, gradient_rtol=1e-8)
     spec = scene.optimizer
@@ -336,6 +337,6 @@ def test_scene_selects_newton_and_its_options():
     ("gradient_rtol", -1e-3, "optimizer.gradient_rtol = -0.001"),
 ])
 def test_scene_rejects_bad_newton_options(key, value, expected):
-    from prdp_fem.scene import SceneSolverConfigError
+    from prdp_fem.scene.spec import SceneSolverConfigError
     with pytest.raises(SceneSolverConfigError, match=expected):
         newton_scene(**{"name": "newton_cg", key: value})

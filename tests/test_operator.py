@@ -217,7 +217,7 @@ def test_the_ell_layout_is_its_definition(n, n_cols, square, entries, hub, wide)
     entries in every row: rounded up to whole 32-slot chunks, and past 64 filled by a
     scatter instead of slot by slot); each build must place every entry where the
     row-by-row reading does, in the same order, at the width of the cost model."""
-    from prdp_fem.operator import _host_ell_layout
+    from prdp_fem.linalg.operator import _host_ell_layout
     n_cols = n if square else n_cols
     entries = sorted([(i % n, j % n_cols) for i, j in entries]
                      + [(0, k % n_cols) for k in range(hub)]
@@ -321,7 +321,7 @@ def test_rectangular_ell_has_no_diagonal_and_multiplies_right(shape):
 def test_a_kernel_prepared_on_the_host_is_the_device_kernel_of_its_layout(shape):
     """host_prepared (AMG levels, FixedMatrix) skips the device round trip of
     prepare_on_host(from_scipy(...)): the same arrays, in NumPy, the same product."""
-    from prdp_fem.operator import host_prepared, prepare_on_host
+    from prdp_fem.linalg.operator import host_prepared, prepare_on_host
     matrix = sp.random(*shape, density=0.3, random_state=4, format="csr")
     matrix.setdiag(np.arange(1.0, min(shape) + 1))  # a diagonal, as A_l has
     kernel = host_prepared(matrix)

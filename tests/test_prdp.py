@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.prdp import (
+from prdp_fem.inverse.refinement import (
     Schedule,
     converged,
     fixed,

@@ -14,16 +14,16 @@ import pytest
 from conftest import SMALL_STUDY
 
 import prdp_fem as pf
-from prdp_fem.atomic import atomic_path
+from prdp_fem._atomic import atomic_path
+from prdp_fem._lock import directory_lock
 from prdp_fem.errors import OutputLockedError, SceneError, ShapeError
-from prdp_fem.lock import directory_lock
-from prdp_fem.scene import parse_scene
+from prdp_fem.scene.spec import parse_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-c", "from prdp_fem.cli import run; run()",
+    return subprocess.run([sys.executable, "-c", "from prdp_fem.cli.main import run; run()",
                            *map(str, args)], capture_output=True, text=True, timeout=300,
                           cwd=cwd, env={**os.environ, "PYTHONPATH": str(ROOT)})
 
@@ -32,7 +32,7 @@ def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path, capsys):
     """This process holds the directory; a study in another process exits 2 at once, in one
     line naming the directory and this pid, and writes nothing there. (flock locks belong to
     open files, not processes: the same command run in this process is refused alike.)"""
-    from prdp_fem.cli import main
+    from prdp_fem.cli.main import main
     scene = tmp_path / "small.toml"
     scene.write_text(SMALL_STUDY.replace("STEPS", "3"))
     out = tmp_path / "out"
@@ -59,7 +59,7 @@ def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path, capsys):
 
 def test_the_lock_is_released_when_its_holder_is_killed(tmp_path):
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from prdp_fem.lock import directory_lock\n"
+        [sys.executable, "-c", "import sys, time; from prdp_fem._lock import directory_lock\n"
          f"with directory_lock({str(tmp_path)!r}):\n print('held', flush=True); time.sleep(60)"],
         stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:
@@ -122,7 +122,7 @@ def test_rhs_refuses_a_source_of_the_wrong_length(small_problem, frozen):
 def test_formula_depth_is_bounded_exactly_at_the_documented_limit():
     import numpy as np
 
-    from prdp_fem.expressions import MAX_FORMULA_DEPTH, FormulaTooLargeError, compile_field
+    from prdp_fem.scene.expressions import MAX_FORMULA_DEPTH, FormulaTooLargeError, compile_field
 
     deepest = "+" * MAX_FORMULA_DEPTH + "x"
     assert compile_field(deepest, where="t: f")(np.full((2, 3), 2.0)).tolist() == [2.0] * 3
@@ -141,7 +141,7 @@ def test_formula_depth_is_bounded_exactly_at_the_documented_limit():
     ("(" * 300 + "x" + ")" * 300, "too many nested parentheses")])
 def test_huge_formulas_raise_a_typed_error_not_recursion_or_memory(text, found):
     from prdp_fem.errors import ResourceLimitError
-    from prdp_fem.expressions import ExpressionError
+    from prdp_fem.scene.expressions import ExpressionError
 
     with pytest.raises(ResourceLimitError) as caught:
         parse_scene({"pde": {"source": text}}, source="s.toml")
@@ -152,7 +152,7 @@ def test_huge_formulas_raise_a_typed_error_not_recursion_or_memory(text, found):
 
 
 def test_an_unexpected_error_is_one_line_exit_2_and_debug_shows_it(monkeypatch, capsys):
-    from prdp_fem import cli
+    from prdp_fem.cli import main as cli
 
     def broken(args):
         raise RecursionError("maximum recursion depth exceeded\nsecond line")
@@ -182,9 +182,9 @@ def test_an_unexpected_error_is_one_line_exit_2_and_debug_shows_it(monkeypatch, 
 def test_a_mesh_files_refinement_is_estimated_on_the_file_before_refining(tmp_path,
                                                                          monkeypatch):
     import prdp_fem as pf
-    from prdp_fem.build import build_mesh
     from prdp_fem.errors import ResourceLimitError
-    from prdp_fem.scene import load_scene, max_dofs
+    from prdp_fem.scene.build import build_mesh
+    from prdp_fem.scene.spec import load_scene, max_dofs
 
     pf.save_mesh(pf.unit_square(2), tmp_path / "m.msh")  # 9 vertices
     (tmp_path / "s.toml").write_text('[mesh]\nfile = "m.msh"\nrefine = 4\n')
@@ -203,7 +203,7 @@ def test_a_mesh_files_refinement_is_estimated_on_the_file_before_refining(tmp_pa
 
 
 def test_second_order_elements_count_in_the_estimate(monkeypatch):
-    from prdp_fem.scene import SceneResourceLimitError
+    from prdp_fem.scene.spec import SceneResourceLimitError
 
     monkeypatch.setenv("PRDP_FEM_MAX_DOFS", "500")
     parse_scene({"mesh": {"n": 20}})  # 441 vertices, P1
@@ -237,7 +237,7 @@ def test_a_full_disk_in_the_results_log_names_it(tmp_path, monkeypatch):
     import errno
 
     from prdp_fem.errors import OutputError
-    from prdp_fem.study import ResultsLog
+    from prdp_fem.studies.runner import ResultsLog
 
     log = ResultsLog(tmp_path / "results.jsonl")
     log.append({"type": "step", "run": "a"})
@@ -269,8 +269,9 @@ def test_a_full_disk_in_the_results_log_names_it(tmp_path, monkeypatch):
 def test_a_failed_pyamg_reference_is_reported_as_such(tmp_path, monkeypatch, capsys):
     import numpy as np
 
-    from prdp_fem import build, cli
-    from prdp_fem.reference import ReferenceSolution
+    from prdp_fem.cli import main as cli
+    from prdp_fem.fem.reference import ReferenceSolution
+    from prdp_fem.scene import build
 
     (tmp_path / "s.toml").write_text('name = "s"\n[mesh]\nn = 4\n')
     monkeypatch.chdir(tmp_path)
@@ -289,7 +290,7 @@ def test_a_failed_pyamg_reference_is_reported_as_such(tmp_path, monkeypatch, cap
 
 
 def test_a_rejected_scene_leaves_no_output_directory(tmp_path, capsys):
-    from prdp_fem import cli
+    from prdp_fem.cli import main as cli
 
     (tmp_path / "bad.toml").write_text(SMALL_STUDY.replace("STEPS", "2").replace(
         "[mesh]", '[pde]\ndirichlet = { nowhere = 0.0 }\n[mesh]'))
@@ -337,8 +338,8 @@ def test_load_mesh_of_a_number_is_a_typed_error():
 def test_tracers_where_host_values_are_needed_raise_a_typed_error():
     import prdp_fem as pf
     from prdp_fem.errors import TracerError
-    from prdp_fem.inverse import inverse_problem, invert
-    from prdp_fem.observations import full_field
+    from prdp_fem.fem.observations import full_field
+    from prdp_fem.inverse.driver import inverse_problem, invert
 
     disc = pf.discretize(pf.unit_square(3))
     for method in (disc.interpolate, disc.interpolate_kappa, disc.project):
@@ -354,7 +355,7 @@ def test_coordinates_too_large_for_cell_measures_are_named(tmp_path):
     import warnings
 
     import prdp_fem as pf
-    from prdp_fem.mesh import MAX_COORDINATE
+    from prdp_fem.mesh.io import MAX_COORDINATE
 
     points = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
     cells = np.array([[0, 1, 2], [0, 2, 3]])
@@ -370,7 +371,7 @@ def test_coordinates_too_large_for_cell_measures_are_named(tmp_path):
 
 def test_max_dofs_holds_for_the_command_and_leaves_the_callers_environment(monkeypatch,
                                                                           tmp_path, capsys):
-    from prdp_fem.cli import main
+    from prdp_fem.cli.main import main
     monkeypatch.setenv("PRDP_FEM_MAX_DOFS", "777")
     scene = tmp_path / "big.toml"
     scene.write_text("[mesh]\nn = 40\n")  # about 1.7e3 dofs

@@ -9,9 +9,9 @@ import optax
 import pytest
 
 import prdp_fem as pf
-from prdp_fem import build
-from prdp_fem.expressions import ExpressionError, compile_field
-from prdp_fem.scene import (
+from prdp_fem.scene import build
+from prdp_fem.scene.expressions import ExpressionError, compile_field
+from prdp_fem.scene.spec import (
     BUILTIN_SCENES,
     SceneError,
     builtin_scene_path,
@@ -67,8 +67,8 @@ def test_defaults_are_documented_values():
 def test_first_step_reaches_the_line_search():
     """`[optimizer] first_step = "polyak"` builds L-BFGS whose first search takes J / |s_0|
     in one evaluation; the scene reader knows the same choices as the line search."""
-    from prdp_fem.linesearch import FIRST_STEPS
-    from prdp_fem.scene import _FIRST_STEPS
+    from prdp_fem.optim.linesearch import FIRST_STEPS
+    from prdp_fem.scene.spec import _FIRST_STEPS
     assert _FIRST_STEPS == FIRST_STEPS
 
     def fn(z):
@@ -138,10 +138,10 @@ def test_ema_window_default_follows_the_monitored_signal(table, window):
     plateau = [1.0, 0.5, 0.25, 0.125] + [0.125] * 20
     built = _refinement_step(build.controller(scene), plateau)
     spec = scene.refinement
-    reference = _refinement_step(pf.prdp.prdp(spec.K0, spec.dK, restart=spec.restart,
+    reference = _refinement_step(pf.inverse.prdp(spec.K0, spec.dK, restart=spec.restart,
                                               ema_window=window), plateau)
     assert built == reference
-    assert (built, _refinement_step(pf.prdp.prdp(spec.K0, spec.dK, restart=spec.restart),
+    assert (built, _refinement_step(pf.inverse.prdp(spec.K0, spec.dK, restart=spec.restart),
                                     plateau)) == ((10, 19) if window == 2 else (19, 19))
 
 
@@ -209,7 +209,7 @@ def test_a_study_begun_under_the_old_window_does_not_resume_into_the_new_one(tmp
                  parse_scene({**INVERSE, "optimizer": {"name": "adam"}})):
         assert kept.fingerprint == _table_only_fingerprint(kept)
     # the study refuses a directory whose manifest has the old fingerprint
-    from prdp_fem import study
+    from prdp_fem.studies import runner as study
     small = parse_scene({**INVERSE, "mesh": {"n": 4}, "optimizer": {"steps": 1},
                          "refinement": {"K0": 2, "dK": 2}})
     out = tmp_path / "study"
@@ -379,7 +379,7 @@ def test_forward_solve_builds_no_mass_matrix_amg_reference_or_adjoint(no_amg):
 @pytest.fixture
 def no_kappa_map(monkeypatch):
     """Building the map kappa -> A (Discretization.system, stiffness_matrix) raises."""
-    from prdp_fem import discretization
+    from prdp_fem.fem import discretization
 
     def forbidden(*args, **kwargs):
         raise AssertionError("the map kappa -> A was built")
@@ -391,9 +391,9 @@ def test_scenes_with_a_fixed_kappa_build_no_kappa_map(no_kappa_map, tmp_path):
     """Source inversions (data synthetic from the truth, or given), learned inverses, the heat
     problem, forward and h-studies never change kappa: they assemble at it and never build G
     (an inversion reads only its problem)."""
-    from prdp_fem.heat import heat_problem
-    from prdp_fem.learned import learned_inverse
-    from prdp_fem.study import run_study
+    from prdp_fem.learning.heat import heat_problem
+    from prdp_fem.learning.learned import learned_inverse
+    from prdp_fem.studies.runner import run_study
 
     source = {"mesh": {"n": 6}, "pde": {"kappa": "1 + x"},
               "inverse": {"truth": "sin(pi*x)*sin(pi*y)", "alpha": 1e-4,
@@ -425,7 +425,7 @@ def test_forward_solve_reference_uses_pyamg_only_when_asked():
 
 
 def test_inverse_study_with_jacobi_builds_no_amg(no_amg, tmp_path):
-    from prdp_fem.study import run_study
+    from prdp_fem.studies.runner import run_study
 
     scene = parse_scene({
         "mesh": {"n": 6}, "inverse": {"truth": "sin(pi*x)*sin(pi*y)", "alpha": 1e-4},
@@ -435,7 +435,7 @@ def test_inverse_study_with_jacobi_builds_no_amg(no_amg, tmp_path):
 
 
 def test_an_amg_scene_solves_forward_and_rebuilds_during_an_inversion(tmp_path):
-    from prdp_fem.study import ResultsLog, run_study
+    from prdp_fem.studies.runner import ResultsLog, run_study
 
     table = {"mesh": {"n": 8},
              "inverse": {"unknown": "log_kappa", "truth": "0.5*sin(pi*x)*y", "alpha": 1e-6},

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
-from prdp_fem import stability
-from prdp_fem.cli import main
-from prdp_fem.stability import CaseResult, format_markdown, run_case, suite_passed
-from prdp_fem.stability_cases import CASES, case_named
+from prdp_fem.cli.main import main
+from prdp_fem.studies import stability
+from prdp_fem.studies.stability import CaseResult, format_markdown, run_case, suite_passed
+from prdp_fem.studies.stability_cases import CASES, case_named
 
 FAST = [case for case in CASES if case.fast]
 

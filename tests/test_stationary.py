@@ -10,10 +10,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
 import prdp_fem as pf
-from prdp_fem.cg import Status, solve
 from prdp_fem.errors import DataError, SolverBreakdownError, SolverConfigError
-from prdp_fem.operator import SparseMatrix
-from prdp_fem.stationary import TruncatedJacobi
+from prdp_fem.linalg.cg import Status, solve
+from prdp_fem.linalg.operator import SparseMatrix
+from prdp_fem.linalg.stationary import TruncatedJacobi
 
 N = 12
 
@@ -336,4 +336,4 @@ def test_bad_shapes():
 
 def test_exported():
     assert "TruncatedJacobi" in pf.__all__ and pf.TruncatedJacobi is TruncatedJacobi
-    assert pf.jacobi_solve is pf.stationary.jacobi_solve
+    assert pf.jacobi_solve is pf.linalg.stationary.jacobi_solve

@@ -11,10 +11,10 @@ import pytest
 from conftest import SMALL_STUDY, resume_after_losing_done
 
 import prdp_fem as pf
-from prdp_fem import study as study_module
-from prdp_fem.build import build_inverse, invert_options
-from prdp_fem.scene import load_scene, parse_scene, with_overrides
-from prdp_fem.study import ResultsLog, StudyError, run_study
+from prdp_fem.scene.build import build_inverse, invert_options
+from prdp_fem.scene.spec import load_scene, parse_scene, with_overrides
+from prdp_fem.studies import runner as study_module
+from prdp_fem.studies.runner import ResultsLog, StudyError, run_study
 
 
 @pytest.fixture
@@ -205,8 +205,8 @@ learned = { batch_size = 8 }
 
 @pytest.mark.slow  # records and resume are checked on the inverse study
 def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, monkeypatch):
-    from prdp_fem.build import build_learned, train_options
-    from prdp_fem.learned import train
+    from prdp_fem.learning.learned import train
+    from prdp_fem.scene.build import build_learned, train_options
 
     path = tmp_path / "learned.toml"
     path.write_text(TINY_LEARNED)
@@ -259,7 +259,7 @@ SCENES = Path(__file__).resolve().parent.parent / "examples" / "scenes"
 def _tiny_inverse_error(variant, n: int | None = 8) -> tuple[float, pf.History]:
     """The run for 3 steps on an ``n x n`` mesh (``None``: the scene's): the initial field's
     error and the history."""
-    from prdp_fem.inverse import _initial_params
+    from prdp_fem.inverse.driver import _initial_params
 
     variant = with_overrides(variant, {"optimizer": {"steps": 3}})
     if n is not None:
@@ -303,8 +303,8 @@ def test_optimizer_scene_second_order_runs_lower_the_error():
 
 @pytest.mark.slow  # about a minute: six trainings, each compiled
 def test_learned_scene_runs_each_lower_the_validation_misfit():
-    from prdp_fem.build import build_learned, train_options
-    from prdp_fem.learned import train, validation
+    from prdp_fem.learning.learned import train, validation
+    from prdp_fem.scene.build import build_learned, train_options
 
     scene = load_scene(SCENES / "learned.toml")
     for run, variant in scene.runs():

@@ -17,16 +17,18 @@ import optax
 import pytest
 
 import prdp_fem as pf
-from prdp_fem import cg, executables, reduced
-from prdp_fem.bench_inverse import mother_problem
-from prdp_fem.inverse import invert
-from prdp_fem.prdp import fixed
-from prdp_fem.xla_options import (
+from prdp_fem import _executables as executables
+from prdp_fem._xla_options import (
     CLASSIC_EMITTERS,
     applies_amg_cycle,
     compiler_options,
     solver_options,
 )
+from prdp_fem.bench.inverse import mother_problem
+from prdp_fem.inverse import reduced
+from prdp_fem.inverse.driver import invert
+from prdp_fem.inverse.refinement import fixed
+from prdp_fem.linalg import cg
 
 
 @pytest.fixture
@@ -83,7 +85,7 @@ def test_the_caller_s_xla_flags_choose_the_emitters_for_every_program(poisson, m
 
 def test_an_xla_without_the_option_keeps_its_own_emitters(poisson, monkeypatch,
                                                           emitters_left_to_the_package):
-    from prdp_fem import xla_options
+    from prdp_fem import _xla_options as xla_options
 
     disc, kappa, _, _ = poisson
     jacobi = _gradient_jaxpr(disc, kappa, pf.TruncatedCG(5, "jacobi"))
@@ -142,7 +144,8 @@ _BUILT = """
 import json, jax, jax.numpy as jnp
 import numpy as np
 import prdp_fem as pf
-from prdp_fem import cg, executables
+from prdp_fem.linalg import cg
+from prdp_fem import _executables as executables
 index = np.array([0, 2, 2, 1])
 step = executables.SharedCompile(jax.grad(lambda x: jnp.sum(x[index] ** 2)))
 gradient = step(jnp.arange(3.0))

@@ -1,0 +1,3 @@
+"""Benchmarks behind ``prdp-fem bench`` (never timed assertions in tests).
+"""
+

@@ -1,0 +1,3 @@
+"""The ``prdp-fem`` command line.
+"""
+

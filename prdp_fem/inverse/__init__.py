@@ -1,0 +1,69 @@
+"""Inverse problems: the driver (:func:`invert`), refinement controllers (PRDP, fixed K,
+converged, adaptive tolerance), the reduced-Hessian CG, histories, savings and gradient checks.
+"""
+
+from .comparison import ComparisonRow, compare, first_settled, format_table, settled
+from .descent import DescentCheck, IterateRecorder, descent_check
+from .driver import (
+    InverseProblem,
+    Inversion,
+    InversionError,
+    Objective,
+    Validation,
+    initial_params,
+    inverse_problem,
+    invert,
+)
+from .history import History, StepRecord
+from .parameter_choice import AlphaChoice, l_curve, morozov
+from .reduced import ReducedCG, homogeneous, reduced_cg
+from .refinement import (
+    Refinement,
+    RefinementState,
+    Schedule,
+    adaptive_tolerance,
+    converged,
+    fixed,
+    prdp,
+    state_from_dict,
+    state_to_dict,
+)
+from .taylor import TaylorResult, taylor_test
+
+__all__ = [
+    "AlphaChoice",
+    "ComparisonRow",
+    "DescentCheck",
+    "History",
+    "InverseProblem",
+    "Inversion",
+    "InversionError",
+    "IterateRecorder",
+    "Objective",
+    "ReducedCG",
+    "Refinement",
+    "RefinementState",
+    "Schedule",
+    "StepRecord",
+    "TaylorResult",
+    "Validation",
+    "adaptive_tolerance",
+    "compare",
+    "converged",
+    "descent_check",
+    "first_settled",
+    "fixed",
+    "format_table",
+    "homogeneous",
+    "initial_params",
+    "inverse_problem",
+    "invert",
+    "l_curve",
+    "morozov",
+    "prdp",
+    "reduced_cg",
+    "settled",
+    "state_from_dict",
+    "state_to_dict",
+    "taylor_test",
+]

@@ -1,0 +1,835 @@
+r"""Inverse problems through truncated solves, and the optimisation loop that refines them.
+
+.. math::
+
+    \min_z\; J(z) = \tfrac12 \|B u(z) - d\|_W^2 + \alpha R(\mathrm{field}(z)),
+    \qquad A(\kappa) u = b(\kappa, f),
+
+with ``(kappa, f)`` from :class:`~prdp_fem.fem.parameters.Parameterization` (a source or a
+log-coefficient), ``u`` from truncated PCG (:mod:`prdp_fem.linalg.cg`), an
+:class:`~prdp_fem.fem.Observation` and a :class:`~prdp_fem.fem.Regularizer`.
+
+:func:`invert` runs any optax ``GradientTransformation`` (L-BFGS with its zoom line search by
+default) while a refinement controller (:mod:`prdp_fem.inverse.refinement`) picks the CG iterations
+of every
+step, and records a :class:`~prdp_fem.inverse.history.History`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from functools import cached_property, lru_cache, partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optax.tree_utils as otu
+
+from .._checks import finite_vector, host_values
+from .._executables import SharedCompile, kept_programs
+from .._transfer import as_jax
+from ..errors import (
+    CoefficientError,
+    DataError,
+    DiscretizationError,
+    PrdpFemError,
+    ShapeError,
+    SolverConfigError,
+)
+from ..fem.discretization import Discretization
+from ..fem.observations import Observation
+from ..fem.parameters import Parameterization, parameter_basis, parameter_mass
+from ..fem.reference import amg_solve
+from ..fem.regularizers import Regularizer, regularizer
+from ..fem.residuals import ResidualFactors, residual_factors
+from ..fem.system import LinearSystem
+from ..linalg.amg import AMGCycle, RebuiltAMG
+from ..linalg.cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, unrolled_length
+from ..linalg.operator import SparseMatrix, matvec
+from ..optim.linesearch import ZoomSearchState, lbfgs
+from .history import History, StepRecord
+from .refinement import Refinement, RefinementState, prdp
+
+__all__ = [
+    "InverseProblem",
+    "Inversion",
+    "InversionError",
+    "Objective",
+    "Validation",
+    "initial_params",
+    "inverse_problem",
+    "invert",
+]
+
+
+class InversionError(PrdpFemError):
+    """An optimisation produced non-finite parameters (names the step and the solver)."""
+
+
+class LossParts(NamedTuple):
+    misfit: jax.Array
+    regularization: jax.Array
+    solution: Solution
+
+
+@partial(jax.tree_util.register_dataclass,
+         data_fields=["system", "observation", "regularizer", "alpha", "known", "truth",
+                      "parameter_mass", "residual_factors"],
+         meta_fields=["parameterization"])
+@dataclasses.dataclass(frozen=True)
+class InverseProblem:
+    """Everything the objective needs, as a pytree (pass it to jitted code as an argument).
+
+    ``known`` is the other coefficient: ``f`` (nodal in the solution space) when log-kappa is
+    unknown. When the source is, ``kappa`` never changes, and :func:`inverse_problem` freezes
+    the system at it (:meth:`~prdp_fem.fem.discretization.Discretization.system_at`): ``known``
+    is then that system's one coefficient, the scale ``ones(1)`` (to differentiate in
+    ``kappa``, or to change it, use ``dataclasses.replace(problem, system=disc.system,
+    known=kappa)``). ``truth`` is the parameter *field* to measure errors against (``None``
+    when unknown). ``alpha`` is a leaf: sweeping it does not recompile.
+    ``residual_factors`` (:mod:`prdp_fem.fem.residuals`, from :meth:`with_residual`) let
+    :meth:`residual` write ``J`` as a sum of squares for Gauss-Newton-type optimisers.
+    """
+
+    system: LinearSystem
+    parameterization: Parameterization
+    observation: Observation
+    regularizer: Regularizer
+    alpha: jax.Array
+    known: jax.Array  # f, or a source inversion's system scale ones(1) (see above)
+    truth: jax.Array | None
+    parameter_mass: SparseMatrix
+    residual_factors: ResidualFactors | None = None
+
+    @property
+    def n_parameters(self) -> int:
+        return int(self.regularizer.reference.shape[0])
+
+    def with_alpha(self, alpha: float) -> InverseProblem:
+        return dataclasses.replace(self, alpha=jnp.asarray(float(alpha)))
+
+    def field(self, z: jax.Array) -> jax.Array:
+        return self.parameterization.field(z)
+
+    def state(self, z: jax.Array, solver, x0: jax.Array | None = None,
+              counter: IterationCounter | None = None) -> Solution:
+        """The (truncated) solve at ``z``; ``Solution.x`` on the free dofs."""
+        kappa, f = self.parameterization.coefficients(z, self.known)
+        return self.system.solve(kappa, f, solver, x0, counter=counter)
+
+    def loss(self, z: jax.Array, solver, x0: jax.Array | None = None,
+             counter: IterationCounter | None = None) -> tuple[jax.Array, LossParts]:
+        """``J(z)`` and its parts (misfit, alpha R, the solve's diagnostics)."""
+        sol = self.state(z, solver, x0, counter)
+        misfit = self.observation.misfit(self.system.expand(sol.x))
+        reg = self.alpha * self.regularizer(self.field(z))
+        return misfit + reg, LossParts(misfit, reg, sol)
+
+    def gauss_newton_operator(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                              counter: IterationCounter | None = None
+                              ) -> Callable[[jax.Array], jax.Array]:
+        r"""``v -> H_GN v``, the Gauss-Newton Hessian of ``J`` at ``z``, linearised once.
+
+        .. math::
+
+            H_{GN} v = J_r^\top W J_r v + \nabla^2 (\alpha R \circ \mathrm{field})(z)\, v,
+            \qquad J_r = \frac{\partial\, B u(z)}{\partial z},
+
+        the misfit's second-order (state curvature) term dropped, the regulariser's Hessian
+        kept exactly (for smoothed TV: its exact Hessian, positive semi-definite as TV is
+        convex). ``J_r v`` is a forward-mode tangent solve and ``J_r^T w`` its transpose, an
+        adjoint solve (``K_adj`` iterations each with a truncated solver, see
+        :mod:`prdp_fem.linalg.cg`); the state solve runs once, here. For a source (the state is
+        affine in ``f``) with an L2/H1 regulariser ``H_GN`` is the exact Hessian.
+        """
+        def observed(params):
+            sol = self.state(params, solver, x0, counter)
+            return self.observation.operator(self.system.expand(sol.x))
+
+        def regularization(params):
+            return self.alpha * self.regularizer(self.field(params))
+
+        _, forward = jax.linearize(observed, z)
+        adjoint = jax.linear_transpose(forward, z)
+        _, regularization_hessian = jax.linearize(jax.grad(regularization), z)
+
+        def apply(v: jax.Array) -> jax.Array:
+            (misfit_part,) = adjoint(self.observation.weight(forward(v)))
+            return misfit_part + regularization_hessian(v)
+
+        return apply
+
+    def gauss_newton_product(self, z: jax.Array, v: jax.Array, solver,
+                             x0: jax.Array | None = None,
+                             counter: IterationCounter | None = None) -> jax.Array:
+        """``H_GN(z) v`` (see :meth:`gauss_newton_operator`, which reuses the state solve)."""
+        return self.gauss_newton_operator(z, solver, x0, counter)(v)
+
+    def with_residual(self) -> InverseProblem:
+        """The problem with the factors :meth:`residual` needs (built once, on the host)."""
+        return dataclasses.replace(
+            self, residual_factors=residual_factors(self.observation, self.regularizer))
+
+    def misfit_residual(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                        counter: IterationCounter | None = None) -> jax.Array:
+        """``L_W (B u(z) - d)``: half its squared norm is the misfit."""
+        u = self.system.expand(self.state(z, solver, x0, counter).x)
+        return matvec(self._factors().misfit, self.observation.residual(u))
+
+    def regularization_residual(self, z: jax.Array) -> jax.Array:
+        """``r_R(z)`` with ``1/2 ||r_R||^2 = alpha R`` (see :mod:`prdp_fem.fem.residuals`)."""
+        reg, field = self.regularizer, self.field(z)
+        factor = self._factors().regularization
+        if factor is not None:  # L2, H1: linear in the field
+            return jnp.sqrt(self.alpha) * matvec(factor, field - reg.reference)
+        g = matvec(reg.matrix, field).reshape(-1, reg.dim)
+        # (|g|^2 + eps^2)^(1/4) is smooth (eps > 0); sqrt(2 alpha w) is a constant factor,
+        # so alpha = 0 or w = 0 give zero rows with finite derivatives
+        return jnp.sqrt(2.0 * self.alpha * reg.weights) * \
+            (jnp.sum(g * g, axis=1) + reg.epsilon ** 2) ** 0.25
+
+    def residual(self, z: jax.Array, solver, x0: jax.Array | None = None,
+                 counter: IterationCounter | None = None) -> jax.Array:
+        """``r(z)`` with ``1/2 ||r||^2 = J(z)``: misfit rows, then regulariser rows."""
+        return jnp.concatenate([self.misfit_residual(z, solver, x0, counter),
+                                self.regularization_residual(z)])
+
+    def _factors(self) -> ResidualFactors:
+        if self.residual_factors is None:
+            raise SolverConfigError(
+                "InverseProblem.residual needs the factors of the misfit weight and the "
+                "regulariser: build the problem with inverse_problem(..., residual=True) or "
+                "call problem.with_residual() (outside jit)")
+        return self.residual_factors
+
+    def parameter_error(self, z: jax.Array) -> jax.Array:
+        """Relative L2 error of ``field(z)`` against ``truth`` (NaN when no truth)."""
+        if self.truth is None:
+            return jnp.asarray(jnp.nan)
+        e = self.field(z) - self.truth
+        norm2 = jnp.vdot(self.truth, matvec(self.parameter_mass, self.truth))
+        return jnp.sqrt(jnp.vdot(e, matvec(self.parameter_mass, e)) / norm2)
+
+
+def inverse_problem(disc: Discretization, observation: Observation, *, unknown: str,
+                    alpha: float, regularization: str | Regularizer = "h1",
+                    known: np.ndarray | float | None = None, truth: np.ndarray | None = None,
+                    bounds: tuple[float, float] | None = None,
+                    residual: bool = False) -> InverseProblem:
+    """Assemble an :class:`InverseProblem` on ``disc`` (checks sizes at the edge).
+
+    ``unknown="source"``: ``f`` nodal in the solution space, ``known`` is ``kappa`` in the
+    kappa space (default 1, the identity for a tensor ``kappa``); the problem's system is
+    frozen at it, so no map ``kappa -> A`` is built (see :class:`InverseProblem`).
+    ``unknown="log_kappa"``:
+    ``m = log kappa`` in the kappa space, ``known`` is the nodal source ``f`` (default 0).
+    ``residual=True`` also factors the misfit weight and the regulariser, for
+    :meth:`InverseProblem.residual` (needed by :func:`prdp_fem.optim.hig.hig`; a sparse factor of
+    a mass-matrix weight costs about three times its memory, so it is off by default).
+
+    Raises :class:`~prdp_fem.errors.CoefficientError` for a ``kappa`` (``known``) that is not
+    finite and positive, or a NaN log-kappa ``truth``; :class:`~prdp_fem.errors.DataError` for a
+    NaN/Inf source; :class:`~prdp_fem.errors.ShapeError` for arrays of the wrong length;
+    :class:`~prdp_fem.errors.SolverConfigError` for bad ``unknown``, ``alpha`` or
+    ``regularization``.
+    """
+    parameterization = Parameterization(unknown, bounds)
+    n_param = parameter_basis(disc, unknown).N
+    if unknown == "log_kappa" and disc.kappa_kind != "scalar":
+        raise DiscretizationError(
+            f"unknown='log_kappa' on a discretisation with kappa_kind={disc.kappa_kind!r}: "
+            "expected kappa_kind='scalar' (a log-coefficient is one field)")
+    try:
+        valid_alpha = np.ndim(alpha) == 0 and bool(np.isfinite(alpha) and alpha >= 0)
+    except (TypeError, ValueError):
+        valid_alpha = False
+    if not valid_alpha:
+        raise SolverConfigError(f"alpha={alpha!r}: expected a finite number >= 0")
+    if observation.operator.shape[1] != disc.n_dofs:
+        raise ShapeError(f"observation: operator acts on {observation.operator.shape[1]} "
+                         f"dofs, expected {disc.n_dofs} (built on another discretisation?)")
+    if unknown == "source":
+        if known is None:
+            known = 1.0 if disc.kappa_kind == "scalar" else disc.interpolate_kappa(
+                lambda x: np.eye(disc.mesh.dim()))
+        # kappa never changes: the system frozen at it, whose one coefficient is a scale
+        system = disc.system_at(known, "known (kappa of a source inversion)")
+        known = np.ones(1)
+    else:
+        system = disc.system
+        known = finite_vector(0.0 if known is None else known,
+                              "known (nodal source f of a log_kappa inversion)", disc.n_dofs)
+    if truth is not None:
+        truth = as_jax(finite_vector(
+            truth, f"truth ({unknown} field)", n_param,
+            error=CoefficientError if unknown == "log_kappa" else DataError))
+    if isinstance(regularization, str):
+        regularization = regularizer(disc, unknown, regularization)
+    if not isinstance(regularization, Regularizer):
+        raise SolverConfigError(f"regularization={regularization!r}: expected 'l2', 'h1', 'tv' "
+                                "or a Regularizer")
+    if regularization.reference.shape != (n_param,):
+        raise ShapeError(f"regularization: built for {regularization.reference.shape[0]} "
+                         f"parameters, expected {n_param}")
+    problem = InverseProblem(system, parameterization, observation, regularization,
+                             as_jax(float(alpha)), as_jax(known), truth,
+                             SparseMatrix.from_scipy(parameter_mass(disc, unknown)))
+    return problem.with_residual() if residual else problem
+
+
+# --------------------------------------------------------------------------------------
+# the optimisation loop
+# --------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Validation:
+    """Monitor the misfit of a converged solve (``rtol``) every ``every`` steps.
+
+    PRDP's preferred signal: unlike the training loss it does not move when K changes. Its
+    solves count as run time and as ``validation_iterations``.
+    """
+
+    every: int = 1
+    rtol: float = 1e-10
+
+    def __post_init__(self):
+        if not (isinstance(self.every, int) and self.every >= 1 and 0 < self.rtol < 1):
+            raise SolverConfigError(f"{self!r}: expected every >= 1 and 0 < rtol < 1")
+
+
+class Inversion(NamedTuple):
+    """What :func:`invert` returns."""
+
+    params: jax.Array          # the optimisation vector z
+    field: jax.Array           # the recovered field (source or log kappa)
+    refinement: RefinementState
+    optimizer_state: Any
+    history: History
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Objective:
+    """``J`` with the solver of one step: the ``value_fn`` :func:`invert` hands to optax.
+
+    Calling it gives ``J(params)``; :meth:`gauss_newton_operator` gives the Gauss-Newton
+    Hessian there (:meth:`InverseProblem.gauss_newton_operator`), which
+    :mod:`prdp_fem.optim.newton` looks for on ``value_fn``, and :meth:`residual_blocks` the residual
+    that :func:`prdp_fem.optim.hig.hig` differentiates. An object rather than an extra update
+    argument: optax's zoom line search passes every extra argument on to ``value_fn`` and
+    refuses one it does not take.
+    """
+
+    problem: InverseProblem
+    solver: Any
+    counter: IterationCounter | None = None
+
+    def __call__(self, params: jax.Array) -> jax.Array:
+        return self.problem.loss(params, self.solver, counter=self.counter)[0]
+
+    @cached_property
+    def value_and_grad(self) -> Callable[[jax.Array], tuple[jax.Array, jax.Array]]:
+        """``jax.value_and_grad(self)`` as one nested program. A step evaluates it in up to
+        three places (the stored value's check and the line search's two branches): traced
+        once, they lower to calls of one function (a step's trace and lowering took
+        0.33-0.40 s on ``plate_hole`` with three copies, 0.20-0.21 s with one)."""
+        return jax.jit(jax.value_and_grad(self))
+
+    def gauss_newton_operator(self, params: jax.Array) -> Callable[[jax.Array], jax.Array]:
+        return self.problem.gauss_newton_operator(params, self.solver, counter=self.counter)
+
+    def residual_blocks(self) -> tuple[Callable[[jax.Array], jax.Array], ...]:
+        """``(r_misfit, r_R)``: the blocks of :meth:`InverseProblem.residual` at this solver.
+
+        :func:`prdp_fem.optim.hig.hig` differentiates them apart, so that the regulariser's block
+        costs no solves.
+        """
+        return (partial(self.problem.misfit_residual, solver=self.solver, counter=self.counter),
+                self.problem.regularization_residual)
+
+
+def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner,
+            scan_length: int = 0):
+    """The solver of one step; ``scan_length`` (unrolled mode, when ``> 0``): ``K`` is traced
+    below it (see :func:`_scan_length`)."""
+    if tolerance_mode:
+        return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
+    if gradient == "unrolled":
+        return TruncatedCG(K, preconditioner, gradient="unrolled",
+                           scan_length=scan_length or None)
+    return TruncatedCG(K, preconditioner, gradient="implicit", adjoint_iterations=K_adj)
+
+
+def _scan_length(gradient: str, K) -> int:
+    """A step program's static argument: in unrolled mode the scan length for ``K``
+    (:func:`~prdp_fem.linalg.cg.unrolled_length`: one program per power of two, not one per
+    ``K``), else 0 (``K`` is traced anyway)."""
+    return unrolled_length(int(K)) if gradient == "unrolled" else 0
+
+
+def _uses_stored_value(opt_state) -> bool:
+    return otu.tree_get(opt_state, "value") is not None
+
+
+def _stored_or_evaluated(value_fn, z, opt_state):
+    """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored,
+    unless that value is not finite (none yet, or :func:`invert` marked it stale), through
+    ``value_fn.value_and_grad``."""
+    value, grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
+    return jax.lax.cond(jnp.isfinite(value), lambda: (value, grad),
+                        lambda: value_fn.value_and_grad(z))
+
+
+def _refreshes(opt_state) -> bool:
+    """Whether the optimiser's line search evaluates a stale stored value itself
+    (:class:`~prdp_fem.optim.linesearch.ZoomSearchState`, :func:`prdp_fem.lbfgs`'s search)."""
+    nodes = jax.tree_util.tree_leaves(
+        opt_state, is_leaf=lambda node: isinstance(node, ZoomSearchState))
+    return any(isinstance(node, ZoomSearchState) for node in nodes)
+
+
+def _value_grad_and_update(optimizer, opt_state, z, value_fn):
+    """``(J(z), grad J(z), updates, new_state)``: one optimiser update at ``z``, from the value
+    and gradient its line search stored where it stores them (evaluated first where they are
+    stale), else from a fresh evaluation.
+
+    With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
+    the stored value is stale: the first trip hands the search the stale value, and the search
+    evaluates ``J`` and its gradient at ``z`` in its own trial and returns them (see
+    :mod:`prdp_fem.optim.linesearch`); the second trip is the update proper, from them and from
+    ``opt_state`` as given. So the program holds the objective once, where an evaluation
+    before the update held it twice: a CG solve and its adjoint, each compiled anew. Other
+    optimisers with a stored value: :func:`optax.value_and_grad_from_state`'s evaluation,
+    then the update.
+    """
+    if not _uses_stored_value(opt_state):
+        value, grad = value_fn.value_and_grad(z)
+    elif not _refreshes(opt_state):
+        value, grad = _stored_or_evaluated(value_fn, z, opt_state)
+    else:
+        return _refreshed_update(optimizer, opt_state, z, value_fn)
+    updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                          value_fn=value_fn)
+    return value, grad, updates, new_state
+
+
+def _refreshed_update(optimizer, opt_state, z, value_fn):
+    """:func:`_value_grad_and_update` where the line search refreshes a stale value."""
+    stored_value, stored_grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
+    stale = ~jnp.isfinite(stored_value)
+
+    def trip(carry):
+        count, value, grad, _, _ = carry
+        updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                              value_fn=value_fn)
+        refreshed = ~jnp.isfinite(value)  # the search evaluated at z: its state holds them
+        value = jnp.where(refreshed, otu.tree_get(new_state, "value"), value)
+        grad = optax.tree.where(refreshed, otu.tree_get(new_state, "grad"), grad)
+        return count + 1, value, grad, updates, new_state
+
+    _, value, grad, updates, new_state = jax.lax.while_loop(
+        lambda carry: (carry[0] == 0) | ((carry[0] == 1) & stale), trip,
+        (jnp.zeros((), jnp.int32), stored_value, stored_grad, optax.tree.zeros_like(z),
+         opt_state))
+    return value, grad, updates, new_state
+
+
+def _step_failed(opt_state) -> jax.Array:
+    """Whether the optimiser reports its last update as failed.
+
+    optax's line searches keep their errors in the state (a positive sufficient-decrease or,
+    for the zoom search, curvature error: the search ended without meeting its conditions);
+    :func:`prdp_fem.optim.newton.newton_cg` keeps ``line_search_failed``. Other optimisers report
+    nothing: ``False``.
+    """
+    failed = jnp.asarray(False)
+    for name in ("decrease_error", "curvature_error"):
+        error = otu.tree_get(opt_state, name)
+        if error is not None:
+            failed = failed | (error > 0)
+    flag = otu.tree_get(opt_state, "line_search_failed")
+    return failed if flag is None else failed | flag
+
+
+def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
+    """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so that runs
+    differing only in them run one compiled program (per scan length in unrolled mode).
+
+    ``preconditioner`` is closed over, except :class:`~prdp_fem.linalg.AMGCycle` (pass the class):
+    the cycle is then the step's last argument (see :func:`_preconditioner_key`)."""
+
+    def step(problem, counter, z, opt_state, scan_length, K, K_adj, rtol, cycle=None):
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+                         preconditioner if cycle is None else cycle, scan_length)
+
+        value_fn = Objective(problem, solver, counter)
+
+        value, grad, updates, opt_state = _value_grad_and_update(optimizer, opt_state, z,
+                                                                 value_fn)
+        z_next = optax.apply_updates(z, updates)
+        misfit = value - problem.alpha * problem.regularizer(problem.field(z))
+        return z_next, opt_state, _StepScalars(
+            value, misfit, problem.parameter_error(z_next), optax.tree.norm(grad),
+            _step_failed(opt_state), jnp.all(jnp.isfinite(z_next))).packed()
+
+    return step
+
+
+class _StepScalars(NamedTuple):
+    """What the loop reads of a step, one float64 vector on the way out (:meth:`packed`):
+    read one by one, the seven results cost about 50 us of a 0.4 ms ``plate_hole`` step
+    (a wait per output leaf and a transfer per scalar)."""
+
+    value: float
+    misfit: float
+    parameter_error: float
+    grad_norm: float
+    failed: float       # 1.0: the optimiser reports the step as failed
+    finite_params: float  # 1.0: every new parameter is finite
+
+    def packed(self) -> jax.Array:
+        return jnp.stack([jnp.asarray(v, jnp.float64) for v in self])
+
+    @classmethod
+    def read(cls, packed: jax.Array) -> _StepScalars:
+        """The host values (waits for the step: the vector is among its outputs)."""
+        return cls(*np.asarray(packed).tolist())
+
+
+def _device_settings(settings: tuple[int, int, float]) -> tuple[jax.Array, ...]:
+    """The step's ``(K, K_adj, rtol)`` arguments: transferred once per refinement, not per
+    step (the controller's state lives on the host)."""
+    K, K_adj, rtol = settings
+    return tuple(jax.device_put((np.int32(K), np.int32(K_adj), np.float64(rtol))))
+
+
+@lru_cache(maxsize=1)
+def _default_optimizer() -> optax.GradientTransformationExtraArgs:
+    """:func:`~prdp_fem.optim.linesearch.lbfgs`, one object for every call that passes none (pure
+    and immutable, as optax's transformations are): such runs share their compiled step."""
+    return lbfgs()
+
+
+def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
+    optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
+    return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
+                         static_argnum=4)
+
+
+#: The compiled step per settings (the optimizer object as given, gradient, tolerance mode,
+#: preconditioner name), kept for the process: inversions with equal settings -- the same
+#: optimizer object, a study's runs, an alpha sweep's -- trace and lower their step once
+#: (see :func:`~prdp_fem._executables.kept_programs`).
+_step_program = kept_programs(_new_step_program)
+
+
+def _make_validation(rtol, preconditioner):
+    def misfit(problem, counter, z, cycle=None):
+        solver = ConvergedCG(rtol=rtol, preconditioner=preconditioner if cycle is None else cycle)
+        return problem.loss(z, solver, counter=counter)[1].misfit
+    return SharedCompile(misfit)
+
+
+#: The validation program per (rtol, preconditioner key), kept as the step is.
+_validation_program = kept_programs(_make_validation)
+
+
+def _preconditioner_key(preconditioner):
+    """What a step program is built for: a name, the class :class:`~prdp_fem.linalg.amg.AMGCycle`
+    for any such cycle (its arrays are then an argument of the program: hierarchies of
+    equal shapes, such as an AMG rebuilt at another kappa or the runs of a sweep, share one
+    compiled step), or the object itself (closed over: pyamg's callback cycle, a callable)."""
+    return AMGCycle if isinstance(preconditioner, AMGCycle) else preconditioner
+
+
+def _keeps(key) -> bool:
+    """Whether a program built for ``key`` (:func:`_preconditioner_key`) is kept for the
+    process: a name or the class; a closed-over object is a pytree of arrays or a host
+    cycle, no key to keep it under."""
+    return isinstance(key, str) or key is AMGCycle
+
+
+def _with_stale_value(opt_state):
+    """``opt_state`` with its stored value marked stale (``inf``): the next step evaluates
+    ``J`` and its gradient afresh, with that step's solver."""
+    return otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+
+
+def _cycle_argument(preconditioner) -> tuple:
+    """The programs' trailing argument: an :class:`~prdp_fem.linalg.amg.AMGCycle`, else none."""
+    return (preconditioner,) if isinstance(preconditioner, AMGCycle) else ()
+
+
+def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
+           refinement: Refinement | None = None, gradient: str = "implicit", steps: int = 100,
+           init: np.ndarray | None = None, preconditioner: Any = "jacobi",
+           monitor: str | Validation | None = None, reference_every: int = 0,
+           callback: Callable[[StepRecord, jax.Array], bool | None] | None = None) -> Inversion:
+    """Minimise ``J`` for ``steps`` optimiser steps while ``refinement`` picks the CG work.
+
+    Parameters
+    ----------
+    optimizer
+        Any optax ``GradientTransformation``; default :func:`prdp_fem.optim.linesearch.lbfgs`
+        (optax's L-BFGS and zoom line search; the search gives up as soon as the values rise
+        where a truncated gradient says they fall).
+        Its update gets the extra arguments ``value``, ``grad`` and ``value_fn``, an
+        :class:`Objective` (``J`` at the step's solver) whose ``gauss_newton_operator`` is
+        what :func:`prdp_fem.optim.newton.gauss_newton` multiplies with.
+    refinement
+        A :mod:`prdp_fem.inverse.refinement` controller; default :func:`~prdp_fem.inverse.prdp`
+        (reference
+        defaults). Use :func:`~prdp_fem.inverse.refinement.converged` for the converged baseline and
+        :func:`~prdp_fem.inverse.refinement.fixed` for a fixed ``K``.
+    gradient
+        ``"implicit"`` (truncated adjoint solve; ``K`` traced, one compile) or ``"unrolled"``
+        (reverse mode through the ``K`` iterations; one compile per power of two that bounds
+        ``K``: :func:`~prdp_fem.linalg.cg.unrolled_length`).
+    init
+        Initial *field* (source or log kappa); default zeros (kappa = 1).
+    preconditioner
+        The CG preconditioner: ``"jacobi"``, ``"identity"``, an object such as
+        :func:`~prdp_fem.linalg.amg.amg_preconditioner`'s (fixed for the run), or a
+        :class:`~prdp_fem.linalg.RebuiltAMG`, whose hierarchy is built at ``kappa(z_0)`` and built
+        again at the current ``kappa`` when its policy says so (``StepRecord.rebuilds``).
+    monitor
+        What the controller watches: ``"loss"`` (the objective each step), ``"gradient"``
+        (the norm of the computed gradient: no floor, unlike a misfit with noise or
+        unreachable data, and it stalls exactly when truncated gradients stop the optimiser)
+        or a :class:`Validation`. Default: what the controller asks for
+        (``refinement.monitor``: ``"gradient"`` for
+        :func:`~prdp_fem.inverse.refinement.adaptive_tolerance`), else ``"loss"``.
+    reference_every
+        Every that many steps record ``state_error`` against a pyamg solve (not timed).
+    callback
+        ``callback(record, params)`` after every step; returning ``True`` stops the run.
+
+    Raises
+    ------
+    InversionError
+        When a step produces non-finite parameters (with the step and the solver settings).
+    """
+    if gradient not in ("implicit", "unrolled"):
+        raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
+    if not (_is_count(steps) and steps >= 0):
+        raise SolverConfigError(f"steps={steps!r}: expected an integer >= 0")
+    if not (_is_count(reference_every) and reference_every >= 0):
+        raise SolverConfigError(
+            f"reference_every={reference_every!r}: expected an integer >= 0 (0: never)")
+    if not (monitor is None or isinstance(monitor, Validation)
+            or monitor in ("loss", "gradient")):
+        raise SolverConfigError(
+            f"monitor={monitor!r}: expected 'loss', 'gradient' or a Validation")
+    if callback is not None and not callable(callback):
+        raise SolverConfigError(f"callback={callback!r}: expected a callable or None")
+    rebuilt = preconditioner if isinstance(preconditioner, RebuiltAMG) else None
+    if rebuilt is None:
+        TruncatedCG(0, preconditioner)  # checks it now, not inside the first step
+    refinement = prdp() if refinement is None else refinement
+    if not isinstance(refinement, Refinement):
+        raise SolverConfigError(f"refinement={refinement!r}: expected a controller from "
+                                "prdp_fem.inverse.refinement (prdp(), fixed(K) or converged(rtol))")
+    monitor = _monitor_for(refinement, monitor)
+    if refinement.tolerance_mode and gradient == "unrolled":
+        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
+                                "mode cannot run through a loop of unknown length)")
+    given = _default_optimizer() if optimizer is None else optimizer
+    optimizer = optax.with_extra_args_support(given)  # a new wrapper for a plain transform
+
+    z = _initial_params(problem, init)
+    opt_state = optimizer.init(z)
+    control = refinement.init()  # host arrays: an update is NumPy work, no dispatch
+    counter, validation_counter = IterationCounter(), IterationCounter()
+    rebuild_state = None
+    if rebuilt is not None:  # built before the run, as a hierarchy passed in would be
+        preconditioner = rebuilt.build(_operator(problem, z))
+        rebuild_state = None if rebuilt.policy is None else \
+            rebuilt.policy.init(_coefficient(problem, z))
+    if gradient == "unrolled":
+        _check_unrolled_start(problem, z)
+    step, validate = _programs(given, gradient, refinement.tolerance_mode, preconditioner,
+                               monitor)
+    compiled = _Compiled([step, validate])
+    compiled_before_run = compiled.seconds()  # the step may be an earlier run's
+    history, run_time, evaluations, failed_steps, rebuilds = History(), 0.0, 0, 0, 0
+    failed_since_update = False  # a monitor read every few steps still hears of each failure
+    rebuild_due = False  # decided after a step, done before the next (none after the last)
+    settings = control.settings()
+    arguments = _device_settings(settings)
+    for k in range(1, steps + 1):
+        previous_K = settings
+        start = time.perf_counter()
+        if rebuild_due:  # pyamg's setup is the method's cost: run time
+            preconditioner = rebuilt.build(_operator(problem, z))
+            step, validate = _programs(given, gradient, refinement.tolerance_mode,
+                                       preconditioner, monitor)
+            compiled.use([step, validate])  # the same kept programs for an AMGCycle
+            rebuilds, rebuild_due = rebuilds + 1, False
+            # a truncated J depends on the preconditioner: the stored value belongs to
+            # the old one (a converged J does not, beyond the tolerance)
+            if _uses_stored_value(opt_state) and not refinement.tolerance_mode:
+                opt_state = _with_stale_value(opt_state)
+        compile_before = compiled.seconds()
+        z_next, opt_state, packed = step(problem, counter, z, opt_state,
+                                         _scan_length(gradient, settings[0]), *arguments,
+                                         *_cycle_argument(preconditioner))
+        result = _StepScalars.read(packed)
+        monitored = result.grad_norm if monitor == "gradient" else result.value
+        if validate is not None and k % monitor.every == 0:
+            monitored = float(validate(problem, validation_counter, z_next,
+                                       *_cycle_argument(preconditioner)))
+        failed = bool(result.failed)
+        failed_since_update |= failed
+        failed_steps += failed
+        if validate is None or k % monitor.every == 0:
+            control = refinement.update(control, monitored, failed_since_update)
+            settings = control.settings()
+            if settings != previous_K:
+                arguments = _device_settings(settings)
+            failed_since_update = False
+        if rebuild_state is not None:
+            rebuild_due, rebuild_state = _rebuild_due(rebuilt, rebuild_state,
+                                                      _coefficient(problem, z_next))
+        compile_time = compiled.seconds()
+        run_time += time.perf_counter() - start - (compile_time - compile_before)
+        if not (math.isfinite(result.value) and math.isfinite(result.grad_norm)
+                and result.finite_params):
+            raise InversionError(
+                f"step {k}: non-finite loss, gradient or parameters (loss {result.value!r}, "
+                f"gradient norm {result.grad_norm!r}, "
+                f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
+                "smaller step, more CG iterations or another gradient mode")
+        z = z_next
+        if settings != previous_K and _uses_stored_value(opt_state):
+            # the stored value/gradient belong to the old solver: recompute them next step
+            opt_state = _with_stale_value(opt_state)
+        evaluations = counter.primal_solves
+        state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
+                                   *previous_K, preconditioner) \
+            if reference_every and k % reference_every == 0 else math.nan
+        record = StepRecord(
+            step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
+            rtol=previous_K[2], refinements=int(control.refinements),
+            primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
+            validation_iterations=validation_counter.primal, evaluations=evaluations,
+            time=run_time, compile_time=compile_time - compiled_before_run,
+            loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,
+            state_error=state_error, failed_steps=failed_steps, rebuilds=rebuilds)
+        history = history.append(record)
+        if callback is not None and callback(record, z):
+            break
+    return Inversion(z, problem.field(z), control, opt_state, history)
+
+
+def _monitor_for(refinement: Refinement, monitor):
+    """The run's monitor: the one given, the controller's, or ``"loss"``; a controller that
+    must be fed one value refuses another."""
+    wanted = getattr(refinement, "monitor", None)
+    if wanted is None:
+        return "loss" if monitor is None else monitor
+    if monitor is not None and monitor != wanted:
+        raise SolverConfigError(
+            f"monitor={monitor!r}: this controller is fed the {wanted!r} norm of each step; "
+            f"expected monitor={wanted!r} or none")
+    return wanted
+
+
+def _rebuild_due(rebuilt: RebuiltAMG, state, kappa: np.ndarray) -> tuple[bool, Any]:
+    """Whether the policy asks for a new hierarchy at ``kappa``, and its next state."""
+    rebuild, state = rebuilt.policy.update(state, kappa)
+    return bool(rebuild), state
+
+
+class _Compiled:
+    """The programs a run calls, and the compile seconds of the ones it stopped calling (a
+    preconditioner object closed over gets new programs at a rebuild)."""
+
+    def __init__(self, programs: list):
+        self._programs, self._retired = [p for p in programs if p is not None], 0.0
+
+    def seconds(self) -> float:
+        return self._retired + sum(p.seconds for p in self._programs)
+
+    def use(self, programs: list) -> None:
+        current = [p for p in programs if p is not None]
+        for old in self._programs:
+            if all(old is not p for p in current):
+                self._retired += old.seconds
+        self._programs = current
+
+
+def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
+    """The step program and the validation program (``None`` unless ``monitor`` is a
+    :class:`Validation`) for ``preconditioner``."""
+    key = _preconditioner_key(preconditioner)
+    step = _step_program(optimizer, gradient, tolerance_mode, key, keep=_keeps(key))
+    validate = None if isinstance(monitor, str) else \
+        _validation_program(monitor.rtol, key, keep=_keeps(key))
+    return step, validate
+
+
+def _coefficient(problem: InverseProblem, z: jax.Array) -> np.ndarray:
+    """``kappa(z)`` on the host (a source inversion's frozen scale, which never moves): what
+    a :class:`~prdp_fem.linalg.amg.RebuiltAMG` policy watches (its update is then NumPy work, no
+    dispatch)."""
+    return np.asarray(problem.parameterization.coefficients(z, problem.known)[0])
+
+
+def _operator(problem: InverseProblem, z: jax.Array) -> SparseMatrix:
+    return problem.system.operator(jnp.asarray(_coefficient(problem, z)))
+
+
+def _check_unrolled_start(problem: InverseProblem, z: jax.Array) -> None:
+    kappa, f = problem.parameterization.coefficients(z, problem.known)
+    if not bool(jnp.any(problem.system.rhs(kappa, f) != 0)):
+        raise SolverConfigError(
+            "gradient='unrolled' at a zero right-hand side: the K-iteration map is not "
+            "differentiable there (its gradient is zero and the optimiser would not move); "
+            "start from a non-zero source (init=) or use gradient='implicit'")
+
+
+def initial_params(problem: InverseProblem, init: np.ndarray | None = None) -> jax.Array:
+    """The optimisation vector :func:`invert` starts from for ``init`` (an initial field or
+    ``None``), checked as ``invert`` checks it."""
+    return _initial_params(problem, init)
+
+
+def _initial_params(problem: InverseProblem, init) -> jax.Array:
+    n = problem.n_parameters
+    if init is None:
+        field = np.zeros(n)
+        if problem.parameterization.bounds is not None:
+            field = np.full(n, 0.5 * sum(problem.parameterization.bounds))
+    else:
+        unknown = problem.parameterization.unknown
+        name = f"init (initial {unknown} field)"
+        field = finite_vector(host_values(init, name), name, n)
+        bounds = problem.parameterization.bounds
+        if bounds is not None:
+            outside = (field < bounds[0]) | (field > bounds[1])
+            if outside.any():
+                i = int(np.flatnonzero(outside)[0])
+                raise DataError(
+                    f"init (initial {unknown} field): {int(outside.sum())} value(s) outside "
+                    f"bounds={bounds} (first: index {i}, value {field[i]}); expected values "
+                    "within the bounds")
+    return problem.parameterization.from_field(field)
+
+
+def _is_count(value) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _state_error(problem, z, gradient, tolerance_mode, K, K_adj, rtol, preconditioner) -> float:
+    """Relative nodal l2 error of the step's truncated state against a pyamg solve."""
+    solver = _solver(gradient, tolerance_mode, int(K), int(K_adj), float(rtol), preconditioner)
+    u = np.asarray(problem.state(z, solver).x)
+    kappa, f = problem.parameterization.coefficients(z, problem.known)
+    A = problem.system.operator(kappa).to_scipy()
+    reference = amg_solve(A, np.asarray(problem.system.rhs(kappa, f))).x
+    return float(np.linalg.norm(u - reference) / max(np.linalg.norm(reference), 1e-300))

@@ -1,0 +1,542 @@
+r"""Time-dependent scenes: the heat equation, implicit Euler, and networks trained through it.
+
+Implicit Euler for :math:`\partial_t u - \nabla\cdot(\kappa \nabla u) = f` on the free dofs
+(Dirichlet data ``g`` constant in time, moved to the right-hand side as in
+:class:`~prdp_fem.fem.system.LinearSystem`):
+
+.. math::
+
+    (M + \Delta t\, A(\kappa))\, u_{n+1} = M u_n + \Delta t\, b(\kappa, f),
+    \qquad b = S f + h - A_{ID}(\kappa)\, g ,
+
+each step one PCG solve *warm-started from* :math:`u_n` (:func:`heat_step`): its initial
+residual is :math:`\Delta t\,(b - A u_n)`, small for a small step, so a truncated solve of
+``K`` iterations is already close. A :class:`HeatProblem` holds the system matrix, the mass
+matrix and the load on the free dofs (a pytree: a jit argument).
+
+Learned time steppers (List, Chen, Bali, Thuerey, arXiv 2402.12971). The reference is a *fine*
+solver (:func:`reference_trajectories`: ``substeps`` direct solves of step ``dt / substeps`` per
+step ``dt``); the *coarse* solver :math:`S_K` is one step of size ``dt`` with ``K`` PCG
+iterations. Two setups of a stepper :math:`G`:
+
+* ``"correction"``: :math:`G(u) = S_K(u) + N_\theta(S_K(u))` (solver plus network);
+* ``"prediction"``: :math:`G(u) = u + N_\theta(u)` (network alone; no solver).
+
+:math:`N_\theta` is the MLP of :mod:`prdp_fem.learning.learned`, applied *homogeneously*:
+:math:`N_\theta(u) = \rho(u)\, \mathrm{MLP}(u / \rho(u))` with :math:`\rho` the RMS of ``u``
+(the exact step is linear in ``u`` when ``f = 0`` and ``g = 0``; states decay by orders of
+magnitude along a trajectory). Three ways to train over windows
+:math:`u^*_t, \dots, u^*_{t+m}` of the reference trajectories (``m = unroll``), each with the
+loss :math:`\frac1m \sum_{k=1}^{m} \|s_k - u^*_{t+k}\|_M^2 / \|u^*_{t+k}\|_M^2`:
+
+* ``"one"``: :math:`s_{k+1} = G(u^*_{t+k})`, inputs always ground truth;
+* ``"nog"``: :math:`s_{k+1} = G(\mathrm{sg}(s_k))`, :math:`s_0 = u^*_t`; the solver's input is
+  stopped and so is its output: the solver is *never* differentiated (a black box);
+* ``"wig"``: :math:`s_{k+1} = G(s_k)`, gradients through network and solver over all steps
+  (the solve's ``gradient`` mode, implicit or unrolled).
+
+Budgets are fair by construction: every mode sees the same windows in the same mini-batches for
+the same epochs, and each window costs ``m`` network evaluations and ``m`` coarse solves (ONE's
+``m`` one-step samples per window are the "m times the batch" of the reference study).
+
+PRDP on the inner solves: a refinement controller (:mod:`prdp_fem.inverse.refinement`) picks ``K``
+(or, in
+tolerance mode, a relative residual tolerance) once per epoch from the *validation rollout
+error*: full held-out trajectories rolled out from
+:math:`u^*_0` with *converged* coarse solves, so the monitored value does not move when ``K``
+does (:func:`rollout_error`: the mean over trajectories and steps of
+:math:`\|u_n - u^*_n\|_M / \|u^*_n\|_M`). The CG iterations of the training solves are returned
+by the jitted step (an exact tally, no host callback); run times exclude compilation.
+
+>>> import prdp_fem as pf
+>>> disc = pf.discretize(pf.unit_square(4), dirichlet=0.0)
+>>> problem = heat_problem(disc, dt=0.01)
+>>> u = np.ones(problem.n_free)
+>>> u_next, iterations = heat_step(problem, u, pf.ConvergedCG(rtol=1e-12))
+>>> bool(np.all(np.asarray(u_next) < u)), int(iterations) > 0   # heat flows out: it decays
+(True, True)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import scipy.sparse.linalg as spla
+
+from .._checks import finite_vector
+from .._executables import SharedCompile, kept_programs
+from ..errors import ShapeError, SolverConfigError
+from ..fem.discretization import Discretization
+from ..inverse.driver import (
+    _cycle_argument,
+    _device_settings,
+    _keeps,
+    _preconditioner_key,
+    _scan_length,
+    _solver,
+)
+from ..inverse.refinement import Refinement, prdp
+from ..linalg import cg
+from ..linalg.cg import ConvergedCG, IterationCounter
+from ..linalg.operator import FixedMatrix, SparseMatrix
+from .learned import Network, Training, mlp_apply, mlp_init
+
+__all__ = [
+    "MODES",
+    "SETUPS",
+    "HeatProblem",
+    "HeatRecord",
+    "Trajectories",
+    "batch_loss",
+    "correction",
+    "heat_problem",
+    "heat_step",
+    "initial_network",
+    "random_initial_states",
+    "reference_trajectories",
+    "rollout",
+    "rollout_error",
+    "stepper",
+    "train",
+    "windows",
+]
+
+SETUPS = ("correction", "prediction")
+MODES = ("one", "nog", "wig")
+
+# a heat step: (problem, u, solver) -> (u_next, iterations); tests pass stand-ins
+Step = Callable[[Any, jax.Array, Any], tuple[jax.Array, jax.Array]]
+
+
+# --------------------------------------------------------------------------------------
+# the problem and one step
+# --------------------------------------------------------------------------------------
+
+
+@partial(jax.tree_util.register_dataclass, data_fields=["matrix", "mass", "load", "dt"],
+         meta_fields=[])
+@dataclasses.dataclass(frozen=True)
+class HeatProblem:
+    """Implicit Euler on the free dofs: ``matrix = M + dt A``, ``mass = M``,
+    ``load = dt b`` (source, Neumann data and Dirichlet lifting); a pytree."""
+
+    matrix: SparseMatrix
+    mass: FixedMatrix  # symmetric, laid out once
+    load: jax.Array
+    dt: jax.Array
+
+    @property
+    def n_free(self) -> int:
+        return int(self.matrix.shape[0])
+
+    def rhs(self, u: jax.Array) -> jax.Array:
+        """``M u + dt b``: the right-hand side of the step from ``u``."""
+        return self.mass(u) + self.load
+
+
+def _positive(value: Any, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer) \
+            or not (math.isfinite(value) and value > 0):
+        raise SolverConfigError(f"{name}={value!r}: expected a finite number > 0")
+    return float(value)
+
+
+def _count(value: Any, name: str, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < minimum:
+        raise SolverConfigError(f"{name}={value!r}: expected an integer >= {minimum}")
+    return int(value)
+
+
+def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
+                 source=None) -> HeatProblem:
+    """The implicit-Euler :class:`HeatProblem` of step ``dt`` on ``disc`` (its Dirichlet and
+    Neumann data, held constant in time), coefficient ``kappa``, nodal ``source`` (``None``:
+    zero)."""
+    dt = _positive(dt, "dt")
+    if source is not None:
+        source = finite_vector(source, "source", disc.n_dofs)
+    free = disc.free_dofs
+    mass = disc.mass_matrix[free][:, free].tocsr()
+    stiffness, b = disc.host_system_at(kappa, source)  # one kappa: no map kappa -> A
+    matrix = (mass + dt * stiffness).tocsr()
+    return HeatProblem(SparseMatrix.from_scipy(matrix), FixedMatrix.symmetric(mass),
+                       jnp.asarray(dt * b), jnp.asarray(dt))
+
+
+def heat_step(problem: HeatProblem, u: jax.Array, solver, *,
+              counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
+    """One implicit-Euler step from ``u`` (free dofs) by ``solver`` (a
+    :class:`~prdp_fem.linalg.TruncatedCG` or :class:`~prdp_fem.linalg.ConvergedCG`), warm-started
+    from
+    ``u``: ``(u_next, iterations)``. ``counter`` also tallies the step's adjoint solves."""
+    sol = cg.solve(problem.matrix, problem.rhs(u), solver, x0=u, counter=counter)
+    return sol.x, sol.iterations
+
+
+# --------------------------------------------------------------------------------------
+# reference trajectories
+# --------------------------------------------------------------------------------------
+
+
+class Trajectories(NamedTuple):
+    """States on the free dofs, ``(n_trajectories, steps + 1, n_free)``; ``[:, 0]`` initial."""
+
+    states: jax.Array
+
+    def take(self, index) -> Trajectories:
+        return Trajectories(self.states[index])
+
+    @property
+    def steps(self) -> int:
+        return int(self.states.shape[1]) - 1
+
+
+def random_initial_states(disc: Discretization, n_states: int, *, seed: int = 0,
+                          bumps: int = 3, width: float = 0.15) -> np.ndarray:
+    """``n_states`` smooth nodal fields ``(n_states, n_dofs)``: sums of ``bumps`` Gaussians
+    (widths ``width`` times the mesh's diameter) at uniform random centres, with *positive*
+    amplitudes uniform in ``[0.5, 1]``. Positive, so that the slowest-decaying mode is always
+    present: bumps of both signs can cancel it, and such a trajectory decays to round-off
+    relative to its start within a few steps. Seeded."""
+    n_states, bumps = _count(n_states, "n_states"), _count(bumps, "bumps")
+    width = _positive(width, "width")
+    x = disc.basis.doflocs  # (dim, n_dofs)
+    low, high = x.min(axis=1), x.max(axis=1)
+    sigma = width * float(np.linalg.norm(high - low))
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(low, high, size=(n_states, bumps, x.shape[0]))
+    weights = rng.uniform(0.5, 1.0, size=(n_states, bumps))
+    distance2 = ((x.T[None, None] - centres[:, :, None]) ** 2).sum(axis=-1)
+    return np.einsum("sb,sbn->sn", weights, np.exp(-distance2 / (2 * sigma**2)))
+
+
+def reference_trajectories(disc: Discretization, initial, *, dt: float, steps: int,
+                           substeps: int = 4, kappa=1.0, source=None) -> Trajectories:
+    """Fine-solver trajectories: from each nodal initial field (rows of ``initial``, restricted
+    to the free dofs), ``steps`` steps of size ``dt``, each made of ``substeps`` implicit-Euler
+    steps of size ``dt / substeps`` solved directly (sparse LU: converged to round-off)."""
+    steps, substeps = _count(steps, "steps"), _count(substeps, "substeps")
+    dt = _positive(dt, "dt")
+    initial = np.asarray(initial, dtype=float)
+    if initial.ndim != 2 or initial.shape[1] != disc.n_dofs:
+        raise ShapeError(f"initial{initial.shape}: expected (n_trajectories, {disc.n_dofs}) "
+                         "nodal fields")
+    fine = heat_problem(disc, dt / substeps, kappa=kappa, source=source)
+    lu = spla.splu(fine.matrix.to_scipy().tocsc())
+    mass, load = fine.mass.to_scipy(), np.asarray(fine.load)
+    u = finite_vector(initial.ravel(), "initial", initial.size).reshape(initial.shape)
+    u = u[:, disc.free_dofs].T  # (n_free, n_trajectories): one LU solve per substep for all
+    states = [u]
+    for _ in range(steps):
+        for _ in range(substeps):
+            u = lu.solve(mass @ u + load[:, None])
+        states.append(u)
+    return Trajectories(jnp.asarray(np.stack(states).transpose(2, 0, 1)))
+
+
+def windows(trajectories: Trajectories, unroll: int) -> jax.Array:
+    """Every window of ``unroll + 1`` consecutive states: ``(n_windows, unroll + 1, n_free)``,
+    trajectory-major."""
+    unroll = _count(unroll, "unroll")
+    if unroll > trajectories.steps:
+        raise SolverConfigError(f"unroll={unroll}: expected at most the {trajectories.steps} "
+                                "steps of each trajectory")
+    states = trajectories.states
+    starts = range(trajectories.steps - unroll + 1)
+    return jnp.stack([states[:, t:t + unroll + 1] for t in starts], axis=1).reshape(
+        -1, unroll + 1, states.shape[-1])
+
+
+# --------------------------------------------------------------------------------------
+# steppers and losses
+# --------------------------------------------------------------------------------------
+
+
+def _check_choice(value: Any, name: str, allowed: tuple[str, ...]) -> None:
+    if value not in allowed:
+        raise SolverConfigError(f"{name}={value!r}: expected one of {allowed}")
+
+
+def correction(network: Network | None, u: jax.Array) -> jax.Array:
+    """``N(u) = rho(u) MLP(u / rho(u))``, ``rho`` the RMS of ``u`` (zero at ``u = 0``, with
+    finite gradients); ``network=None``: zero."""
+    if network is None:
+        return jnp.zeros_like(u)
+    power = jnp.mean(u**2)
+    positive = power > 0
+    rho = jnp.sqrt(jnp.where(positive, power, 1.0))  # safe before the square root
+    return jnp.where(positive, rho, 0.0) * mlp_apply(network, u / rho)
+
+
+def stepper(setup: str, network: Network | None, problem: HeatProblem, u: jax.Array, solver,
+            *, stop_solver: bool = False, step: Step = heat_step):
+    """``G(u)`` of ``setup`` and the CG iterations it ran. ``stop_solver`` stops the gradient
+    at the solver's input and output (NOG: the solver is never differentiated)."""
+    _check_choice(setup, "setup", SETUPS)
+    if setup == "prediction":
+        return u + correction(network, u), jnp.zeros((), jnp.int32)
+    if stop_solver:
+        u = jax.lax.stop_gradient(u)
+    coarse, iterations = step(problem, u, solver)
+    if stop_solver:
+        coarse = jax.lax.stop_gradient(coarse)
+    return coarse + correction(network, coarse), iterations
+
+
+def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> jax.Array:
+    e = u - truth
+    return jnp.vdot(e, problem.mass(e)) / jnp.maximum(
+        jnp.vdot(truth, problem.mass(truth)), 1e-300)
+
+
+def window_loss(network: Network, problem: HeatProblem, window: jax.Array, solver, *,
+                setup: str, mode: str, step: Step = heat_step):
+    """The loss of one window ``(m + 1, n_free)`` (see the module docstring) and its CG
+    iterations."""
+    _check_choice(mode, "mode", MODES)
+    m = window.shape[0] - 1
+    s, total, iterations = window[0], 0.0, jnp.zeros((), jnp.int32)
+    for k in range(m):
+        start = window[k] if mode == "one" else s
+        s, its = stepper(setup, network, problem, start, solver, stop_solver=mode != "wig",
+                         step=step)
+        total = total + _relative_error2(problem, s, window[k + 1])
+        iterations = iterations + its
+        if mode == "nog":  # s_{k+1} = G(sg(s_k)): no gradient from one step to the next
+            s = jax.lax.stop_gradient(s)
+    return total / m, iterations
+
+
+def batch_loss(network: Network, problem: HeatProblem, batch: jax.Array, solver, *,
+               setup: str, mode: str, step: Step = heat_step):
+    """Mean :func:`window_loss` over ``batch`` (``(B, m + 1, n_free)``, solves under ``vmap``)
+    and the total CG iterations of its forward solves."""
+    losses, iterations = jax.vmap(
+        lambda w: window_loss(network, problem, w, solver, setup=setup, mode=mode,
+                              step=step))(batch)
+    return jnp.mean(losses), jnp.sum(iterations)
+
+
+def rollout(network: Network | None, problem: HeatProblem, u0: jax.Array, steps: int, solver,
+            *, setup: str = "correction", step: Step = heat_step):
+    """``steps`` steps of ``G`` from ``u0``: the states ``(steps + 1, n_free)`` and the CG
+    iterations. ``network=None`` with ``setup="correction"`` is the coarse solver alone."""
+    def body(u, _):
+        u_next, iterations = stepper(setup, network, problem, u, solver, step=step)
+        return u_next, (u_next, iterations)
+
+    _, (states, iterations) = jax.lax.scan(body, u0, None, length=steps)
+    return jnp.concatenate([u0[None], states]), jnp.sum(iterations)
+
+
+def rollout_error(network: Network | None, problem: HeatProblem, trajectories: Trajectories,
+                  solver, *, setup: str = "correction", step: Step = heat_step):
+    """Mean over trajectories and steps ``n >= 1`` of ``||u_n - u*_n||_M / ||u*_n||_M`` for
+    rollouts from ``u*_0`` (vmapped), and their total CG iterations."""
+    truth = trajectories.states
+
+    def one(states):
+        predicted, iterations = rollout(network, problem, states[0], states.shape[0] - 1,
+                                        solver, setup=setup, step=step)
+        errors = jax.vmap(lambda u, t: jnp.sqrt(_relative_error2(problem, u, t)))(
+            predicted[1:], states[1:])
+        return jnp.mean(errors), iterations
+
+    errors, iterations = jax.vmap(one)(truth)
+    return jnp.mean(errors), jnp.sum(iterations)
+
+
+# --------------------------------------------------------------------------------------
+# training
+# --------------------------------------------------------------------------------------
+
+
+class HeatRecord(NamedTuple):
+    epoch: int
+    iterations: int           # K of this epoch's solves (0 for the prediction setup)
+    adjoint_iterations: int
+    rtol: float               # tolerance mode (converged training), else 0
+    primal_iterations: int    # cumulative forward CG iterations of the training solves
+    time: float               # cumulative run time, compile excluded, validation included
+    train_loss: float         # mean over the epoch's batches
+    validation_error: float   # rollout error of the validation trajectories (converged)
+    adjoint_iterations_total: int = 0  # cumulative adjoint CG iterations (WIG; else 0)
+    test_error: float = math.nan       # held-out rollout error (``test_set``), untimed
+
+
+def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
+                    hidden: tuple[int, ...] = (128,), seed: int = 0) -> Network:
+    """An untrained MLP ``[n_free, *hidden, n_free]`` whose output scale is the spread of its
+    targets relative to its (RMS-normalised) inputs over ``train_set``'s one-step pairs: the
+    converged coarse step's error (correction) or the step itself (prediction)."""
+    _check_choice(setup, "setup", SETUPS)
+    pairs = windows(train_set, 1)
+    u, target = pairs[:, 0], pairs[:, 1]
+    if setup == "correction":
+        exact = ConvergedCG(rtol=1e-12)
+        u = jax.vmap(lambda x: heat_step(problem, x, exact)[0])(u)
+    u, target = np.asarray(u), np.asarray(target)
+    rho = np.sqrt(np.mean(u**2, axis=1, keepdims=True))
+    rho = np.where(rho > 0, rho, 1.0)
+    scale = float(np.std((target - u) / rho))
+    return mlp_init(jax.random.PRNGKey(seed), [problem.n_free, *hidden, problem.n_free],
+                    output_scale=scale if scale > 0 else 1.0)
+
+
+def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn,
+               counted: bool):
+    """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so trainings that
+    differ only in them run one compiled program (per scan length in unrolled mode).
+    ``counted``: ``step_fn`` is :func:`heat_step` and takes the counter."""
+
+    def step(network, opt_state, problem, batch, counter, scan_length, K, K_adj, rtol,
+             cycle=None):  # cycle: see inverse._preconditioner_key
+        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+                         preconditioner if cycle is None else cycle, scan_length)
+        stepper = partial(step_fn, counter=counter) if counted else step_fn
+        (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
+            network, problem, batch, solver, setup=setup, mode=mode, step=stepper)
+        grads = grads._replace(input_scale=jnp.zeros(()), output_scale=jnp.zeros(()))
+        updates, opt_state = optimizer.update(grads, opt_state, network)
+        return optax.apply_updates(network, updates), opt_state, loss, iterations, \
+            optax.tree.norm(grads)
+
+    return step
+
+
+def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
+                      step, counted) -> SharedCompile:
+    return SharedCompile(_make_step(optimizer, setup, mode, gradient, tolerance_mode,
+                                    preconditioner, step, counted),
+                         static_argnum=5)
+
+
+#: The compiled step per settings (optimizer object, setup, mode, gradient, tolerance mode,
+#: preconditioner, step function, counted), kept for the process: a study's PRDP and
+#: converged runs of one mode trace and lower it once (about 0.8 s for the heat scene's
+#: correction step).
+_step_program = kept_programs(_new_step_program)
+
+
+def _check_network(network: Network, n_free: int) -> None:
+    n_in, n_out = network.layers[0][0].shape[0], network.layers[-1][0].shape[1]
+    if (n_in, n_out) != (n_free, n_free):
+        raise ShapeError(f"network maps {n_in} -> {n_out} values; expected {n_free} -> "
+                         f"{n_free} (the free dofs of the problem)")
+
+
+def train(problem: HeatProblem, network: Network, train_set: Trajectories,
+          validation_set: Trajectories, *, setup: str = "correction", mode: str = "nog",
+          unroll: int = 3, optimizer: optax.GradientTransformation | None = None,
+          refinement: Refinement | None = None, epochs: int = 30, batch_size: int = 16,
+          gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
+          validation_rtol: float = 1e-10, step: Step = heat_step,
+          test_set: Trajectories | None = None,
+          callback: Callable[[HeatRecord], None] | None = None) -> Training:
+    """Train ``network`` as the ``setup`` stepper with ``mode`` over windows of ``unroll``
+    steps: ``epochs`` epochs of shuffled mini-batches of windows (``seed``), ``K`` picked
+    once per epoch by ``refinement`` (default :func:`~prdp_fem.inverse.prdp` with ``K0=1, dK=1``,
+    the reference's heat schedule) from the validation rollout error. ``step`` replaces
+    :func:`heat_step` (a stand-in solver). The prediction setup runs no solver (``K`` = 0).
+
+    WIG's adjoint solves are tallied on the host (:class:`~prdp_fem.linalg.cg.IterationCounter`;
+    ONE and NOG run none). ``test_set``: held-out trajectories whose rollout error (converged
+    solves, outside the timed region) each record carries as ``test_error``.
+    ``callback(record)`` runs after every epoch, also outside the timed region.
+
+    Returns a :class:`~prdp_fem.learning.learned.Training` of :class:`HeatRecord` s. Raises
+    :class:`~prdp_fem.errors.SolverConfigError` / :class:`~prdp_fem.errors.ShapeError` for
+    bad options and :class:`~prdp_fem.inverse.driver.InversionError` when a step produces a
+    non-finite loss or gradient.
+    """
+    from ..inverse.driver import InversionError
+
+    _check_choice(setup, "setup", SETUPS)
+    _check_choice(mode, "mode", MODES)
+    if gradient not in ("implicit", "unrolled"):
+        raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
+    epochs, batch_size = _count(epochs, "epochs"), _count(batch_size, "batch_size")
+    for name, data in (("train_set", train_set), ("validation_set", validation_set)):
+        if data.states.ndim != 3 or data.states.shape[-1] != problem.n_free:
+            raise ShapeError(f"{name}: states{tuple(data.states.shape)}; expected "
+                             f"(n_trajectories, steps + 1, {problem.n_free})")
+    _check_network(network, problem.n_free)
+    data = windows(train_set, unroll)
+    n = int(data.shape[0])
+    if batch_size > n:
+        raise SolverConfigError(f"batch_size={batch_size}: expected at most the {n} training "
+                                f"windows ({train_set.states.shape[0]} trajectories x "
+                                f"{train_set.steps - unroll + 1} starts)")
+    refinement = prdp(K0=1, dK=1) if refinement is None else refinement
+    if getattr(refinement, "monitor", None) is not None:
+        raise SolverConfigError(
+            f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
+            "inversion step; training feeds its controller a validation error (expected "
+            "prdp(), fixed(K) or converged(rtol))")
+    if refinement.tolerance_mode and gradient == "unrolled":
+        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
+    solves = setup == "correction"
+    optimizer = optax.adam(1e-3) if optimizer is None else optimizer
+    counter = IterationCounter()
+    # only WIG differentiates the solver; count its adjoint solves when the step is ours
+    counted = step is heat_step and solves and mode == "wig"
+    key = _preconditioner_key(preconditioner)
+    step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
+                            step, counted, keep=_keeps(key))
+    validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
+                                    preconditioner=preconditioner)
+    validate = jax.jit(lambda net, prob, val: rollout_error(
+        net, prob, val, validation_solver, setup=setup, step=step)[0])
+    opt_state, control = optimizer.init(network), refinement.init()
+    rng = np.random.default_rng(seed)
+    records, run_time, primal = [], 0.0, 0
+    for epoch in range(1, epochs + 1):
+        # no solver: one compile, nothing to refine
+        settings = control.settings() if solves else (0, 0, 0.0)
+        K, K_adj, rtol = _device_settings(settings)
+        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
+        order = rng.permutation(n)
+        losses = []
+        for i in range(0, n - batch_size + 1, batch_size):
+            batch = data[order[i:i + batch_size]]
+            compile_before = step_fn.seconds  # compilation is timed apart from the run
+            start = time.perf_counter()
+            network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
+                step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
+                        rtol, *_cycle_argument(preconditioner)))
+            run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
+            if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
+                raise InversionError(
+                    f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
+                    f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try a "
+                    "smaller learning rate or more CG iterations")
+            losses.append(float(loss))
+            primal += int(iterations)
+        if epoch == 1:  # compile outside the timed region
+            jax.block_until_ready(validate(network, problem, validation_set))
+        start = time.perf_counter()
+        error = validate(network, problem, validation_set)
+        previous = control
+        if solves:
+            control = refinement.update(control, float(error))
+        run_time += time.perf_counter() - start
+        test_error = math.nan if test_set is None else float(
+            validate(network, problem, test_set))
+        record = HeatRecord(
+            epoch, int(previous.iterations) if solves else 0,
+            int(previous.adjoint_iterations) if solves else 0,
+            float(previous.rtol) if solves else 0.0, primal, run_time,
+            float(np.mean(losses)), float(error), counter.adjoint, test_error)
+        records.append(record)
+        if callback is not None:
+            callback(record)
+    return Training(network, control, records)

@@ -1,0 +1,45 @@
+"""Optimisers that need more than an optax transformation: L-BFGS with a zoom line search,
+Newton-CG, Gauss-Newton and half-inverse gradients.
+"""
+
+from .hig import (
+    JACOBIAN_MODES,
+    HigInfo,
+    HigState,
+    hig,
+    hig_direction,
+    hig_update,
+    randomized_svd,
+    residual_jacobian,
+)
+from .linesearch import FIRST_STEPS, Contradiction, ZoomSearchState, lbfgs, scale_by_zoom_linesearch
+from .newton import (
+    FORCING_TERMS,
+    HESSIANS,
+    NewtonCGState,
+    gauss_newton,
+    newton_cg,
+    regularization_preconditioner,
+)
+
+__all__ = [
+    "FIRST_STEPS",
+    "FORCING_TERMS",
+    "HESSIANS",
+    "JACOBIAN_MODES",
+    "Contradiction",
+    "HigInfo",
+    "HigState",
+    "NewtonCGState",
+    "ZoomSearchState",
+    "gauss_newton",
+    "hig",
+    "hig_direction",
+    "hig_update",
+    "lbfgs",
+    "newton_cg",
+    "randomized_svd",
+    "regularization_preconditioner",
+    "residual_jacobian",
+    "scale_by_zoom_linesearch",
+]

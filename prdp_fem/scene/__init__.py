@@ -1,0 +1,3 @@
+"""Scene files: the TOML specification, its formulas, and building problems from it.
+"""
+

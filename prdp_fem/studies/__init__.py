@@ -1,0 +1,3 @@
+"""Studies: the scene runner, forward convergence studies, the stability report and figures.
+"""
+
