@@ -15,7 +15,7 @@ import optax.tree_utils as otu
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.inverse.driver import _step_failed
+from prdp_fem.inverse.steps import step_failed
 from prdp_fem.optim.linesearch import Contradiction, ZoomSearchState, _nothing_seen, _watch
 
 
@@ -155,11 +155,11 @@ def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():
     np.testing.assert_array_equal(updates, np.zeros(3))          # no step: every trial rose
     assert float(otu.tree_get(state, "value")) == float(value)   # the start's value and
     np.testing.assert_array_equal(otu.tree_get(state, "grad"), grad)  # gradient are kept
-    assert bool(_step_failed(state))                              # invert counts a failure
+    assert bool(step_failed(state))                              # invert counts a failure
 
     *_, optax_state = _one_search(optax.lbfgs(), _wrong_sign, z)
     assert int(otu.tree_get(optax_state, "num_linesearch_steps")) == 20
-    assert bool(_step_failed(optax_state))
+    assert bool(step_failed(optax_state))
 
 
 def test_a_too_steep_gradient_is_not_a_contradiction():
@@ -257,7 +257,7 @@ def test_a_convex_kink_with_its_true_gradient_gets_optax_s_search(approx_dec_rto
         updates, state = search.update(-grad, search.init(z), z, value=value, grad=grad,
                                        value_fn=_smoothed_kink)
         results.append((np.asarray(updates), int(otu.tree_get(state, "num_linesearch_steps")),
-                        bool(_step_failed(state))))
+                        bool(step_failed(state))))
     (ours, our_count, we_failed), (theirs, their_count, they_failed) = results
     np.testing.assert_array_equal(ours, theirs)
     assert our_count == their_count > 3 and not we_failed and not they_failed
@@ -355,7 +355,7 @@ def test_an_overshoot_after_the_objective_changed_restarts_at_the_quadratic_step
     direction, updates, state = _search_along(1000.0, changed=True)
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 2
     np.testing.assert_allclose(updates, 1e-3 * direction, rtol=1e-12)
-    assert not bool(_step_failed(state))
+    assert not bool(step_failed(state))
     # the same search with the objective unchanged is optax's, many halvings long
     _, our_updates, ours = _search_along(1000.0, changed=False)
     fn, z = _half_squared_distance_to_one, jnp.array([0.2, -0.4, 0.7])
@@ -373,7 +373,7 @@ def test_a_restart_shrinks_the_trial_by_at_most_a_thousand_and_repeats():
     direction, updates, state = _search_along(1e8, changed=True)
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 4
     np.testing.assert_allclose(updates, 1e-8 * direction, rtol=1e-9)
-    assert not bool(_step_failed(state))
+    assert not bool(step_failed(state))
 
 
 def test_restarts_count_against_the_search_s_trials():
@@ -381,7 +381,7 @@ def test_restarts_count_against_the_search_s_trials():
     # at its last trial as optax's ends without a step that met the sufficient decrease
     direction, updates, state = _search_along(1e8, changed=True, max_linesearch_steps=3)
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
-    assert bool(_step_failed(state))
+    assert bool(step_failed(state))
     np.testing.assert_allclose(updates, 1e-6 * direction, rtol=1e-12)
     z = jnp.array([0.2, -0.4, 0.7])
     np.testing.assert_allclose(float(otu.tree_get(state, "value")),
@@ -419,7 +419,7 @@ def test_a_first_trial_outside_the_domain_restarts_a_tenth_shorter_until_finite(
     updates, state = search(changed=True)
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 4
     np.testing.assert_allclose(z + updates, jnp.ones(3), rtol=1e-12)
-    assert not bool(_step_failed(state))
+    assert not bool(step_failed(state))
     _, unchanged = search(changed=False)  # optax's search: no restart
     assert int(otu.tree_get(unchanged, "num_linesearch_steps")) >= 10
 
@@ -441,7 +441,7 @@ def test_a_search_out_of_trials_after_a_restart_ends_at_its_safe_step_as_optax_s
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
     np.testing.assert_allclose(updates, [1.0], rtol=1e-12)
     assert float(otu.tree_get(state, "value")) == pytest.approx(float(walled(jnp.ones(1))))
-    assert bool(_step_failed(state))
+    assert bool(step_failed(state))
 
 
 def test_float32_parameters_keep_their_dtype_when_a_search_gives_up_or_runs_out():
@@ -461,5 +461,5 @@ def test_float32_parameters_keep_their_dtype_when_a_search_gives_up_or_runs_out(
     state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
     updates, state = search.update(jnp.array([1000.0], jnp.float32), state, z, value=value,
                                    grad=grad, value_fn=walled)
-    assert updates.dtype == jnp.float32 and bool(_step_failed(state))
+    assert updates.dtype == jnp.float32 and bool(step_failed(state))
     np.testing.assert_allclose(updates, [1.0], rtol=1e-6)

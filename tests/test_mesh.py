@@ -10,7 +10,7 @@ import skfem
 from conftest import MESH_DIR, SHIPPED_MESHES
 
 import prdp_fem as pf
-from prdp_fem.mesh.io import _build_facets, _distinct_columns, save_mesh, with_names
+from prdp_fem.mesh.io import _distinct_columns, save_mesh, with_names
 
 EXPECTED_TAGS = {
     "square_tri.msh": ("MeshTri1", {"left", "right", "bottom", "top"}),
@@ -118,11 +118,9 @@ def test_generators_measure_and_round_trip(make, tmp_path):
 
 @pytest.mark.parametrize("cell, dim", [(skfem.MeshTri1, 2), (skfem.MeshQuad1, 2),
                                        (skfem.MeshTet1, 3), (skfem.MeshHex1, 3)])
-def test_named_boundaries_are_scikit_fems_and_keep_the_facets(cell, dim):
+def test_named_boundaries_are_scikit_fems(cell, dim):
     """with_names names what scikit-fem's with_boundaries names (a midpoint test picks among
-    the boundary facets only: "upper" leaves the interior facets above y = 0.5 out), and the
-    named copy keeps the facets and incidences the mesh has built instead of building them
-    again."""
+    the boundary facets only: "upper" leaves the interior facets above y = 0.5 out)."""
     x = np.linspace(0.0, 1.0, 4)
     def make():
         return cell.init_tensor(*[x] * dim)
@@ -135,9 +133,7 @@ def test_named_boundaries_are_scikit_fems_and_keep_the_facets(cell, dim):
         assert named.boundaries[name].dtype == facets.dtype
         np.testing.assert_array_equal(named.boundaries[name], facets)
     np.testing.assert_array_equal(named.subdomains["first"], np.arange(3))
-    assert named.facets is mesh.facets and named.t2f is mesh.t2f and named.f2t is mesh.f2t
     np.testing.assert_array_equal(named.facets, make().facets)
-    assert "_facets" in vars(pf.unit_square(2)) and "_facets" in vars(pf.rectangle_with_hole(4))
 
 
 def _unstructured_meshes():
@@ -157,16 +153,9 @@ def _unstructured_meshes():
       for cell, dim in [(skfem.MeshTri1, 2), (skfem.MeshQuad1, 2), (skfem.MeshTet1, 3),
                         (skfem.MeshHex1, 3)]),
     *_unstructured_meshes()], ids=lambda mesh: f"{type(mesh).__name__}-{mesh.t.shape[1]}")
-def test_facets_are_built_as_scikit_fem_builds_them(mesh):
-    """The facets and cell-to-facet map the package builds up front are scikit-fem's own, to
-    the number and the dtype, and the same by either sort."""
-    expected, built = type(mesh)(mesh.p, mesh.t), type(mesh)(mesh.p, mesh.t)
-    _build_facets(built)
-    assert ("_facets" in vars(built)) is not isinstance(mesh, skfem.MeshHex1)  # its own rule
-    for name in ("facets", "t2f", "f2t"):
-        got, want = getattr(built, name), getattr(expected, name)
-        assert got.dtype == want.dtype and got.shape == want.shape
-        np.testing.assert_array_equal(got, want)
+def test_distinct_facets_are_scikit_fem_s(mesh):
+    """The distinct sorted vertex tuples (what matching a file's tagged facets relies on) are
+    scikit-fem's facets and cell-to-facet map, to the number."""
     corners = np.sort(np.hstack([mesh.t[list(ix)] for ix in mesh.elem.refdom.facets]), axis=0)
     facets, t2f = skfem.Mesh.build_entities(mesh.t, mesh.elem.refdom.facets)
     by_lexsort, inverse = _distinct_columns(corners, packed=False)
@@ -205,18 +194,6 @@ def test_tagged_node_sets_are_found_among_the_facets_in_any_node_order():
         expected = [where.get(frozenset(row), -1) for row in query.tolist()]
         got = pf.mesh.io._match_rows(reference.astype(np.int32), query)
         assert got.tolist() == expected and -1 in expected and len(set(expected)) > 20
-
-
-def test_facet_cells_are_built_for_facets_scikit_fem_built():
-    """A mesh whose facets scikit-fem built already gets only its f2t, from those facets."""
-    x = np.linspace(0.0, 1.0, 6)
-    mesh, expected = skfem.MeshTri1.init_tensor(x, x), skfem.MeshTri1.init_tensor(x, x)
-    facets, t2f = mesh.facets, mesh.t2f  # scikit-fem builds them; not f2t yet
-    assert "_f2t" not in vars(mesh)
-    _build_facets(mesh)
-    assert mesh.facets is facets and mesh.t2f is t2f
-    assert mesh.f2t.dtype == expected.f2t.dtype
-    np.testing.assert_array_equal(mesh.f2t, expected.f2t)
 
 
 def test_a_boundary_test_must_flag_each_facet():

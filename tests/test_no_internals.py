@@ -72,3 +72,33 @@ def test_the_scan_leaves_public_names_and_the_package_s_own_private_modules_alon
     assert reaches("from __future__ import annotations\nimport jax\nfrom . import _zoom\n"
                    "from ._zoom import zoom_linesearch\nimport optax.tree_utils as otu\n"
                    "jax.__version__\nfrom .tally import _tally\n") == []
+
+
+def private_writes(source: str) -> list[str]:
+    """Private attributes written on objects that are not the class's own instance: another
+    package's cached state (a scikit-fem mesh's facets, say) set from outside."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store | ast.Del) \
+                and _private(node.attr):
+            if not (isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+                found.append(ast.unparse(node))
+        elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and \
+                node.func.id in ("setattr", "delattr") and len(node.args) >= 2:
+            name = node.args[1]
+            if not (isinstance(name, ast.Constant) and isinstance(name.value, str)
+                    and not _private(name.value)):
+                found.append(ast.unparse(node))
+    return found
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda path: str(path.relative_to(PACKAGE)))
+def test_no_module_writes_another_object_s_private_state(path):
+    assert private_writes(path.read_text(encoding="utf-8")) == []
+
+
+@pytest.mark.parametrize("source", [
+    "mesh._facets = facets", "setattr(mesh, '_t2f', t2f)", "setattr(mesh, name, value)",
+    "del mesh._f2t"])
+def test_the_write_scan_sees_each_kind_of_write(source):
+    assert private_writes(source)

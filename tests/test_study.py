@@ -259,14 +259,14 @@ SCENES = Path(__file__).resolve().parent.parent / "examples" / "scenes"
 def _tiny_inverse_error(variant, n: int | None = 8) -> tuple[float, pf.History]:
     """The run for 3 steps on an ``n x n`` mesh (``None``: the scene's): the initial field's
     error and the history."""
-    from prdp_fem.inverse.driver import _initial_params
+    from prdp_fem.inverse import initial_params
 
     variant = with_overrides(variant, {"optimizer": {"steps": 3}})
     if n is not None:
         variant = with_overrides(variant, {"mesh": {"n": n}})
     setup = build_inverse(variant)
     options = invert_options(variant, setup.disc)
-    start = float(setup.problem.parameter_error(_initial_params(setup.problem,
+    start = float(setup.problem.parameter_error(initial_params(setup.problem,
                                                                 options["init"])))
     return start, pf.invert(setup.problem, **options).history
 

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import SolverConfigError
-from ..linalg.amg import IMPLEMENTATIONS, _cycle_of_checked, amg_hierarchy
+from ..linalg.amg import IMPLEMENTATIONS, amg_hierarchy, checked_cycle
 from ..linalg.cg import ConvergedCG, solve
 from ..linalg.operator import SparseMatrix
 from .cg import poisson_operator
@@ -75,7 +75,7 @@ def _pyamg_setup(csr, smoother: str):
 def _our_setup(matrix: SparseMatrix, implementation: str):
     """What ``amg_preconditioner`` does, keeping the hierarchy for pyamg's solve."""
     ml = amg_hierarchy(matrix, smoother=SMOOTHER[implementation])
-    return ml, jax.block_until_ready(_cycle_of_checked(ml, implementation))
+    return ml, jax.block_until_ready(checked_cycle(ml, implementation))
 
 
 def _timed(fn, *args):

@@ -28,7 +28,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import optax.tree_utils as otu
 
 from .._checks import finite_vector, host_values
 from .._executables import SharedCompile, kept_programs
@@ -48,12 +47,24 @@ from ..fem.reference import amg_solve
 from ..fem.regularizers import Regularizer, regularizer
 from ..fem.residuals import ResidualFactors, residual_factors
 from ..fem.system import LinearSystem
-from ..linalg.amg import AMGCycle, RebuiltAMG
-from ..linalg.cg import ConvergedCG, IterationCounter, Solution, TruncatedCG, unrolled_length
+from ..linalg.amg import RebuiltAMG
+from ..linalg.cg import ConvergedCG, IterationCounter, Solution, TruncatedCG
 from ..linalg.operator import SparseMatrix, matvec
-from ..optim.linesearch import ZoomSearchState, lbfgs
+from ..optim.linesearch import lbfgs
 from .history import History, StepRecord
 from .refinement import Refinement, RefinementState, prdp
+from .steps import (
+    cycle_argument,
+    device_settings,
+    keeps_program,
+    preconditioner_key,
+    step_failed,
+    step_scan_length,
+    step_solver,
+    uses_stored_value,
+    value_grad_and_update,
+    with_stale_value,
+)
 
 __all__ = [
     "InverseProblem",
@@ -353,129 +364,26 @@ class Objective:
                 self.problem.regularization_residual)
 
 
-def _solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner,
-            scan_length: int = 0):
-    """The solver of one step; ``scan_length`` (unrolled mode, when ``> 0``): ``K`` is traced
-    below it (see :func:`_scan_length`)."""
-    if tolerance_mode:
-        return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
-    if gradient == "unrolled":
-        return TruncatedCG(K, preconditioner, gradient="unrolled",
-                           scan_length=scan_length or None)
-    return TruncatedCG(K, preconditioner, gradient="implicit", adjoint_iterations=K_adj)
-
-
-def _scan_length(gradient: str, K) -> int:
-    """A step program's static argument: in unrolled mode the scan length for ``K``
-    (:func:`~prdp_fem.linalg.cg.unrolled_length`: one program per power of two, not one per
-    ``K``), else 0 (``K`` is traced anyway)."""
-    return unrolled_length(int(K)) if gradient == "unrolled" else 0
-
-
-def _uses_stored_value(opt_state) -> bool:
-    return otu.tree_get(opt_state, "value") is not None
-
-
-def _stored_or_evaluated(value_fn, z, opt_state):
-    """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored,
-    unless that value is not finite (none yet, or :func:`invert` marked it stale), through
-    ``value_fn.value_and_grad``."""
-    value, grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
-    return jax.lax.cond(jnp.isfinite(value), lambda: (value, grad),
-                        lambda: value_fn.value_and_grad(z))
-
-
-def _refreshes(opt_state) -> bool:
-    """Whether the optimiser's line search evaluates a stale stored value itself
-    (:class:`~prdp_fem.optim.linesearch.ZoomSearchState`, :func:`prdp_fem.lbfgs`'s search)."""
-    nodes = jax.tree_util.tree_leaves(
-        opt_state, is_leaf=lambda node: isinstance(node, ZoomSearchState))
-    return any(isinstance(node, ZoomSearchState) for node in nodes)
-
-
-def _value_grad_and_update(optimizer, opt_state, z, value_fn):
-    """``(J(z), grad J(z), updates, new_state)``: one optimiser update at ``z``, from the value
-    and gradient its line search stored where it stores them (evaluated first where they are
-    stale), else from a fresh evaluation.
-
-    With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
-    the stored value is stale: the first trip hands the search the stale value, and the search
-    evaluates ``J`` and its gradient at ``z`` in its own trial and returns them (see
-    :mod:`prdp_fem.optim.linesearch`); the second trip is the update proper, from them and from
-    ``opt_state`` as given. So the program holds the objective once, where an evaluation
-    before the update held it twice: a CG solve and its adjoint, each compiled anew. Other
-    optimisers with a stored value: :func:`optax.value_and_grad_from_state`'s evaluation,
-    then the update.
-    """
-    if not _uses_stored_value(opt_state):
-        value, grad = value_fn.value_and_grad(z)
-    elif not _refreshes(opt_state):
-        value, grad = _stored_or_evaluated(value_fn, z, opt_state)
-    else:
-        return _refreshed_update(optimizer, opt_state, z, value_fn)
-    updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
-                                          value_fn=value_fn)
-    return value, grad, updates, new_state
-
-
-def _refreshed_update(optimizer, opt_state, z, value_fn):
-    """:func:`_value_grad_and_update` where the line search refreshes a stale value."""
-    stored_value, stored_grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
-    stale = ~jnp.isfinite(stored_value)
-
-    def trip(carry):
-        count, value, grad, _, _ = carry
-        updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
-                                              value_fn=value_fn)
-        refreshed = ~jnp.isfinite(value)  # the search evaluated at z: its state holds them
-        value = jnp.where(refreshed, otu.tree_get(new_state, "value"), value)
-        grad = optax.tree.where(refreshed, otu.tree_get(new_state, "grad"), grad)
-        return count + 1, value, grad, updates, new_state
-
-    _, value, grad, updates, new_state = jax.lax.while_loop(
-        lambda carry: (carry[0] == 0) | ((carry[0] == 1) & stale), trip,
-        (jnp.zeros((), jnp.int32), stored_value, stored_grad, optax.tree.zeros_like(z),
-         opt_state))
-    return value, grad, updates, new_state
-
-
-def _step_failed(opt_state) -> jax.Array:
-    """Whether the optimiser reports its last update as failed.
-
-    optax's line searches keep their errors in the state (a positive sufficient-decrease or,
-    for the zoom search, curvature error: the search ended without meeting its conditions);
-    :func:`prdp_fem.optim.newton.newton_cg` keeps ``line_search_failed``. Other optimisers report
-    nothing: ``False``.
-    """
-    failed = jnp.asarray(False)
-    for name in ("decrease_error", "curvature_error"):
-        error = otu.tree_get(opt_state, name)
-        if error is not None:
-            failed = failed | (error > 0)
-    flag = otu.tree_get(opt_state, "line_search_failed")
-    return failed if flag is None else failed | flag
-
-
 def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
     """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so that runs
     differing only in them run one compiled program (per scan length in unrolled mode).
 
     ``preconditioner`` is closed over, except :class:`~prdp_fem.linalg.AMGCycle` (pass the class):
-    the cycle is then the step's last argument (see :func:`_preconditioner_key`)."""
+    the cycle is then the step's last argument (see :func:`preconditioner_key`)."""
 
     def step(problem, counter, z, opt_state, scan_length, K, K_adj, rtol, cycle=None):
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+        solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
 
         value_fn = Objective(problem, solver, counter)
 
-        value, grad, updates, opt_state = _value_grad_and_update(optimizer, opt_state, z,
+        value, grad, updates, opt_state = value_grad_and_update(optimizer, opt_state, z,
                                                                  value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return z_next, opt_state, _StepScalars(
             value, misfit, problem.parameter_error(z_next), optax.tree.norm(grad),
-            _step_failed(opt_state), jnp.all(jnp.isfinite(z_next))).packed()
+            step_failed(opt_state), jnp.all(jnp.isfinite(z_next))).packed()
 
     return step
 
@@ -499,13 +407,6 @@ class _StepScalars(NamedTuple):
     def read(cls, packed: jax.Array) -> _StepScalars:
         """The host values (waits for the step: the vector is among its outputs)."""
         return cls(*np.asarray(packed).tolist())
-
-
-def _device_settings(settings: tuple[int, int, float]) -> tuple[jax.Array, ...]:
-    """The step's ``(K, K_adj, rtol)`` arguments: transferred once per refinement, not per
-    step (the controller's state lives on the host)."""
-    K, K_adj, rtol = settings
-    return tuple(jax.device_put((np.int32(K), np.int32(K_adj), np.float64(rtol))))
 
 
 @lru_cache(maxsize=1)
@@ -537,32 +438,6 @@ def _make_validation(rtol, preconditioner):
 
 #: The validation program per (rtol, preconditioner key), kept as the step is.
 _validation_program = kept_programs(_make_validation)
-
-
-def _preconditioner_key(preconditioner):
-    """What a step program is built for: a name, the class :class:`~prdp_fem.linalg.amg.AMGCycle`
-    for any such cycle (its arrays are then an argument of the program: hierarchies of
-    equal shapes, such as an AMG rebuilt at another kappa or the runs of a sweep, share one
-    compiled step), or the object itself (closed over: pyamg's callback cycle, a callable)."""
-    return AMGCycle if isinstance(preconditioner, AMGCycle) else preconditioner
-
-
-def _keeps(key) -> bool:
-    """Whether a program built for ``key`` (:func:`_preconditioner_key`) is kept for the
-    process: a name or the class; a closed-over object is a pytree of arrays or a host
-    cycle, no key to keep it under."""
-    return isinstance(key, str) or key is AMGCycle
-
-
-def _with_stale_value(opt_state):
-    """``opt_state`` with its stored value marked stale (``inf``): the next step evaluates
-    ``J`` and its gradient afresh, with that step's solver."""
-    return otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
-
-
-def _cycle_argument(preconditioner) -> tuple:
-    """The programs' trailing argument: an :class:`~prdp_fem.linalg.amg.AMGCycle`, else none."""
-    return (preconditioner,) if isinstance(preconditioner, AMGCycle) else ()
 
 
 def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation | None = None,
@@ -660,7 +535,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     failed_since_update = False  # a monitor read every few steps still hears of each failure
     rebuild_due = False  # decided after a step, done before the next (none after the last)
     settings = control.settings()
-    arguments = _device_settings(settings)
+    arguments = device_settings(settings)
     for k in range(1, steps + 1):
         previous_K = settings
         start = time.perf_counter()
@@ -672,17 +547,17 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             rebuilds, rebuild_due = rebuilds + 1, False
             # a truncated J depends on the preconditioner: the stored value belongs to
             # the old one (a converged J does not, beyond the tolerance)
-            if _uses_stored_value(opt_state) and not refinement.tolerance_mode:
-                opt_state = _with_stale_value(opt_state)
+            if uses_stored_value(opt_state) and not refinement.tolerance_mode:
+                opt_state = with_stale_value(opt_state)
         compile_before = compiled.seconds()
         z_next, opt_state, packed = step(problem, counter, z, opt_state,
-                                         _scan_length(gradient, settings[0]), *arguments,
-                                         *_cycle_argument(preconditioner))
+                                         step_scan_length(gradient, settings[0]), *arguments,
+                                         *cycle_argument(preconditioner))
         result = _StepScalars.read(packed)
         monitored = result.grad_norm if monitor == "gradient" else result.value
         if validate is not None and k % monitor.every == 0:
             monitored = float(validate(problem, validation_counter, z_next,
-                                       *_cycle_argument(preconditioner)))
+                                       *cycle_argument(preconditioner)))
         failed = bool(result.failed)
         failed_since_update |= failed
         failed_steps += failed
@@ -690,7 +565,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             control = refinement.update(control, monitored, failed_since_update)
             settings = control.settings()
             if settings != previous_K:
-                arguments = _device_settings(settings)
+                arguments = device_settings(settings)
             failed_since_update = False
         if rebuild_state is not None:
             rebuild_due, rebuild_state = _rebuild_due(rebuilt, rebuild_state,
@@ -705,9 +580,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
         z = z_next
-        if settings != previous_K and _uses_stored_value(opt_state):
+        if settings != previous_K and uses_stored_value(opt_state):
             # the stored value/gradient belong to the old solver: recompute them next step
-            opt_state = _with_stale_value(opt_state)
+            opt_state = with_stale_value(opt_state)
         evaluations = counter.primal_solves
         state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
                                    *previous_K, preconditioner) \
@@ -766,10 +641,10 @@ class _Compiled:
 def _programs(optimizer, gradient, tolerance_mode, preconditioner, monitor):
     """The step program and the validation program (``None`` unless ``monitor`` is a
     :class:`Validation`) for ``preconditioner``."""
-    key = _preconditioner_key(preconditioner)
-    step = _step_program(optimizer, gradient, tolerance_mode, key, keep=_keeps(key))
+    key = preconditioner_key(preconditioner)
+    step = _step_program(optimizer, gradient, tolerance_mode, key, keep=keeps_program(key))
     validate = None if isinstance(monitor, str) else \
-        _validation_program(monitor.rtol, key, keep=_keeps(key))
+        _validation_program(monitor.rtol, key, keep=keeps_program(key))
     return step, validate
 
 
@@ -827,7 +702,7 @@ def _is_count(value) -> bool:
 
 def _state_error(problem, z, gradient, tolerance_mode, K, K_adj, rtol, preconditioner) -> float:
     """Relative nodal l2 error of the step's truncated state against a pyamg solve."""
-    solver = _solver(gradient, tolerance_mode, int(K), int(K_adj), float(rtol), preconditioner)
+    solver = step_solver(gradient, tolerance_mode, int(K), int(K_adj), float(rtol), preconditioner)
     u = np.asarray(problem.state(z, solver).x)
     kappa, f = problem.parameterization.coefficients(z, problem.known)
     A = problem.system.operator(kappa).to_scipy()

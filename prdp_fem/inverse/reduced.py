@@ -57,15 +57,14 @@ from .._xla_options import compile_lowered, compiler_options
 from ..errors import SolverConfigError
 from ..linalg.cg import IterationCounter, TruncatedCG
 from ..linalg.host_cg import dot, jacobi_pcg, power_of_two_scale
-from .driver import (
-    InverseProblem,
-    _cycle_argument,
-    _initial_params,
-    _preconditioner_key,
-    _solver,
-)
+from .driver import InverseProblem, initial_params
 from .history import History, StepRecord
 from .refinement import Refinement, fixed
+from .steps import (
+    cycle_argument,
+    preconditioner_key,
+    step_solver,
+)
 
 __all__ = ["ReducedCG", "homogeneous", "reduced_cg"]
 
@@ -116,11 +115,11 @@ def _check_quadratic(problem: InverseProblem) -> None:
 def _make_gradient(tolerance_mode: bool, preconditioner: Any):
     """``(problem, f, K, K_adj, rtol, counter[, cycle]) -> (J(f), grad J(f))`` through the
     inner solves; a JAX AMG cycle comes as the last argument (an argument ran 30 % faster than
-    the same arrays closed over as constants: :func:`prdp_fem.inverse.driver._preconditioner_key`).
+    the same arrays closed over as constants: :func:`prdp_fem.inverse.steps.preconditioner_key`).
     The counter is an argument too, so the program does not depend on which counter counts."""
 
     def gradient(problem, f, K, K_adj, rtol, counter, cycle=None):
-        solver = _solver("implicit", tolerance_mode, K, K_adj, rtol,
+        solver = step_solver("implicit", tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle)
         return jax.value_and_grad(lambda z: problem.loss(z, solver, counter=counter)[0])(f)
 
@@ -204,15 +203,15 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     refinement = fixed(50) if refinement is None else refinement
     _check_options(refinement, iterations, rtol, riesz_rtol, preconditioner)
     counter = IterationCounter()
-    f = np.asarray(_initial_params(problem, init))
+    f = np.asarray(initial_params(problem, init))
     control = refinement.init()
-    cycle = _cycle_argument(preconditioner)
+    cycle = cycle_argument(preconditioner)
     # A compiled function records its arguments' structure as traced, and a counter traces as
     # a reference to its slot: called with the counter itself it raises a pytree mismatch. So
     # the lowering and every call take that reference (a pytree map over a counter gives it).
     counter_ref = jax.tree_util.tree_map(lambda slot: slot, counter)
     gradient, compile_time = _compile(
-        _make_gradient(refinement.tolerance_mode, _preconditioner_key(preconditioner)),
+        _make_gradient(refinement.tolerance_mode, preconditioner_key(preconditioner)),
         problem, f, *control.settings(), counter_ref, *cycle)
     linear_part, error = homogeneous(problem), _Relative(problem)
     riesz = _Riesz(problem, riesz_rtol)

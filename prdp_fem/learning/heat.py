@@ -76,15 +76,15 @@ from .._checks import finite_vector
 from .._executables import SharedCompile, kept_programs
 from ..errors import ShapeError, SolverConfigError
 from ..fem.discretization import Discretization
-from ..inverse.driver import (
-    _cycle_argument,
-    _device_settings,
-    _keeps,
-    _preconditioner_key,
-    _scan_length,
-    _solver,
-)
 from ..inverse.refinement import Refinement, prdp
+from ..inverse.steps import (
+    cycle_argument,
+    device_settings,
+    keeps_program,
+    preconditioner_key,
+    step_scan_length,
+    step_solver,
+)
 from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
@@ -400,7 +400,7 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
 
     def step(network, opt_state, problem, batch, counter, scan_length, K, K_adj, rtol,
              cycle=None):  # cycle: see inverse._preconditioner_key
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+        solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
         stepper = partial(step_fn, counter=counter) if counted else step_fn
         (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
@@ -489,9 +489,9 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     counter = IterationCounter()
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
-    key = _preconditioner_key(preconditioner)
+    key = preconditioner_key(preconditioner)
     step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
-                            step, counted, keep=_keeps(key))
+                            step, counted, keep=keeps_program(key))
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
@@ -502,8 +502,8 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
     for epoch in range(1, epochs + 1):
         # no solver: one compile, nothing to refine
         settings = control.settings() if solves else (0, 0, 0.0)
-        K, K_adj, rtol = _device_settings(settings)
-        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
+        K, K_adj, rtol = device_settings(settings)
+        scan_length = step_scan_length(gradient, settings[0])  # read on the host, not the device
         order = rng.permutation(n)
         losses = []
         for i in range(0, n - batch_size + 1, batch_size):
@@ -512,7 +512,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
             start = time.perf_counter()
             network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
                 step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
-                        rtol, *_cycle_argument(preconditioner)))
+                        rtol, *cycle_argument(preconditioner)))
             run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
             if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
                 raise InversionError(

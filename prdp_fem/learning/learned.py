@@ -49,17 +49,17 @@ from ..fem.reference import amg_solve
 from ..fem.residuals import square_root_factor
 from ..fem.system import LinearSystem
 from ..inverse.comparison import first_settled
-from ..inverse.driver import (
-    _cycle_argument,
-    _device_settings,
-    _keeps,
-    _preconditioner_key,
-    _scan_length,
-    _solver,
-    _uses_stored_value,
-    _value_grad_and_update,
-)
 from ..inverse.refinement import Refinement, RefinementState, prdp
+from ..inverse.steps import (
+    cycle_argument,
+    device_settings,
+    keeps_program,
+    preconditioner_key,
+    step_scan_length,
+    step_solver,
+    uses_stored_value,
+    value_grad_and_update,
+)
 from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
@@ -398,7 +398,7 @@ def validation(network: Network, problem: LearnedInverse, samples: SourceSamples
                rtol: float = 1e-10, preconditioner: Any = "jacobi"):
     """Mean observation misfit of held-out samples with a *converged* solve, and the mean
     relative source error (jit it: ``rtol`` is the only static choice)."""
-    solver = _solver("implicit", True, 100_000, 100_000, rtol, preconditioner)
+    solver = step_solver("implicit", True, 100_000, 100_000, rtol, preconditioner)
 
     def one(f_true, d):
         f = mlp_apply(network, d)
@@ -449,10 +449,10 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
 
     def step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
              rtol, cycle=None) -> _StepResult:  # cycle: see inverse._preconditioner_key
-        solver = _solver(gradient, tolerance_mode, K, K_adj, rtol,
+        solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
-        value, grad, updates, opt_state = _value_grad_and_update(optimizer, opt_state, layers,
+        value, grad, updates, opt_state = value_grad_and_update(optimizer, opt_state, layers,
                                                                  value_fn)
         return _StepResult(optax.apply_updates(layers, updates), opt_state, value,
                            optax.tree.norm(grad))
@@ -491,7 +491,7 @@ def _check_training_options(optimizer, gradient, epochs, batch_size, n, refineme
         raise SolverConfigError(f"optimizer={optimizer!r}: expected an optax "
                                 "GradientTransformation (optax.adam(...), optax.lbfgs(), "
                                 "prdp_fem.newton_cg(...), prdp_fem.optim.hig(...))")
-    if batch_size < n and _uses_stored_value(optimizer.init(layers)):
+    if batch_size < n and uses_stored_value(optimizer.init(layers)):
         raise SolverConfigError(
             f"optimizer=optax.lbfgs with batch_size={batch_size} < {n} training samples: its "
             "curvature pairs difference gradients of different batches; expected "
@@ -535,9 +535,9 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
                             network.layers)
-    key = _preconditioner_key(preconditioner)
+    key = preconditioner_key(preconditioner)
     step = _step_program(optimizer, gradient, refinement.tolerance_mode, key,
-                         keep=_keeps(key))
+                         keep=keeps_program(key))
     optimizer = optax.with_extra_args_support(optimizer)
     if problem.factors is None:
         problem = problem.with_residual()
@@ -550,8 +550,8 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     records, run_time, steps = [], 0.0, 0
     for epoch in range(1, epochs + 1):
         settings = control.settings()
-        K, K_adj, rtol = _device_settings(settings)
-        scan_length = _scan_length(gradient, settings[0])  # read on the host, not the device
+        K, K_adj, rtol = device_settings(settings)
+        scan_length = step_scan_length(gradient, settings[0])  # read on the host, not the device
         order = rng.permutation(n) if batch_size < n else np.arange(n)
         batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
         losses = []
@@ -561,7 +561,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             start = time.perf_counter()
             result = jax.block_until_ready(
                 step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
-                     rtol, *_cycle_argument(preconditioner)))
+                     rtol, *cycle_argument(preconditioner)))
             run_time += time.perf_counter() - start - (step.seconds - compile_before)
             if not (math.isfinite(float(result.loss))
                     and math.isfinite(float(result.grad_norm))):
@@ -580,7 +580,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
         previous = control
         control = refinement.update(control, float(misfit))
         run_time += time.perf_counter() - start
-        if _uses_stored_value(opt_state) and previous.settings() != control.settings():
+        if uses_stored_value(opt_state) and previous.settings() != control.settings():
             # the stored value/gradient belong to the old solver: recompute them next step
             # (same shape and dtype as stored: the step is compiled per argument type)
             stored = optax.tree_utils.tree_get(opt_state, "value")

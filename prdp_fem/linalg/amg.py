@@ -734,7 +734,7 @@ def amg_preconditioner(matrix: SparseMatrix | sp.spmatrix | sp.sparray, *, kind:
     implementation, smoother = _resolved(implementation, smoother)
     ml = amg_hierarchy(matrix, kind=kind, smoother=smoother, omega=omega, sweeps=sweeps,
                        max_coarse=max_coarse, strength=strength)
-    return _cycle_of_checked(ml, implementation)
+    return checked_cycle(ml, implementation)
 
 
 def _resolved(implementation: str | None, smoother: str | None) -> tuple[str, str]:
@@ -753,7 +753,7 @@ def _resolved(implementation: str | None, smoother: str | None) -> tuple[str, st
     return implementation, smoother
 
 
-def _cycle_of_checked(ml: pyamg.MultilevelSolver, implementation: str) -> AMGCycle | PyamgCycle:
+def checked_cycle(ml: pyamg.MultilevelSolver, implementation: str) -> AMGCycle | PyamgCycle:
     """The ``implementation`` cycle of a hierarchy from :func:`amg_hierarchy`, which has run
     the check cycle already (``from_pyamg`` runs it again)."""
     cycle = AMGCycle if implementation == "jax" else PyamgCycle

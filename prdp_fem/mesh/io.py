@@ -82,7 +82,7 @@ SUPPORTED_CELLS = {
 HIGHER_ORDER_CELLS = {"triangle6", "quad8", "quad9", "tetra10", "hexahedron20", "hexahedron27"}
 # scikit-fem numbers hexahedron nodes differently from meshio/VTK
 _HEX_MESHIO_TO_SKFEM = np.array([0, 4, 3, 1, 7, 5, 2, 6])
-_HEX_SKFEM_TO_MESHIO = np.argsort(_HEX_MESHIO_TO_SKFEM)
+HEX_SKFEM_TO_MESHIO = np.argsort(_HEX_MESHIO_TO_SKFEM)
 # the three edges leaving each hexahedron corner (meshio order), right-handed for a positive cell
 _HEX_CORNER_EDGES = np.array([[1, 3, 4], [2, 0, 5], [3, 1, 6], [0, 2, 7],
                               [7, 5, 0], [4, 6, 1], [5, 7, 2], [6, 4, 3]])
@@ -336,11 +336,11 @@ def save_mesh(mesh: skfem.Mesh, path: str | Path, *, file_format: str | None = N
     import meshio
 
     path = Path(path)
-    cell_type = _meshio_cell_type(mesh)
+    cell_type = meshio_cell_type(mesh)
     dim, _, facet_type = SUPPORTED_CELLS[cell_type]
     t = mesh.t.T
     if cell_type == "hexahedron":
-        t = t[:, _HEX_SKFEM_TO_MESHIO]
+        t = t[:, HEX_SKFEM_TO_MESHIO]
     blocks = [meshio.CellBlock(cell_type, t.astype(np.int64))]
     boundary_names = sorted(mesh.boundaries or {})
     subdomain_names = sorted(mesh.subdomains or {})
@@ -415,47 +415,10 @@ def _mesh_from_meshio(raw: meshio.Mesh, source: str, *, repair: bool) -> skfem.M
     mesh_cls = SUPPORTED_CELLS[cell_type][1]
     t = cells[:, _HEX_MESHIO_TO_SKFEM] if cell_type == "hexahedron" else cells
     mesh = mesh_cls(np.ascontiguousarray(points.T), np.ascontiguousarray(t.T), validate=False)
-    _build_facets(mesh)
     _check_not_folded(mesh, source)
     boundaries = _facet_tags(mesh, facet_blocks, raw.field_data, dim, source)
     subdomains = _cell_tags(cell_tags, raw.field_data, dim)
     return with_names(mesh, boundaries, subdomains)
-
-
-# what scikit-fem computes from ``t`` on first use and keeps on the mesh object
-_CONNECTIVITY = ("_facets", "_t2f", "_f2t", "_f2e", "_edges", "_t2e")
-
-
-def _build_facets(mesh: skfem.Mesh) -> None:
-    """Build scikit-fem's ``facets``, ``t2f`` and ``f2t`` of ``mesh`` now, unless it has them.
-
-    The same arrays as its own first use builds (``Mesh.build_entities``: the facets' sorted
-    vertex tuples, ordered lexicographically, and each cell's facet numbers;
-    ``Mesh.build_inverse``: each facet's first and last cell, ``-1`` on the boundary),
-    several times faster. scikit-fem sorts each tuple with ``np.sort(axis=0)`` (one small sort
-    per column), finds the distinct ones with ``np.unique(axis=1)`` (a sort of structured
-    records) and each facet's cells with two more sorts: 0.56 s of a profiled
-    ``unit_square(512)`` (0.67 s). Here the tuples are sorted by a compare-exchange network
-    over whole rows, one integer key per tuple is deduplicated (:func:`_distinct_columns`)
-    and the cells are found by ``np.minimum.at``/``np.maximum.at``. A mesh class that builds
-    its facets its own way (hexahedra keep each facet's vertices unsorted) is left to it.
-    """
-    if _own_facet_rule(type(mesh)) or all(hasattr(mesh, name)
-                                          for name in ("_facets", "_t2f", "_f2t")):
-        return
-    local = mesh.elem.refdom.facets
-    if not (hasattr(mesh, "_facets") and hasattr(mesh, "_t2f")):
-        corners = _sort_each_column(np.hstack([mesh.t[list(ix)] for ix in local]))
-        facets, inverse = _distinct_columns(corners)
-        mesh._facets, mesh._t2f = facets, inverse.reshape((len(local), mesh.t.shape[1]))
-    if not hasattr(mesh, "_f2t"):
-        mesh._f2t = _facet_cells(mesh._t2f, mesh._facets.shape[1])
-
-
-def _own_facet_rule(mesh_class: type) -> bool:
-    """Whether ``mesh_class`` changes how scikit-fem's ``Mesh`` builds or reads its facets."""
-    return any(getattr(mesh_class, name) is not getattr(skfem.Mesh, name)
-               for name in ("_init_facets", "build_entities", "build_inverse"))
 
 
 def _sort_each_column(columns: np.ndarray) -> np.ndarray:
@@ -515,43 +478,20 @@ def _distinct_columns(columns: np.ndarray, *, packed: bool | None = None
     return np.ascontiguousarray(ordered[:, starts]), inverse
 
 
-def _facet_cells(t2f: np.ndarray, n_facets: int) -> np.ndarray:
-    """scikit-fem's ``f2t``: the cells of each facet's first and last appearance in ``t2f``
-    read row by row, the second ``-1`` where they are the same cell (a boundary facet)."""
-    appearances = t2f.ravel()
-    position = np.arange(appearances.size)
-    first = np.full(n_facets, appearances.size)
-    np.minimum.at(first, appearances, position)
-    last = np.full(n_facets, -1)
-    np.maximum.at(last, appearances, position)
-    n_cells = t2f.shape[1]
-    cells = np.stack([first % n_cells, last % n_cells]).astype(np.int32)
-    cells[1, cells[0] == cells[1]] = -1
-    return cells
-
-
 def with_names(mesh: skfem.Mesh, boundaries: dict | None = None,
                subdomains: dict | None = None) -> skfem.Mesh:
-    """``mesh`` with named boundaries and subdomains, keeping the facets it has built.
+    """``mesh`` with named boundaries and subdomains.
 
     A boundary is an array of facet indices or a test of facet midpoints (``x`` of shape
     ``(dim, n)``), which selects among the boundary facets, as scikit-fem's
-    ``with_boundaries`` does. Its ``with_boundaries`` and ``with_subdomains`` return a copy
-    without the facets and incidences built so far, and building them again was the largest
-    part of ``unit_square(512)``; the copy has the same ``t``, so it takes them over here.
-    The midpoints are taken of the boundary facets only, not of all of them.
+    ``with_boundaries`` does. The midpoints are taken of the boundary facets only, not of all
+    of them.
     """
     named = mesh
     if boundaries:
-        _build_facets(mesh)
         named = named.with_boundaries(_boundary_facets(mesh, boundaries))
     if subdomains:
         named = named.with_subdomains(subdomains)
-    if named is not mesh and np.array_equal(named.t, mesh.t):
-        built = vars(mesh)
-        for name in _CONNECTIVITY:
-            if name in built:
-                setattr(named, name, built[name])
     return named
 
 
@@ -852,7 +792,7 @@ def _cell_tags(cell_tags, field_data, dim) -> dict[str, np.ndarray]:
             for name, parts in groups.items()}
 
 
-def _meshio_cell_type(mesh: skfem.Mesh) -> str:
+def meshio_cell_type(mesh: skfem.Mesh) -> str:
     for name, (_, cls, _) in SUPPORTED_CELLS.items():
         if isinstance(mesh, cls):
             return name
@@ -901,12 +841,12 @@ class MeshQuality(NamedTuple):
 
 def mesh_quality(mesh: skfem.Mesh) -> MeshQuality:
     """Sizes and shape quality of ``mesh``."""
-    cell_type = _meshio_cell_type(mesh)
+    cell_type = meshio_cell_type(mesh)
     dim = SUPPORTED_CELLS[cell_type][0]
     points = mesh.p.T
     cells = mesh.t.T
     if cell_type == "hexahedron":
-        cells = cells[:, _HEX_SKFEM_TO_MESHIO]
+        cells = cells[:, HEX_SKFEM_TO_MESHIO]
     x = points[cells]
     k = cells.shape[1]
     i, j = np.triu_indices(k, 1)

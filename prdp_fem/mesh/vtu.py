@@ -15,7 +15,7 @@ import skfem
 
 from .._atomic import atomic_path
 from ..errors import DiscretizationError, ShapeError
-from .io import _HEX_SKFEM_TO_MESHIO, _meshio_cell_type
+from .io import HEX_SKFEM_TO_MESHIO, meshio_cell_type
 
 __all__ = ["write_vtu"]
 
@@ -41,10 +41,10 @@ def write_vtu(mesh: skfem.Mesh, path: str | Path,
         else:
             raise DiscretizationError(f"field {name!r}: space {space!r}, expected 'nodal', "
                                       "'P1' or 'P0'")
-    cell_type = _meshio_cell_type(mesh)
+    cell_type = meshio_cell_type(mesh)
     cells = mesh.t.T
     if cell_type == "hexahedron":
-        cells = cells[:, _HEX_SKFEM_TO_MESHIO]
+        cells = cells[:, HEX_SKFEM_TO_MESHIO]
     points = mesh.p.T
     if points.shape[1] == 2:
         points = np.column_stack([points, np.zeros(n_vertices)])

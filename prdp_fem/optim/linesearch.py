@@ -66,7 +66,7 @@ every step, value and gradient is optax's.
 One more entry: handed a non-finite ``value`` (none yet, or marked stale), the search
 evaluates ``J`` and its gradient at ``params`` instead of searching, and returns a zero update
 with a :class:`ZoomSearchState` that stores them. :func:`prdp_fem.inverse.driver.invert` then calls
-the same update again with them (``prdp_fem.inverse.driver._value_grad_and_update``): the
+the same update again with them (``prdp_fem.inverse.steps.value_grad_and_update``): the
 step's program holds the objective once, in the search's loop, instead of once more for the
 value at the start.
 

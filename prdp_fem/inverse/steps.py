@@ -1,0 +1,170 @@
+"""The step machinery every training loop through the solver shares.
+
+:func:`~prdp_fem.inverse.invert`, the learned inverse (:mod:`prdp_fem.learning.learned`), the
+heat hybrid (:mod:`prdp_fem.learning.heat`) and the reduced-Hessian CG
+(:mod:`prdp_fem.inverse.reduced`) build the solver of a step from the refinement's current
+``(K, K_adj, rtol)``, run one optimiser update from the value and gradient its line search
+stored, read whether the update failed, and key their compiled programs by preconditioner.
+These are the functions that do it, one definition for all of them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optax.tree_utils as otu
+
+from ..linalg.amg import AMGCycle
+from ..linalg.cg import ConvergedCG, TruncatedCG, unrolled_length
+from ..optim.linesearch import ZoomSearchState
+
+__all__ = [
+    "cycle_argument",
+    "device_settings",
+    "keeps_program",
+    "preconditioner_key",
+    "step_failed",
+    "step_scan_length",
+    "step_solver",
+    "uses_stored_value",
+    "value_grad_and_update",
+    "with_stale_value",
+]
+
+
+def step_solver(gradient: str, tolerance_mode: bool, K, K_adj, rtol, preconditioner,
+            scan_length: int = 0):
+    """The solver of one step; ``scan_length`` (unrolled mode, when ``> 0``): ``K`` is traced
+    below it (see :func:`step_scan_length`)."""
+    if tolerance_mode:
+        return ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
+    if gradient == "unrolled":
+        return TruncatedCG(K, preconditioner, gradient="unrolled",
+                           scan_length=scan_length or None)
+    return TruncatedCG(K, preconditioner, gradient="implicit", adjoint_iterations=K_adj)
+
+
+def step_scan_length(gradient: str, K) -> int:
+    """A step program's static argument: in unrolled mode the scan length for ``K``
+    (:func:`~prdp_fem.linalg.cg.unrolled_length`: one program per power of two, not one per
+    ``K``), else 0 (``K`` is traced anyway)."""
+    return unrolled_length(int(K)) if gradient == "unrolled" else 0
+
+
+def uses_stored_value(opt_state) -> bool:
+    return otu.tree_get(opt_state, "value") is not None
+
+
+def _stored_or_evaluated(value_fn, z, opt_state):
+    """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored,
+    unless that value is not finite (none yet, or :func:`invert` marked it stale), through
+    ``value_fn.value_and_grad``."""
+    value, grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
+    return jax.lax.cond(jnp.isfinite(value), lambda: (value, grad),
+                        lambda: value_fn.value_and_grad(z))
+
+
+def _refreshes(opt_state) -> bool:
+    """Whether the optimiser's line search evaluates a stale stored value itself
+    (:class:`~prdp_fem.optim.linesearch.ZoomSearchState`, :func:`prdp_fem.lbfgs`'s search)."""
+    nodes = jax.tree_util.tree_leaves(
+        opt_state, is_leaf=lambda node: isinstance(node, ZoomSearchState))
+    return any(isinstance(node, ZoomSearchState) for node in nodes)
+
+
+def value_grad_and_update(optimizer, opt_state, z, value_fn):
+    """``(J(z), grad J(z), updates, new_state)``: one optimiser update at ``z``, from the value
+    and gradient its line search stored where it stores them (evaluated first where they are
+    stale), else from a fresh evaluation.
+
+    With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
+    the stored value is stale: the first trip hands the search the stale value, and the search
+    evaluates ``J`` and its gradient at ``z`` in its own trial and returns them (see
+    :mod:`prdp_fem.optim.linesearch`); the second trip is the update proper, from them and from
+    ``opt_state`` as given. So the program holds the objective once, where an evaluation
+    before the update held it twice: a CG solve and its adjoint, each compiled anew. Other
+    optimisers with a stored value: :func:`optax.value_and_grad_from_state`'s evaluation,
+    then the update.
+    """
+    if not uses_stored_value(opt_state):
+        value, grad = value_fn.value_and_grad(z)
+    elif not _refreshes(opt_state):
+        value, grad = _stored_or_evaluated(value_fn, z, opt_state)
+    else:
+        return _refreshed_update(optimizer, opt_state, z, value_fn)
+    updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                          value_fn=value_fn)
+    return value, grad, updates, new_state
+
+
+def _refreshed_update(optimizer, opt_state, z, value_fn):
+    """:func:`value_grad_and_update` where the line search refreshes a stale value."""
+    stored_value, stored_grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
+    stale = ~jnp.isfinite(stored_value)
+
+    def trip(carry):
+        count, value, grad, _, _ = carry
+        updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
+                                              value_fn=value_fn)
+        refreshed = ~jnp.isfinite(value)  # the search evaluated at z: its state holds them
+        value = jnp.where(refreshed, otu.tree_get(new_state, "value"), value)
+        grad = optax.tree.where(refreshed, otu.tree_get(new_state, "grad"), grad)
+        return count + 1, value, grad, updates, new_state
+
+    _, value, grad, updates, new_state = jax.lax.while_loop(
+        lambda carry: (carry[0] == 0) | ((carry[0] == 1) & stale), trip,
+        (jnp.zeros((), jnp.int32), stored_value, stored_grad, optax.tree.zeros_like(z),
+         opt_state))
+    return value, grad, updates, new_state
+
+
+def step_failed(opt_state) -> jax.Array:
+    """Whether the optimiser reports its last update as failed.
+
+    optax's line searches keep their errors in the state (a positive sufficient-decrease or,
+    for the zoom search, curvature error: the search ended without meeting its conditions);
+    :func:`prdp_fem.optim.newton.newton_cg` keeps ``line_search_failed``. Other optimisers report
+    nothing: ``False``.
+    """
+    failed = jnp.asarray(False)
+    for name in ("decrease_error", "curvature_error"):
+        error = otu.tree_get(opt_state, name)
+        if error is not None:
+            failed = failed | (error > 0)
+    flag = otu.tree_get(opt_state, "line_search_failed")
+    return failed if flag is None else failed | flag
+
+
+def device_settings(settings: tuple[int, int, float]) -> tuple[jax.Array, ...]:
+    """The step's ``(K, K_adj, rtol)`` arguments: transferred once per refinement, not per
+    step (the controller's state lives on the host)."""
+    K, K_adj, rtol = settings
+    return tuple(jax.device_put((np.int32(K), np.int32(K_adj), np.float64(rtol))))
+
+
+def preconditioner_key(preconditioner):
+    """What a step program is built for: a name, the class :class:`~prdp_fem.linalg.amg.AMGCycle`
+    for any such cycle (its arrays are then an argument of the program: hierarchies of
+    equal shapes, such as an AMG rebuilt at another kappa or the runs of a sweep, share one
+    compiled step), or the object itself (closed over: pyamg's callback cycle, a callable)."""
+    return AMGCycle if isinstance(preconditioner, AMGCycle) else preconditioner
+
+
+def keeps_program(key) -> bool:
+    """Whether a program built for ``key`` (:func:`preconditioner_key`) is kept for the
+    process: a name or the class; a closed-over object is a pytree of arrays or a host
+    cycle, no key to keep it under."""
+    return isinstance(key, str) or key is AMGCycle
+
+
+def with_stale_value(opt_state):
+    """``opt_state`` with its stored value marked stale (``inf``): the next step evaluates
+    ``J`` and its gradient afresh, with that step's solver."""
+    return otu.tree_set(opt_state, value=jnp.asarray(jnp.inf))
+
+
+def cycle_argument(preconditioner) -> tuple:
+    """The programs' trailing argument: an :class:`~prdp_fem.linalg.amg.AMGCycle`, else none."""
+    return (preconditioner,) if isinstance(preconditioner, AMGCycle) else ()
