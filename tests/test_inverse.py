@@ -19,13 +19,13 @@ from prdp_fem.inverse.comparison import settled
 from prdp_fem.inverse.driver import (
     InversionError,
     Validation,
-    _step_failed,
     inverse_problem,
     invert,
 )
 from prdp_fem.inverse.history import History
 from prdp_fem.inverse.parameter_choice import l_curve, morozov
 from prdp_fem.inverse.refinement import converged, fixed, prdp
+from prdp_fem.inverse.steps import step_failed
 from prdp_fem.linalg.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
 
 
@@ -519,9 +519,9 @@ def test_a_failed_line_search_is_read_from_the_optimizer_state():
         state = optimizer.init(x)
         _, good = optimizer.update(g, state, x, value=f(x), grad=g, value_fn=f)
         _, ascent = optimizer.update(-g, state, x, value=f(x), grad=-g, value_fn=f)
-        assert not bool(_step_failed(good)) and bool(_step_failed(ascent))
+        assert not bool(step_failed(good)) and bool(step_failed(ascent))
     adam = optax.adam(0.1)
-    assert not bool(_step_failed(adam.update(g, adam.init(x), x)[1]))  # reports nothing
+    assert not bool(step_failed(adam.update(g, adam.init(x), x)[1]))  # reports nothing
 
 
 def test_unrolled_and_validation_monitor_run_and_agree_with_converged():
