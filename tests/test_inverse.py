@@ -340,6 +340,7 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
 def _step_programs_made(monkeypatch) -> list:
     """The step programs (SharedCompile with a static scan length) built from now on."""
     from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     inverse._step_program.cache_clear()
     return shared_compiles_made(monkeypatch)
@@ -396,6 +397,7 @@ def test_a_step_traces_its_objective_once(monkeypatch):
     ``value_and_grad``: one nested program, traced once (three traces before), with the
     same losses."""
     from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     reference = invert(problem, refinement=fixed(8), steps=3)
@@ -415,6 +417,7 @@ def test_a_step_traces_its_objective_once(monkeypatch):
 def _compiled_step_host_calls(problem, optimizer) -> int:
     """The host calls (the tally's, one per CG solve) in a compiled implicit-mode step."""
     from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     optimizer = optax.with_extra_args_support(optimizer)
     z = jnp.zeros(problem.n_parameters)
@@ -433,6 +436,7 @@ def test_an_l_bfgs_step_holds_its_objective_once(monkeypatch):
     adjoint, each compiled anew where it appears -- once: as many host calls as one
     ``value_and_grad``, where the evaluation before the update held it twice."""
     from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     solver = TruncatedCG(8, "jacobi", gradient="implicit", adjoint_iterations=8)
@@ -444,7 +448,7 @@ def test_an_l_bfgs_step_holds_its_objective_once(monkeypatch):
     assert _compiled_step_host_calls(problem, pf.lbfgs()) == per_objective
     # optax's own L-BFGS evaluates before the update and in both branches of its search
     assert _compiled_step_host_calls(problem, optax.lbfgs()) == 3 * per_objective
-    monkeypatch.setattr(inverse, "_refreshes", lambda opt_state: False)
+    monkeypatch.setattr(steps, "_refreshes", lambda opt_state: False)
     assert _compiled_step_host_calls(problem, pf.lbfgs()) == 2 * per_objective
 
 
@@ -453,11 +457,12 @@ def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(mon
     round-off (the objective is compiled in another place), evaluations and iterations with
     the value refreshed by the search as with an evaluation before the update."""
     from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     refreshed = invert(problem, refinement=prdp(), steps=30).history
     assert refreshed[-1].refinements >= 1
-    monkeypatch.setattr(inverse, "_refreshes", lambda opt_state: False)
+    monkeypatch.setattr(steps, "_refreshes", lambda opt_state: False)
     inverse._step_program.cache_clear()
     evaluated_first = invert(problem, refinement=prdp(), steps=30).history
     np.testing.assert_allclose(refreshed.column("loss"), evaluated_first.column("loss"),
