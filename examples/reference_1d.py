@@ -90,7 +90,7 @@ def scan_length(name: str, K: int) -> int | None:
     if name == "jacobi, unrolled":
         return K_MAX
     if name == "pcg, unrolled":
-        return min(pf.unrolled_length(K), K_MAX)
+        return min(pf.linalg.unrolled_length(K), K_MAX)
     return None
 
 

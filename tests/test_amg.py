@@ -640,7 +640,7 @@ def test_a_validation_monitor_with_rebuilds_compiles_its_programs_once(monkeypat
     problem = _coefficient_inversion()
     run = pf.invert(problem, refinement=fixed(4), steps=5, optimizer=optax.sgd(10.0),
                     preconditioner=pf.RebuiltAMG(rebuild_policy(every=1)),
-                    monitor=pf.Validation(every=1))
+                    monitor=pf.inverse.Validation(every=1))
     assert [record.rebuilds for record in run.history] == [0, 1, 2, 3, 4]
     assert len(made) == 2 and all(len(program._cache) == 1 for program in made)
 

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
+from prdp_fem import errors
 from prdp_fem.bench.cg import cg_iteration_cost
 from prdp_fem.fem.observations import boundary_values, full_field, point_sensors, with_noise
 from prdp_fem.fem.parameters import Parameterization
@@ -158,7 +159,7 @@ def test_mesh_without_supported_cells(tmp_path, name, cells, found):
     path = tmp_path / name
     meshio.write(path, meshio.Mesh(points, cells),
                  **({"file_format": "gmsh22", "binary": False} if name.endswith(".msh") else {}))
-    with pytest.raises(pf.UnsupportedCellsError, match=rf"{name}: holds \[{found}\]; expected "
+    with pytest.raises(errors.UnsupportedCellsError, match=rf"{name}: holds \[{found}\]; expected "
                        "triangle, quad, tetra or hexahedron cells"):
         pf.load_mesh(path)
 
@@ -216,17 +217,17 @@ def test_bad_observed_values(disc):
 
 def test_bad_sensor_points(disc):
     u = np.ones(disc.n_dofs)
-    with pytest.raises(pf.SensorError, match=r"points: an empty sensor set \(shape \(0, 2\)\)"):
+    with pytest.raises(errors.SensorError, match=r"points: an empty sensor set \(shape \(0, 2\)\)"):
         point_sensors(disc, np.empty((0, 2)), u_true=u)
     with pytest.raises(pf.ShapeError, match=r"points: expected coordinates of shape \(n_sensors, "
                        r"2\), got \(3, 3\)"):
         point_sensors(disc, np.full((3, 3), 0.5), u_true=u)
     with pytest.raises(pf.ShapeError, match=r"points: .*got \(2, 2, 1\)"):
         point_sensors(disc, np.full((2, 2, 1), 0.5), u_true=u)
-    with pytest.raises(pf.SensorError, match=r"points: 1 sensor\(s\) have NaN/Inf coordinates "
+    with pytest.raises(errors.SensorError, match=r"points: 1 sensor\(s\) have NaN/Inf coordinates "
                        r"\(first: sensor 1 at \[nan, 0\.5\]\)"):
         point_sensors(disc, [[0.5, 0.5], [NAN, 0.5]], u_true=u)
-    with pytest.raises(pf.SensorError, match=r"points: 2 sensor\(s\) lie outside the mesh "
+    with pytest.raises(errors.SensorError, match=r"points: 2 sensor\(s\) lie outside the mesh "
                        r"\(first: sensor 1 at \[1\.5, 0\.5\]\)"):
         point_sensors(disc, [[0.5, 0.5], [1.5, 0.5], [0.5, -2.0]], u_true=u)
     with pytest.raises(pf.ShapeError, match=r"data \(observed values\): expected a vector of 1 "):
@@ -236,13 +237,13 @@ def test_bad_sensor_points(disc):
 def test_bad_observed_boundaries():
     natural = pf.discretize(pf.unit_square(4), dirichlet={"left": 0.0})
     u = np.ones(natural.n_dofs)
-    with pytest.raises(pf.SensorError, match=r"boundaries=\[\]: an empty sensor set"):
+    with pytest.raises(errors.SensorError, match=r"boundaries=\[\]: an empty sensor set"):
         boundary_values(natural, [], u_true=u)
-    with pytest.raises(pf.SensorError, match=r"unknown 'inlet'; expected names among"):
+    with pytest.raises(errors.SensorError, match=r"unknown 'inlet'; expected names among"):
         boundary_values(natural, ["right", "inlet"], u_true=u)
-    with pytest.raises(pf.SensorError, match=r"boundaries='right': expected a list"):
+    with pytest.raises(errors.SensorError, match=r"boundaries='right': expected a list"):
         boundary_values(natural, "right", u_true=u)
-    with pytest.raises(pf.SensorError, match="every observed dof carries Dirichlet data"):
+    with pytest.raises(errors.SensorError, match="every observed dof carries Dirichlet data"):
         boundary_values(natural, ["left"], u_true=u)
 
 
@@ -345,7 +346,8 @@ def test_bad_regularizer_settings(disc):
 def test_tensor_kappa_in_inverse_problems():
     tensor = pf.discretize(pf.unit_square(4), kappa_kind="tensor", dirichlet=0.0)
     obs = full_field(tensor, u_true=tensor.interpolate(lambda x: x[0] * (1 - x[0])))
-    with pytest.raises(pf.DiscretizationError, match=r"unknown='log_kappa' .*kappa_kind='tensor'"):
+    with pytest.raises(errors.DiscretizationError,
+                       match=r"unknown='log_kappa' .*kappa_kind='tensor'"):
         inverse_problem(tensor, obs, unknown="log_kappa", alpha=1.0)
     problem = inverse_problem(tensor, obs, unknown="source", alpha=1.0)  # default: identity
     # the system is frozen at kappa: its operator is the Laplacian's free block
@@ -380,7 +382,7 @@ def test_bad_vtu_fields_and_history_files(tmp_path):
     mesh = pf.unit_square(4)
     with pytest.raises(pf.ShapeError, match=r"field 'k': expected 32 cell values, got \(3,\)"):
         write_vtu(mesh, tmp_path / "k.vtu", {"k": ("P0", np.ones(3))})
-    with pytest.raises(pf.DiscretizationError, match=r"field 'k': space 'P3'"):
+    with pytest.raises(errors.DiscretizationError, match=r"field 'k': space 'P3'"):
         write_vtu(mesh, tmp_path / "k.vtu", {"k": ("P3", np.ones(32))})
     path = tmp_path / "history.jsonl"
     path.write_text('{"step": 1}\nnot json\n')
@@ -543,7 +545,7 @@ INVERSE = "[mesh]\nn = 4\n[inverse]\ntruth = 'x'\n"
 def test_scene_without_sensors_is_refused_at_load(tmp_path, text, message):
     with pytest.raises(SceneSensorError, match=rf"bad\.toml: {message}") as info:
         load_scene(_scene(tmp_path, INVERSE + text))
-    assert isinstance(info.value, pf.SensorError)
+    assert isinstance(info.value, errors.SensorError)
 
 
 @pytest.mark.parametrize(("text", "message"), [
@@ -561,7 +563,7 @@ def test_scene_sensors_that_do_not_fit_the_mesh(tmp_path, text, message):
     scene = load_scene(_scene(tmp_path, INVERSE + text))
     with pytest.raises(SceneSensorError, match=rf"bad\.toml: {message}") as info:
         build.build_inverse(scene)
-    assert isinstance(info.value, pf.SensorError)
+    assert isinstance(info.value, errors.SensorError)
 
 
 @pytest.mark.parametrize(("text", "message"), [

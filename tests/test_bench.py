@@ -10,6 +10,7 @@ import numpy as np
 import scipy.sparse.linalg as spla
 
 import prdp_fem as pf
+from prdp_fem import linalg
 from prdp_fem.bench.cg import (
     CGIterationCost,
     cg_iteration_cost,
@@ -61,8 +62,8 @@ def test_device_cost_times_every_kernel_against_the_csr_spmv():
     """The accelerator table's numbers (run here on the host backend): one time per kernel,
     the ratio is the default kernel's time over the reference SpMV's."""
     cost = device_iteration_cost(9, iterations=3, repeats=1)
-    assert cost.n_dofs == 64 and set(cost.kernel_s) == set(pf.KERNELS)
-    assert cost.iteration_s == cost.kernel_s[pf.default_kernel()]
+    assert cost.n_dofs == 64 and set(cost.kernel_s) == set(linalg.KERNELS)
+    assert cost.iteration_s == cost.kernel_s[linalg.default_kernel()]
     # at 64 dofs a loaded machine can time the SpMV loop at 0 (t_K - t_0 clamped): the
     # ratio's denominator is then the guard, not a division by zero
     assert math.isclose(cost.ratio, cost.iteration_s / max(cost.spmv_s, 1e-30),
@@ -76,8 +77,8 @@ def test_bench_cg_device_reference_prints_one_column_per_kernel():
                          env=ENV, capture_output=True, text=True, timeout=300,
                          check=True).stdout
     header = next(line for line in out.splitlines() if line.split()[:1] == ["dofs"])
-    assert [f"{k}" for k in pf.KERNELS] == [w for w in header.split() if w in pf.KERNELS]
+    assert [f"{k}" for k in linalg.KERNELS] == [w for w in header.split() if w in linalg.KERNELS]
     rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
     assert len(rows) == 1 and int(rows[0][0]) == 49
-    assert len(rows[0]) == 3 + len(pf.KERNELS) + 2
+    assert len(rows[0]) == 3 + len(linalg.KERNELS) + 2
     assert all(math.isfinite(float(v)) for v in rows[0])

@@ -104,8 +104,8 @@ def test_stacked_and_paired_states_take_the_same_iterations(n_side, jacobi):
 
     op, b = poisson_operator(n_side)
     b = jnp.asarray(b)
-    inverse_diagonal = pf.jacobi(op).inverse_diagonal
-    precond = pf.JacobiPreconditioner(inverse_diagonal) if jacobi \
+    inverse_diagonal = pf.linalg.jacobi(op).inverse_diagonal
+    precond = pf.linalg.JacobiPreconditioner(inverse_diagonal) if jacobi \
         else _DiagonalAsGeneral(inverse_diagonal)
     krylov = _krylov(op, precond)
     stacked, paired = (_init(krylov, b, jnp.zeros_like(b), stacked=flag).state
@@ -634,8 +634,8 @@ def test_scan_length_options_are_checked():
         TruncatedCG(5, gradient="implicit", scan_length=16)
     with pytest.raises(pf.SolverConfigError, match="scan_length"):
         TruncatedCG(5, gradient="unrolled", scan_length=-1)
-    assert [pf.unrolled_length(k) for k in (0, 16, 17, 100)] == [16, 16, 32, 128]
-    assert pf.unrolled_length(3, smallest=1) == 4
+    assert [pf.linalg.unrolled_length(k) for k in (0, 16, 17, 100)] == [16, 16, 32, 128]
+    assert pf.linalg.unrolled_length(3, smallest=1) == 4
 
 
 # ------------------------------------------------------------------------------------------
@@ -746,7 +746,7 @@ def test_preconditioner_and_counts_are_validated():
 def test_custom_preconditioner_pytree_in_both_modes(small_problem):
     disc, kappa, f = small_problem
     op = disc.system.operator(jnp.asarray(kappa))
-    custom = pf.JacobiPreconditioner(1.0 / pf.diagonal(op))
+    custom = pf.linalg.JacobiPreconditioner(1.0 / pf.linalg.diagonal(op))
     b = disc.system.rhs(jnp.asarray(kappa), jnp.asarray(f))
     for mode in ("unrolled", "implicit"):
         a = solve(op, b, TruncatedCG(9, preconditioner=custom, gradient=mode)).x
@@ -789,7 +789,7 @@ class _DiagonalAsGeneral:
 def test_scaled_jacobi_equals_pcg_with_z_equal_M_r(small_problem, mode):
     disc, kappa, f = small_problem
     system = disc.system
-    inverse_diagonal = pf.jacobi(system.operator(jnp.asarray(kappa))).inverse_diagonal
+    inverse_diagonal = pf.linalg.jacobi(system.operator(jnp.asarray(kappa))).inverse_diagonal
     b = system.rhs(jnp.asarray(kappa), jnp.asarray(f))
 
     def loss(values, preconditioner, K):
@@ -799,7 +799,7 @@ def test_scaled_jacobi_equals_pcg_with_z_equal_M_r(small_problem, mode):
 
     values = system.operator(jnp.asarray(kappa)).values
     value_and_grad = jax.jit(jax.value_and_grad(loss), static_argnums=2)
-    scaled, general = pf.JacobiPreconditioner(inverse_diagonal), \
+    scaled, general = pf.linalg.JacobiPreconditioner(inverse_diagonal), \
         _DiagonalAsGeneral(inverse_diagonal)
     for K in (1, 12):
         (value, grad), (reference, reference_grad) = (value_and_grad(values, scaled, K),
@@ -822,7 +822,7 @@ def test_preconditioned_while_loops_take_the_scans_iterations(small_problem, pre
     disc, kappa, f = small_problem
     op = disc.system.operator(jnp.asarray(kappa))
     b = disc.system.rhs(jnp.asarray(kappa), jnp.asarray(f))
-    precond = _DiagonalAsGeneral(1.0 / pf.diagonal(op)) if preconditioner == "diagonal" \
+    precond = _DiagonalAsGeneral(1.0 / pf.linalg.diagonal(op)) if preconditioner == "diagonal" \
         else pf.amg_preconditioner(op)
     k = 10 * disc.n_free if k == "past" else k
     unrolled, implicit = (solve(op, b, TruncatedCG(k, precond, gradient=mode))
@@ -854,7 +854,7 @@ def test_a_truncated_solve_applies_the_preconditioner_once_per_iteration(small_p
             jax.debug.callback(lambda: applications.append(1), ordered=True)
             return self.inverse_diagonal * r
 
-    precond = Counted(1.0 / pf.diagonal(op))
+    precond = Counted(1.0 / pf.linalg.diagonal(op))
     for K in (1, 7):
         applications.clear()
         sol = solve(op, b, TruncatedCG(K, precond, gradient="implicit"))

@@ -1,10 +1,18 @@
 """One source of defaults: a scene's refinement keys default to the controllers' own
 arguments, except where a difference is deliberate and named here."""
 
+import dataclasses
 import inspect
 
 from prdp_fem.inverse.refinement import adaptive_tolerance, converged, fixed, prdp
-from prdp_fem.scene.spec import ADAPTIVE_RTOL_MIN, RefinementSpec
+from prdp_fem.scene.spec import (
+    REFINEMENT_SPECS,
+    AdaptiveSpec,
+    ConvergedSpec,
+    FixedSpec,
+    PrdpSpec,
+    RefinementSpec,
+)
 
 #: scene key -> (the API's argument, why the scene differs; None: it must not)
 PRDP_KEYS = {
@@ -24,7 +32,7 @@ def _defaults(function) -> dict:
 
 
 def test_scene_prdp_defaults_are_the_controller_s():
-    spec, api = RefinementSpec(), _defaults(prdp)
+    spec, api = PrdpSpec(), _defaults(prdp)
     for key, argument in PRDP_KEYS.items():
         assert getattr(spec, key) == api[argument], key
     for key, (scene_value, api_value) in DIFFERENT.items():
@@ -32,11 +40,22 @@ def test_scene_prdp_defaults_are_the_controller_s():
 
 
 def test_scene_adaptive_defaults_are_the_controller_s():
-    spec, api = RefinementSpec(), _defaults(adaptive_tolerance)
-    assert (spec.rtol0, spec.power, spec.failure_factor, ADAPTIVE_RTOL_MIN) == (
+    spec, api = AdaptiveSpec(), _defaults(adaptive_tolerance)
+    assert (spec.rtol0, spec.power, spec.failure_factor, spec.rtol_min) == (
         api["rtol0"], api["power"], api["failure_factor"], api["rtol_min"])
 
 
 def test_scene_converged_and_fixed_defaults_are_the_controllers_():
-    assert _defaults(converged)["rtol"] == 1e-10 == RefinementSpec().validation_rtol
-    assert _defaults(fixed)["K_adj"] is None is RefinementSpec().K_adj
+    assert _defaults(converged)["rtol"] == ConvergedSpec().rtol == RefinementSpec().validation_rtol
+    assert _defaults(fixed)["K_adj"] is FixedSpec().K_adj
+
+
+def test_one_spec_per_refinement_kind_holds_only_its_controller_s_settings():
+    """Each kind's spec has its own fields and no other kind's (a fixed run has no K0)."""
+    own = {kind: {f.name for f in dataclasses.fields(spec)} for kind, spec in
+           REFINEMENT_SPECS.items()}
+    assert {kind: spec().kind for kind, spec in REFINEMENT_SPECS.items()} == {
+        kind: kind for kind in REFINEMENT_SPECS}
+    assert "K0" in own["prdp"] and "K0" not in own["fixed"] | own["converged"] | own["adaptive"]
+    assert "K" in own["fixed"] and "K" not in own["prdp"]
+    assert own["converged"] - {f.name for f in dataclasses.fields(RefinementSpec)} == {"rtol"}

@@ -1,4 +1,7 @@
-"""The documentation for users: a README within its budget, and links that resolve."""
+"""The documentation for users: a README within its budget, links that resolve, an API
+reference that names every public module and a gallery that shows every example. (The
+build itself, warnings as errors, is `python -m sphinx -W -b html docs docs/_build/html`,
+run by CI.)"""
 
 import re
 from pathlib import Path
@@ -82,3 +85,31 @@ def test_module_docstrings_carry_no_timings_machines_or_dates():
         doc = ast.get_docstring(ast.parse(path.read_text())) or ""
         found += [f"{path.name}: {m.group(0)}" for m in pattern.finditer(doc)]
     assert not found, found
+
+
+PACKAGE = ROOT / "prdp_fem"
+
+
+def _public_modules() -> set[str]:
+    found = set()
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        if any(part.startswith("_") for part in parts) or parts[1:2] in (("bench",), ("cli",)):
+            continue  # private modules, __init__/__main__, benchmarks and the command line
+        found.add(".".join(parts))
+    return found
+
+
+def test_the_api_reference_documents_every_public_module():
+    documented = set(re.findall(r"^\.\. automodule:: ([\w.]+)$",
+                                (ROOT / "docs" / "api.rst").read_text(), re.M))
+    assert _public_modules() - documented == set()
+    assert documented - _public_modules() <= {"prdp_fem"}
+
+
+def test_the_gallery_shows_every_example_and_scene():
+    gallery = (ROOT / "docs" / "examples.md").read_text()
+    for script in (ROOT / "examples").glob("*.py"):
+        assert f"../examples/{script.name}" in gallery, script.name
+    for scene in (ROOT / "examples" / "scenes").glob("*.toml"):
+        assert f"`{scene.name}`" in gallery, scene.name

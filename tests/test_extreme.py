@@ -28,7 +28,7 @@ def square(n=8, **options):
 def test_negative_kappa_breaks_down_eagerly_and_is_flagged_under_jit():
     disc = square()
     system, f = disc.system, np.ones(disc.n_dofs)
-    with pytest.raises(pf.SolverBreakdownError, match="not positive definite"):
+    with pytest.raises(pf.errors.SolverBreakdownError, match="not positive definite"):
         system.solve(-np.ones(disc.n_kappa), f, ConvergedCG())
     for solver in (ConvergedCG(), TruncatedCG(20), TruncatedCG(20, gradient="implicit")):
         sol = jax.jit(lambda k, s=solver: system.solve(k, f, s))(-jnp.ones(disc.n_kappa))
@@ -132,7 +132,7 @@ def test_pure_neumann_converges_to_the_manufactured_solution():
         f = disc.balance_source(disc.interpolate(
             lambda x: np.cos(np.pi * x[0]) * np.cos(np.pi * x[1])))
         u = disc.system.solve(np.ones(disc.n_kappa), f, ConvergedCG(rtol=1e-12)).x
-        errors.append(pf.l2_error(disc, np.asarray(u), lambda x: np.cos(np.pi * x[0])
+        errors.append(pf.fem.l2_error(disc, np.asarray(u), lambda x: np.cos(np.pi * x[0])
                                   * np.cos(np.pi * x[1]) / (2 * np.pi ** 2)))
     rates = np.log2(np.array(errors[:-1]) / errors[1:])
     assert rates[-1] == pytest.approx(2.0, abs=0.1)
@@ -154,7 +154,7 @@ def test_pure_neumann_gradient_passes_taylor_test(mode):
 
 def test_unbalanced_neumann_data_are_refused_and_flagged():
     disc, kappa, f = neumann_problem()
-    with pytest.raises(pf.IncompatibleDataError, match="balance_source"):
+    with pytest.raises(pf.errors.IncompatibleDataError, match="balance_source"):
         disc.system.solve(kappa, f + 1.0, TruncatedCG(10))
     sol = jax.jit(lambda f: disc.system.solve(kappa, f, ConvergedCG()))(jnp.asarray(f + 1.0))
     assert int(sol.status) == Status.INCOMPATIBLE
@@ -166,10 +166,10 @@ def test_disconnected_meshes_need_dirichlet_data_on_every_part():
     points = np.vstack([left.p.T, left.p.T + np.array([2.0, 0.0])])
     cells = np.vstack([left.t.T, left.t.T + left.p.shape[1]])
     mesh = pf.mesh_from_arrays(points, cells, "triangle")
-    with pytest.raises(pf.DiscretizationError, match="2 disconnected parts"):
+    with pytest.raises(pf.errors.DiscretizationError, match="2 disconnected parts"):
         pf.discretize(mesh, dirichlet=None)
     pinned_left = mesh.with_boundaries({"left": lambda x: np.abs(x[0]) < 1e-12})
-    with pytest.raises(pf.DiscretizationError, match="1 of the mesh's 2 disconnected parts"):
+    with pytest.raises(pf.errors.DiscretizationError, match="1 of the mesh's 2 disconnected parts"):
         pf.discretize(pinned_left, dirichlet={"left": 0.0})
 
 
@@ -208,7 +208,7 @@ def test_full_tensor_converges_at_rate_two():
         kappa = disc.interpolate_kappa(lambda x: tensor)
         u = pf.direct_solve(disc.stiffness_matrix(kappa),
                             disc.load_vector(source) + disc.rhs(kappa)).x
-        errors.append(pf.l2_error(disc, disc.expand(u), exact))
+        errors.append(pf.fem.l2_error(disc, disc.expand(u), exact))
     rates = np.log2(np.array(errors[:-1]) / errors[1:])
     assert rates[-1] == pytest.approx(2.0, abs=0.1)
     assert errors[-1] < 2e-3
@@ -236,7 +236,7 @@ def test_tensor_coefficients_are_checked():
         disc.stiffness_matrix(np.ones(n))
     with pytest.raises(pf.CoefficientError, match="not symmetric"):
         disc.interpolate_kappa(lambda x: np.array([[1.0, 0.1], [0.2, 1.0]]))
-    with pytest.raises(pf.DiscretizationError, match="kappa_kind='matrix'"):
+    with pytest.raises(pf.errors.DiscretizationError, match="kappa_kind='matrix'"):
         pf.discretize(pf.unit_square(2), kappa_kind="matrix")
 
 
@@ -291,14 +291,14 @@ def test_direct_solve_with_nullspace_is_orthogonal_to_it():
 
 
 def test_geometric_spacing_and_tensor_mesh():
-    x = pf.geometric_spacing(20, 1e3)
+    x = pf.mesh.geometric_spacing(20, 1e3)
     h = np.diff(x)
     assert h.max() / h.min() == pytest.approx(1e3)
     assert x[0] == 0.0 and x[-1] == pytest.approx(1.0)
-    mesh = pf.tensor_mesh(x * 1e6, np.linspace(0.0, 1.0, 5))
+    mesh = pf.mesh.tensor_mesh(x * 1e6, np.linspace(0.0, 1.0, 5))
     assert len(mesh.boundaries["left"]) == 4 and len(mesh.boundaries["top"]) == 20
-    with pytest.raises(pf.DiscretizationError, match="strictly increasing"):
-        pf.tensor_mesh(np.array([0.0, 1.0, 1.0]), np.linspace(0, 1, 3))
+    with pytest.raises(pf.errors.DiscretizationError, match="strictly increasing"):
+        pf.mesh.tensor_mesh(np.array([0.0, 1.0, 1.0]), np.linspace(0, 1, 3))
 
 
 @pytest.mark.parametrize("length", [1e-6, 1e6])
@@ -307,7 +307,7 @@ def test_scaled_domains_keep_the_solution_scaling_as_length_squared(length):
     unit = pf.discretize(pf.unit_square(8))
     u_unit = np.asarray(unit.system.solve(np.ones(unit.n_kappa), np.ones(unit.n_dofs),
                                           ConvergedCG()).x)
-    scaled = pf.discretize(pf.tensor_mesh(*[np.linspace(0.0, length, 9)] * 2))
+    scaled = pf.discretize(pf.mesh.tensor_mesh(*[np.linspace(0.0, length, 9)] * 2))
     for mode in MODES:
         u = scaled.system.solve(np.ones(scaled.n_kappa), np.ones(scaled.n_dofs),
                                 TruncatedCG(10 * scaled.n_free, gradient=mode)).x

@@ -80,7 +80,7 @@ def test_truncated_jvp_is_the_truncated_tangent_solve(problem):
     assert counter.snapshot() == (5, 7)  # the tangent solve is tallied as an adjoint one
     A = system.operator(kappa)
     # db - dA x: b and A are affine / linear in (kappa, f), so db = b(dkappa, df) - h
-    rhs = system.rhs(dkappa, df) - system.neumann - pf.matvec(system.operator(dkappa), x)
+    rhs = system.rhs(dkappa, df) - system.neumann - pf.linalg.matvec(system.operator(dkappa), x)
     reference = solve(A, rhs, TruncatedCG(7, gradient="implicit")).x
     np.testing.assert_allclose(tangent, reference, rtol=1e-12, atol=1e-12 * abs(reference).max())
 

@@ -312,7 +312,7 @@ def test_a_truncated_gradient_s_failed_line_search_costs_three_or_four_evaluatio
 def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
     """When K changes, the line search's stored value and gradient belong to the old solver:
     invert marks them stale (inf), so the next step's loss is the new solver's, and the
-    line search knows the objective changed (pf.scale_by_zoom_linesearch's restart)."""
+    line search knows the objective changed (pf.optim.scale_by_zoom_linesearch's restart)."""
     from prdp_fem.inverse.driver import Objective
     from prdp_fem.inverse.refinement import Refinement
 
@@ -340,7 +340,6 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
 def _step_programs_made(monkeypatch) -> list:
     """The step programs (SharedCompile with a static scan length) built from now on."""
     from prdp_fem.inverse import driver as inverse
-    from prdp_fem.inverse import steps
 
     inverse._step_program.cache_clear()
     return shared_compiles_made(monkeypatch)
@@ -397,7 +396,6 @@ def test_a_step_traces_its_objective_once(monkeypatch):
     ``value_and_grad``: one nested program, traced once (three traces before), with the
     same losses."""
     from prdp_fem.inverse import driver as inverse
-    from prdp_fem.inverse import steps
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     reference = invert(problem, refinement=fixed(8), steps=3)
@@ -417,7 +415,6 @@ def test_a_step_traces_its_objective_once(monkeypatch):
 def _compiled_step_host_calls(problem, optimizer) -> int:
     """The host calls (the tally's, one per CG solve) in a compiled implicit-mode step."""
     from prdp_fem.inverse import driver as inverse
-    from prdp_fem.inverse import steps
 
     optimizer = optax.with_extra_args_support(optimizer)
     z = jnp.zeros(problem.n_parameters)

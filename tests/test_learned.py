@@ -252,7 +252,7 @@ def test_hig_network_step_equals_the_svd_of_the_explicitly_stacked_jacobian(tiny
     expected = -eta * vt[keep].T @ (s[keep] ** exponent * (u[:, keep].T @ r))
     np.testing.assert_allclose(step, expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
     # hig_update on the same stacked Jacobian agrees, and 1/2 |r|^2 is the batch loss
-    update, info = pf.hig_update(jacobian, r, learning_rate=eta, exponent=exponent)
+    update, info = pf.optim.hig_update(jacobian, r, learning_rate=eta, exponent=exponent)
     np.testing.assert_allclose(_step(update, jax.tree_util.tree_map(jnp.zeros_like, update)),
                                expected, rtol=1e-7, atol=1e-10 * np.abs(expected).max())
     assert int(info.rank) == int(keep.sum())

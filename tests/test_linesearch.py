@@ -252,7 +252,7 @@ def test_a_convex_kink_with_its_true_gradient_gets_optax_s_search(approx_dec_rto
     z = jnp.zeros(1)
     value, grad = jax.value_and_grad(_smoothed_kink)(z)
     results = []
-    for search in (pf.scale_by_zoom_linesearch(approx_dec_rtol=approx_dec_rtol),
+    for search in (pf.optim.scale_by_zoom_linesearch(approx_dec_rtol=approx_dec_rtol),
                    optax.scale_by_zoom_linesearch(20, approx_dec_rtol=approx_dec_rtol)):
         updates, state = search.update(-grad, search.init(z), z, value=value, grad=grad,
                                        value_fn=_smoothed_kink)
@@ -277,7 +277,7 @@ def test_two_rising_trials_or_disagreeing_slopes_are_not_enough():
                                     dict(initial_guess_strategy="guess")])
 def test_bad_settings_are_refused_at_construction(kwargs):
     with pytest.raises(ValueError, match=next(iter(kwargs))):
-        pf.scale_by_zoom_linesearch(**kwargs)
+        pf.optim.scale_by_zoom_linesearch(**kwargs)
 
 
 def _quadratic_line(minimum):
@@ -334,13 +334,13 @@ def _half_squared_distance_to_one(z):
 
 
 def _search_along(direction_scale, *, changed, max_linesearch_steps=20):
-    """One search of `pf.scale_by_zoom_linesearch` along ``direction_scale`` times the
+    """One search of `pf.optim.scale_by_zoom_linesearch` along ``direction_scale`` times the
     steepest descent direction of a quadratic, whose line minimum is at
     ``t* = 1 / direction_scale``; ``changed``: the state says the objective changed since the
     last search (the value invert stores when PRDP refines), else a finite stored value."""
     fn, z = _half_squared_distance_to_one, jnp.array([0.2, -0.4, 0.7])
     value, grad = jax.value_and_grad(fn)(z)
-    search = pf.scale_by_zoom_linesearch(max_linesearch_steps)
+    search = pf.optim.scale_by_zoom_linesearch(max_linesearch_steps)
     state = search.init(z)
     state = state._replace(value=jnp.asarray(jnp.inf if changed else value), grad=grad,
                            info=state.info._replace(num_linesearch_steps=jnp.asarray(3)))
@@ -410,7 +410,7 @@ def test_a_first_trial_outside_the_domain_restarts_a_tenth_shorter_until_finite(
     value, grad = jax.value_and_grad(fn)(z)
 
     def search(changed):
-        line = pf.scale_by_zoom_linesearch(20)
+        line = pf.optim.scale_by_zoom_linesearch(20)
         state = line.init(z)
         state = state._replace(value=jnp.asarray(jnp.inf if changed else value), grad=grad,
                                info=state.info._replace(num_linesearch_steps=jnp.asarray(3)))
@@ -433,7 +433,7 @@ def test_a_search_out_of_trials_after_a_restart_ends_at_its_safe_step_as_optax_s
 
     z = jnp.zeros(1)
     value, grad = jax.value_and_grad(walled)(z)
-    search = pf.scale_by_zoom_linesearch(3)
+    search = pf.optim.scale_by_zoom_linesearch(3)
     state = search.init(z)
     state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
     updates, state = search.update(jnp.array([1000.0]), state, z, value=value, grad=grad,
@@ -456,7 +456,7 @@ def test_float32_parameters_keep_their_dtype_when_a_search_gives_up_or_runs_out(
 
     z = jnp.zeros(1, jnp.float32)
     value, grad = jax.value_and_grad(walled)(z)
-    search = pf.scale_by_zoom_linesearch(3)
+    search = pf.optim.scale_by_zoom_linesearch(3)
     state = search.init(z)
     state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
     updates, state = search.update(jnp.array([1000.0], jnp.float32), state, z, value=value,

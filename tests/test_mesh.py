@@ -10,6 +10,7 @@ import skfem
 from conftest import MESH_DIR, SHIPPED_MESHES
 
 import prdp_fem as pf
+from prdp_fem import errors
 from prdp_fem.mesh.io import _distinct_columns, save_mesh, with_names
 
 EXPECTED_TAGS = {
@@ -255,14 +256,14 @@ def test_directory_is_not_a_mesh(tmp_path):
 
 def test_no_supported_cells(tmp_path):
     path = write(tmp_path, "lines.vtu", SQUARE, [("line", np.array([[0, 1], [1, 2]]))])
-    with pytest.raises(pf.UnsupportedCellsError, match=r"lines\.vtu: holds \['line'\]"):
+    with pytest.raises(errors.UnsupportedCellsError, match=r"lines\.vtu: holds \['line'\]"):
         pf.load_mesh(path)
 
 
 def test_second_order_cells_are_named(tmp_path):
     points = np.vstack([SQUARE, [[0.5, 0], [0.5, 0.5], [0, 0.5]]])
     path = write(tmp_path, "p2.vtu", points, [("triangle6", np.array([[0, 1, 3, 4, 5, 6]]))])
-    with pytest.raises(pf.UnsupportedCellsError, match=r"second-order cells.*triangle6"):
+    with pytest.raises(errors.UnsupportedCellsError, match=r"second-order cells.*triangle6"):
         pf.load_mesh(path)
 
 
@@ -270,21 +271,21 @@ def test_mixed_cell_types(tmp_path):
     points = np.vstack([SQUARE, [[2.0, 0.0], [2.0, 1.0]]])
     cells = [("triangle", np.array([[0, 1, 2], [0, 2, 3]])), ("quad", np.array([[1, 4, 5, 2]]))]
     path = write(tmp_path, "mixed.vtu", points, cells)
-    with pytest.raises(pf.MixedDimensionError, match=r"mixed\.vtu: mixes"):
+    with pytest.raises(errors.MixedDimensionError, match=r"mixed\.vtu: mixes"):
         pf.load_mesh(path)
 
 
 def test_lower_dimensional_cells_that_are_not_facets(tmp_path):
     cells = [*TWO_TRIANGLES, ("line", np.array([[1, 3]]))]  # the diagonal is 0-2, not 1-3
     path = write(tmp_path, "stray.vtu", SQUARE, cells)
-    with pytest.raises(pf.MixedDimensionError, match="not facets of the mesh"):
+    with pytest.raises(errors.MixedDimensionError, match="not facets of the mesh"):
         pf.load_mesh(path)
 
 
 def test_surface_in_3d_is_mixed_dimension(tmp_path):
     points = np.column_stack([SQUARE, [0.0, 0.0, 1.0, 0.0]])
     path = write(tmp_path, "bent.vtu", points, TWO_TRIANGLES)
-    with pytest.raises(pf.MixedDimensionError, match="nodes spanning 3-D"):
+    with pytest.raises(errors.MixedDimensionError, match="nodes spanning 3-D"):
         pf.load_mesh(path)
 
 
@@ -292,14 +293,14 @@ def test_nan_coordinates(tmp_path):
     points = SQUARE.copy()
     points[2, 1] = np.nan
     path = write(tmp_path, "nan.vtu", points, TWO_TRIANGLES)
-    with pytest.raises(pf.NonFiniteCoordinatesError, match=r"nan\.vtu: 1 node.*node 2"):
+    with pytest.raises(errors.NonFiniteCoordinatesError, match=r"nan\.vtu: 1 node.*node 2"):
         pf.load_mesh(path)
 
 
 def test_inf_coordinates():
     points = SQUARE.copy()
     points[0, 0] = np.inf
-    with pytest.raises(pf.NonFiniteCoordinatesError, match="NaN/Inf"):
+    with pytest.raises(errors.NonFiniteCoordinatesError, match="NaN/Inf"):
         pf.mesh_from_arrays(points, TWO_TRIANGLES[0][1], "triangle")
 
 
@@ -307,13 +308,13 @@ def test_degenerate_cell(tmp_path):
     points = np.vstack([SQUARE, [[2.0, 0.0]]])
     cells = [("triangle", np.array([[0, 1, 2], [0, 2, 3], [0, 1, 4]]))]  # 0,1,4 collinear
     path = write(tmp_path, "flat.vtu", points, cells)
-    with pytest.raises(pf.DegenerateCellError, match=r"flat\.vtu: 1 triangle cell.*zero area"):
+    with pytest.raises(errors.DegenerateCellError, match=r"flat\.vtu: 1 triangle cell.*zero area"):
         pf.load_mesh(path)
 
 
 def test_bowtie_quad_is_inverted(tmp_path):
     path = write(tmp_path, "bowtie.vtu", SQUARE, [("quad", np.array([[0, 1, 3, 2]]))])
-    with pytest.raises(pf.InvertedCellError, match="self-intersecting"):
+    with pytest.raises(errors.InvertedCellError, match="self-intersecting"):
         pf.load_mesh(path)
 
 
@@ -323,7 +324,7 @@ def test_folded_mesh_is_inverted():
     points = square.p.T.copy()
     centre = int(np.argmin(np.linalg.norm(points - 0.5, axis=1)))
     points[centre] = [1.2, 0.9]
-    with pytest.raises(pf.InvertedCellError, match="folded"):
+    with pytest.raises(errors.InvertedCellError, match="folded"):
         pf.mesh_from_arrays(points, square.t.T, "triangle", source="folded.msh")
 
 
@@ -331,9 +332,9 @@ def test_duplicate_nodes_raise_then_repair(tmp_path):
     points = np.vstack([SQUARE, [[0.0, 0.0]]])  # node 4 duplicates node 0
     cells = [("triangle", np.array([[0, 1, 2], [4, 2, 3]]))]
     path = write(tmp_path, "dup.vtu", points, cells)
-    with pytest.raises(pf.DuplicateNodeError, match=r"dup\.vtu: 1 duplicate node.*node 4"):
+    with pytest.raises(errors.DuplicateNodeError, match=r"dup\.vtu: 1 duplicate node.*node 4"):
         pf.load_mesh(path)
-    with pytest.warns(pf.MeshRepairWarning) as record:
+    with pytest.warns(errors.MeshRepairWarning) as record:
         mesh = pf.load_mesh(path, repair=True)
     messages = [str(w.message) for w in record]
     assert any("merged 1 duplicate" in m for m in messages)
@@ -345,9 +346,9 @@ def test_duplicate_nodes_raise_then_repair(tmp_path):
 def test_unused_nodes_raise_then_repair(tmp_path):
     points = np.vstack([SQUARE, [[5.0, 5.0]]])
     path = write(tmp_path, "unused.vtu", points, TWO_TRIANGLES)
-    with pytest.raises(pf.UnusedNodeError, match=r"unused\.vtu: 1 node.*belong to no cell"):
+    with pytest.raises(errors.UnusedNodeError, match=r"unused\.vtu: 1 node.*belong to no cell"):
         pf.load_mesh(path)
-    with pytest.warns(pf.MeshRepairWarning, match="dropped 1 unused"):
+    with pytest.warns(errors.MeshRepairWarning, match="dropped 1 unused"):
         mesh = pf.load_mesh(path, repair=True)
     assert mesh.p.shape[1] == 4
 

@@ -95,7 +95,7 @@ def test_gauss_newton_operator_is_jacobian_transpose_w_jacobian_plus_the_regular
     z = jnp.asarray(disc.interpolate_kappa(lambda x: 0.3 * x[0] - 0.2 * x[1]))
 
     def observed(problem, z):
-        return pf.matvec(problem.observation.operator,
+        return pf.linalg.matvec(problem.observation.operator,
                          problem.system.expand(problem.state(z, solver).x))
 
     J = np.asarray(jax.jit(jax.jacfwd(observed, argnums=1))(problem, z))

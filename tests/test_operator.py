@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import prdp_fem as pf
+from prdp_fem import linalg
 
 
 @pytest.fixture
@@ -25,12 +26,12 @@ def test_matvec_rmatvec_diagonal_match_scipy(random_spd):
     rect = sp.random(30, 20, density=0.2, random_state=np.random.default_rng(2)).tocsr()
     x = np.random.default_rng(3).normal(size=40)
     A = pf.SparseMatrix.from_scipy(random_spd)
-    np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
-    np.testing.assert_allclose(pf.diagonal(A), random_spd.diagonal(), rtol=1e-14)
+    np.testing.assert_allclose(linalg.matvec(A, x), random_spd @ x, rtol=1e-13)
+    np.testing.assert_allclose(linalg.diagonal(A), random_spd.diagonal(), rtol=1e-14)
     R = pf.SparseMatrix.from_scipy(rect)
     y = np.arange(30.0)
-    np.testing.assert_allclose(pf.rmatvec(R, y), rect.T @ y, rtol=1e-13)
-    np.testing.assert_allclose(pf.matvec(R, np.ones(20)), rect @ np.ones(20), rtol=1e-13)
+    np.testing.assert_allclose(linalg.rmatvec(R, y), rect.T @ y, rtol=1e-13)
+    np.testing.assert_allclose(linalg.matvec(R, np.ones(20)), rect @ np.ones(20), rtol=1e-13)
 
 
 def test_diagonal_from_the_layout_adds_repeated_entries_and_missing_ones_are_zero():
@@ -40,10 +41,11 @@ def test_diagonal_from_the_layout_adds_repeated_entries_and_missing_ones_are_zer
     A = pf.SparseMatrix.from_coo(rows, cols, values, (3, 3))
     assert A.layout is not None and A.layout.repeated_diagonal.shape[0] == 3
     expected = sp.coo_matrix((values, (rows, cols)), shape=(3, 3)).tocsr().diagonal()
-    np.testing.assert_array_equal(pf.diagonal(A), expected)            # [3, 0, 33]
-    np.testing.assert_array_equal(pf.diagonal(A), pf.diagonal(dataclasses.replace(A, layout=None)))
+    np.testing.assert_array_equal(linalg.diagonal(A), expected)            # [3, 0, 33]
+    np.testing.assert_array_equal(linalg.diagonal(A),
+                                  linalg.diagonal(dataclasses.replace(A, layout=None)))
     weights = np.arange(1.0, 4.0)
-    grad = jax.grad(lambda v: jnp.sum(pf.diagonal(A.with_values(v)) * weights))(A.values)
+    grad = jax.grad(lambda v: jnp.sum(linalg.diagonal(A.with_values(v)) * weights))(A.values)
     on_diagonal = np.asarray(A.rows) == np.asarray(A.cols)  # (from_coo sorted the entries)
     np.testing.assert_array_equal(grad, np.where(on_diagonal, weights[np.asarray(A.rows)], 0))
 
@@ -73,14 +75,14 @@ def test_operator_is_a_jit_argument_not_a_constant(random_spd):
     @jax.jit
     def apply(op, x):
         traces.append(1)
-        return pf.matvec(op, x)
+        return linalg.matvec(op, x)
 
     A = pf.SparseMatrix.from_scipy(random_spd)
     apply(A, jnp.ones(40))
     apply(A.with_values(2 * A.values), jnp.ones(40))  # new values: same trace
     assert len(traces) == 1
     # the values are an input of the compiled function, not baked-in constants
-    lowered = jax.jit(pf.matvec).lower(A, jnp.ones(40)).as_text()
+    lowered = jax.jit(linalg.matvec).lower(A, jnp.ones(40)).as_text()
     signature = next(line for line in lowered.splitlines() if "func.func public @main" in line)
     assert f"tensor<{A.nnz}xf64>" in signature
 
@@ -89,14 +91,14 @@ def test_matvec_is_differentiable_in_values(random_spd):
     A = pf.SparseMatrix.from_scipy(random_spd)
     x = jnp.arange(40.0)
     y = jnp.ones(40)
-    grad = jax.grad(lambda v: y @ pf.matvec(A.with_values(v), x))(A.values)
+    grad = jax.grad(lambda v: y @ linalg.matvec(A.with_values(v), x))(A.values)
     np.testing.assert_allclose(grad, y[A.rows] * x[A.cols])
 
 
 def test_vmap_over_vectors(random_spd):
     A = pf.SparseMatrix.from_scipy(random_spd)
     X = np.random.default_rng(4).normal(size=(5, 40))
-    Y = jax.vmap(pf.matvec, in_axes=(None, 0))(A, X)
+    Y = jax.vmap(linalg.matvec, in_axes=(None, 0))(A, X)
     np.testing.assert_allclose(Y, (random_spd @ X.T).T, rtol=1e-13)
 
 
@@ -116,7 +118,7 @@ def test_from_bcoo_drops_the_padding_of_a_bcoo(random_spd):
     assert int(np.asarray(padded.indices).max()) == 40
     A = pf.SparseMatrix.from_bcoo(padded)
     x = np.random.default_rng(0).normal(size=40)
-    np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
+    np.testing.assert_allclose(linalg.matvec(A, x), random_spd @ x, rtol=1e-13)
     assert A.values.shape[0] == random_spd.nnz
 
 
@@ -126,12 +128,12 @@ def test_from_coo_sorts_and_sums(random_spd):
     A = pf.SparseMatrix.from_coo(coo.row[order], coo.col[order], coo.data[order], coo.shape)
     assert np.all(np.diff(np.asarray(A.rows)) >= 0)
     x = np.linspace(-1, 1, 40)
-    np.testing.assert_allclose(pf.matvec(A, x), random_spd @ x, rtol=1e-13)
+    np.testing.assert_allclose(linalg.matvec(A, x), random_spd @ x, rtol=1e-13)
 
 
 @jax.jit
 def _products(A, x):
-    return pf.matvec(A, x), pf.rmatvec(A, x), pf.diagonal(A)
+    return linalg.matvec(A, x), linalg.rmatvec(A, x), linalg.diagonal(A)
 
 
 # each shape compiles: one program an example (the three run op by op took ~1 s an example)
@@ -170,7 +172,7 @@ def test_long_rows_spill_into_the_coo_tail_and_still_multiply_right():
     assert A.layout.slots.shape[0] < 59  # not padded to the hub's length
     assert A.layout.overflow_rows.shape[0] > 0
     x = np.random.default_rng(0).normal(size=60)
-    np.testing.assert_allclose(pf.matvec(A, x), matrix @ x, rtol=1e-13)
+    np.testing.assert_allclose(linalg.matvec(A, x), matrix @ x, rtol=1e-13)
 
 
 def _layout_by_definition(rows, cols, n, n_cols):
@@ -251,7 +253,7 @@ def test_products_gather_without_wrapping_negative_indices(kernel):
     V-cycle in the loop compiled 2.3x slower than on its own). Star rows also spill into the
     COO tail, whose gather is checked too."""
     A = pf.SparseMatrix.from_scipy(_star(60)).with_kernel(kernel)
-    prepared = pf.prepare(A)
+    prepared = linalg.prepare(A)
     jaxpr = jax.make_jaxpr(prepared)(jnp.ones(60)).jaxpr
     names = _primitives(jaxpr)
     assert "gather" in names and not names & {"select_n", "lt"}, names
@@ -265,14 +267,14 @@ def test_ell_and_coo_kernels_agree_in_value_jvp_and_vjp(random_spd, matrix):
     ell = pf.SparseMatrix.from_scipy(matrix)
     coo = pf.SparseMatrix(ell.rows, ell.cols, ell.values, ell.shape)
     csr = ell.with_kernel("csr")
-    assert isinstance(pf.prepare(ell), pf.EllMatrix) and isinstance(pf.prepare(coo),
-                                                                     pf.CooMatrix)
-    assert isinstance(pf.prepare(csr), pf.CsrMatrix)
+    assert isinstance(linalg.prepare(ell), linalg.EllMatrix) and isinstance(linalg.prepare(coo),
+                                                                     linalg.CooMatrix)
+    assert isinstance(linalg.prepare(csr), linalg.CsrMatrix)
     rng = np.random.default_rng(1)
     x, dx, dv, y = (rng.normal(size=s) for s in (40, 40, ell.nnz, 40))
 
     def product(A):
-        return lambda values, x: pf.matvec(A.with_values(values), x)
+        return lambda values, x: linalg.matvec(A.with_values(values), x)
 
     for A in (ell, coo, csr):
         value, tangent = jax.jvp(product(A), (A.values, x), (dv, dx))
@@ -295,7 +297,7 @@ def test_scaled_kernel_is_S_A_S(n, nnz, seed):
     s, x = rng.uniform(0.5, 2.0, n), rng.normal(size=n)
     scaled = sp.diags(s) @ reference @ sp.diags(s)
     coo = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
-    kernels = (pf.prepare(A), pf.prepare(coo), pf.prepare(A.with_kernel("csr")))
+    kernels = (linalg.prepare(A), linalg.prepare(coo), linalg.prepare(A.with_kernel("csr")))
     for product in _scaled_products(kernels, jnp.asarray(s), jnp.asarray(x)):
         np.testing.assert_allclose(product, scaled @ x, atol=1e-12)
 
@@ -310,9 +312,9 @@ def test_rectangular_ell_has_no_diagonal_and_multiplies_right(shape):
     """AMG transfer operators and the assembly map are rectangular: ELL without a diagonal."""
     matrix = sp.random(*shape, density=0.3, random_state=3, format="csr")
     A = pf.SparseMatrix.from_scipy(matrix)
-    assert isinstance(pf.prepare(A), pf.CooMatrix)  # one-off products: the segment sum
-    kernel = pf.prepare(A.with_layout())
-    assert isinstance(kernel, pf.EllMatrix) and kernel.diagonal.shape == (0,)
+    assert isinstance(linalg.prepare(A), linalg.CooMatrix)  # one-off products: the segment sum
+    kernel = linalg.prepare(A.with_layout())
+    assert isinstance(kernel, linalg.EllMatrix) and kernel.diagonal.shape == (0,)
     x = np.random.default_rng(2).normal(size=shape[1])
     np.testing.assert_allclose(kernel(x), matrix @ x, rtol=1e-13, atol=1e-14)
 
@@ -326,7 +328,7 @@ def test_a_kernel_prepared_on_the_host_is_the_device_kernel_of_its_layout(shape)
     matrix.setdiag(np.arange(1.0, min(shape) + 1))  # a diagonal, as A_l has
     kernel = host_prepared(matrix)
     reference = prepare_on_host(pf.SparseMatrix.from_scipy(matrix, layout=True))
-    assert isinstance(kernel, pf.EllMatrix)
+    assert isinstance(kernel, linalg.EllMatrix)
     for leaf, expected in zip(jax.tree_util.tree_leaves(kernel),
                               jax.tree_util.tree_leaves(reference), strict=True):
         assert isinstance(leaf, np.ndarray) and leaf.dtype == expected.dtype
@@ -339,13 +341,13 @@ def test_wide_rows_past_the_unrolled_slots_multiply_and_differentiate_right():
     """A dense-ish matrix (ELL width > 32, as on coarse AMG levels): value, jvp and vjp."""
     matrix = sp.random(40, 40, density=0.95, random_state=4, format="csr") + sp.eye(40)
     A = pf.SparseMatrix.from_scipy(matrix)
-    assert pf.prepare(A).values.shape[0] > 32
+    assert linalg.prepare(A).values.shape[0] > 32
     rng = np.random.default_rng(5)
     x, dx, y = rng.normal(size=40), rng.normal(size=40), rng.normal(size=40)
-    value, tangent = jax.jvp(lambda x: pf.matvec(A, x), (x,), (dx,))
+    value, tangent = jax.jvp(lambda x: linalg.matvec(A, x), (x,), (dx,))
     np.testing.assert_allclose(value, matrix @ x, rtol=1e-12)
     np.testing.assert_allclose(tangent, matrix @ dx, rtol=1e-12)
-    values_bar = jax.grad(lambda v: y @ pf.matvec(A.with_values(v), x))(A.values)
+    values_bar = jax.grad(lambda v: y @ linalg.matvec(A.with_values(v), x))(A.values)
     np.testing.assert_allclose(values_bar, y[A.rows] * x[A.cols], rtol=1e-12)
 
 
@@ -353,11 +355,11 @@ def test_kernel_choice_by_backend_and_by_name(random_spd):
     """``prepare`` builds the named kernel; unnamed, the backend's default (ELL with a layout,
     measured fastest on CPU and on an H100), COO without a layout; bad names are refused."""
     A = pf.SparseMatrix.from_scipy(random_spd)
-    assert pf.default_kernel("cpu") == pf.default_kernel("gpu") == "ell"
-    assert type(pf.prepare(A)) is {"ell": pf.EllMatrix}[pf.default_kernel()]
-    assert type(pf.prepare(A.with_kernel("coo"))) is pf.CooMatrix
+    assert linalg.default_kernel("cpu") == linalg.default_kernel("gpu") == "ell"
+    assert type(linalg.prepare(A)) is {"ell": linalg.EllMatrix}[linalg.default_kernel()]
+    assert type(linalg.prepare(A.with_kernel("coo"))) is linalg.CooMatrix
     bare = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
-    assert type(pf.prepare(bare)) is pf.CooMatrix
+    assert type(linalg.prepare(bare)) is linalg.CooMatrix
     with pytest.raises(ValueError, match="kernel='bcsr'"):
         A.with_kernel("bcsr")
     with pytest.raises(ValueError, match="needs an ELL layout"):
@@ -392,7 +394,7 @@ def test_a_column_map_and_its_transpose(size):
     """FixedMatrix.column: x -> values * x[0], its transpose a sum of values * y (a COO row,
     where an ELL layout would be one row `size` slots wide); reverse mode uses it."""
     values = np.linspace(-1.0, 2.0, size)
-    column = pf.FixedMatrix.column(values)
+    column = linalg.FixedMatrix.column(values)
     assert column.shape == (size, 1)
     np.testing.assert_allclose(column(jnp.asarray([3.0])), 3.0 * values, rtol=1e-15)
     y = np.cos(np.arange(size))
@@ -408,11 +410,12 @@ def test_a_symmetric_fixed_matrix_is_its_own_transpose_in_every_mode():
     equal SciPy's, and matvec / symmetric_matvec take it as they take a SparseMatrix."""
     disc = pf.discretize(pf.unit_square(6), element="P2")
     M = disc.mass_matrix.tocsr()
-    fixed = pf.FixedMatrix.symmetric(M)
+    fixed = linalg.FixedMatrix.symmetric(M)
     assert fixed.transpose is None and fixed.T is fixed and fixed.shape == M.shape
     x = np.sin(np.arange(M.shape[0], dtype=float))
     y = np.cos(np.arange(M.shape[0], dtype=float))
-    for product in (fixed, lambda v: pf.matvec(fixed, v), lambda v: pf.symmetric_matvec(fixed, v)):
+    for product in (fixed, lambda v: linalg.matvec(fixed, v),
+                    lambda v: linalg.symmetric_matvec(fixed, v)):
         np.testing.assert_allclose(product(jnp.asarray(x)), M @ x, rtol=1e-13, atol=1e-16)
     _, tangent = jax.jvp(fixed, (jnp.asarray(x),), (jnp.asarray(y),))
     np.testing.assert_allclose(tangent, M @ y, rtol=1e-13, atol=1e-16)
@@ -426,7 +429,7 @@ def test_a_symmetric_fixed_matrix_is_its_own_transpose_in_every_mode():
 
 def test_a_symmetric_fixed_matrix_refuses_a_matrix_that_is_not():
     with pytest.raises(pf.ShapeError, match="not symmetric"):
-        pf.FixedMatrix.symmetric(sp.csr_matrix(np.array([[2.0, 1.0], [0.0, 3.0]])))
+        linalg.FixedMatrix.symmetric(sp.csr_matrix(np.array([[2.0, 1.0], [0.0, 3.0]])))
     with pytest.raises(pf.ShapeError, match="expected a square one"):
-        pf.FixedMatrix.symmetric(sp.csr_matrix(np.ones((2, 3))))
-    assert pf.FixedMatrix.symmetric(sp.csr_matrix((0, 0))).shape == (0, 0)
+        linalg.FixedMatrix.symmetric(sp.csr_matrix(np.ones((2, 3))))
+    assert linalg.FixedMatrix.symmetric(sp.csr_matrix((0, 0))).shape == (0, 0)

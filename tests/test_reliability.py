@@ -361,7 +361,7 @@ def test_coordinates_too_large_for_cell_measures_are_named(tmp_path):
     cells = np.array([[0, 1, 2], [0, 2, 3]])
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no overflow warnings leak out
-        with pytest.raises(pf.CoordinateRangeError, match=r"<array mesh>: 3 node\(s\) have "
+        with pytest.raises(pf.errors.CoordinateRangeError, match=r"<array mesh>: 3 node\(s\) have "
                            r"coordinates beyond \+-1e\+50 \(first: node 1 at \[1e\+300, "
                            r"0\.0\]\).*rescale the mesh"):
             pf.mesh_from_arrays(points * 1e300, cells, "triangle")

@@ -148,16 +148,19 @@ def test_ema_window_default_follows_the_monitored_signal(table, window):
 def test_ema_window_default_per_study_run():
     """Each run resolves its own default: mother's loss-monitored PRDP runs take 2, its
     gradient-monitored run 6, and every run of a learned study 6 (its controller watches a
-    validation misfit epoch by epoch, whatever the optimiser)."""
+    validation misfit epoch by epoch, whatever the optimiser). Other kinds have no window."""
     mother = dict(load_scene("mother").runs())
     assert mother["prdp"].refinement.ema_window == 2
     assert mother["prdp K_adj0=20"].refinement.ema_window == 2
     assert mother["prdp monitor=gradient"].refinement.ema_window == 6
     learned = load_scene(ROOT / "examples" / "scenes" / "learned.toml").runs()
     assert {run.optimizer.name for _, run in learned} >= {"adam", "lbfgs", "newton_cg"}
-    assert {run.refinement.ema_window for _, run in learned} == {6}
+    assert {run.refinement.ema_window for _, run in learned
+            if run.refinement.kind == "prdp"} == {6}
     heat = load_scene(ROOT / "examples" / "scenes" / "heat.toml").runs()
-    assert {run.refinement.ema_window for _, run in heat} == {6}
+    assert {run.refinement.ema_window for _, run in heat if run.refinement.kind == "prdp"} == {6}
+    assert not any(hasattr(run.refinement, "ema_window") for _, run in heat
+                   if run.refinement.kind != "prdp")
 
 
 def test_runs_merge_sections_and_replace_refinement():

@@ -336,4 +336,4 @@ def test_bad_shapes():
 
 def test_exported():
     assert "TruncatedJacobi" in pf.__all__ and pf.TruncatedJacobi is TruncatedJacobi
-    assert pf.jacobi_solve is pf.linalg.stationary.jacobi_solve
+    assert pf.linalg.jacobi_solve is pf.linalg.stationary.jacobi_solve

@@ -80,7 +80,7 @@ def test_the_caller_s_xla_flags_choose_the_emitters_for_every_program(poisson, m
     # that may be a cycle (a Jacobi pytree too: not looked into)
     assert solver_options("identity") == solver_options("jacobi") == dict(CLASSIC_EMITTERS)
     assert solver_options(pf.amg_preconditioner(operator)) == {}
-    assert solver_options(pf.jacobi(operator)) == {}
+    assert solver_options(pf.linalg.jacobi(operator)) == {}
 
 
 def test_an_xla_without_the_option_keeps_its_own_emitters(poisson, monkeypatch,

@@ -94,10 +94,12 @@ def h1_seminorm(disc: Discretization, u: np.ndarray) -> float:
 
 
 def relative_l2_error(disc: Discretization, u: np.ndarray, u_ref: np.ndarray) -> float:
+    """``||u - u_ref||_L2 / ||u_ref||_L2`` of two nodal vectors of ``disc`` (mass-matrix norms)."""
     return l2_norm(disc, np.asarray(u) - u_ref) / l2_norm(disc, u_ref)
 
 
 def relative_h1_error(disc: Discretization, u: np.ndarray, u_ref: np.ndarray) -> float:
+    """``|u - u_ref|_H1 / |u_ref|_H1`` of two nodal vectors of ``disc`` (H1 seminorms)."""
     return h1_seminorm(disc, np.asarray(u) - u_ref) / h1_seminorm(disc, u_ref)
 
 

@@ -193,6 +193,8 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     callback
         ``callback(record, field)`` after every outer iteration; ``True`` stops the run.
 
+    Notes
+    -----
     The records are :class:`~prdp_fem.inverse.history.StepRecord` s: ``loss`` is ``J`` at the step's
     start (tracked by the exact quadratic identity ``J(f + a p) = J(f) - a r.p + a^2 p.q / 2``),
     ``misfit`` and ``state_error`` are NaN, ``evaluations`` counts the gradient evaluations,

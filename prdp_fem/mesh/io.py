@@ -11,8 +11,8 @@ Validation raises one typed :mod:`prdp_fem.errors` exception per problem, naming
 * mixed cell types, non-facet lower cells,
   2-D cells on non-planar nodes              -> :class:`~prdp_fem.errors.MixedDimensionError`
 * NaN / Inf coordinates                      -> :class:`~prdp_fem.errors.NonFiniteCoordinatesError`
-* duplicate or unused nodes                  -> :class:`~prdp_fem.errors.DuplicateNodeError`,
-                                                :class:`~prdp_fem.errors.UnusedNodeError`
+* duplicate or unused nodes -> :class:`~prdp_fem.errors.DuplicateNodeError`,
+  :class:`~prdp_fem.errors.UnusedNodeError`
   (``repair=True`` merges / drops them instead, with a :class:`MeshRepairWarning`)
 * zero-measure cells                         -> :class:`~prdp_fem.errors.DegenerateCellError`
 * coordinates beyond ``+-MAX_COORDINATE``    -> :class:`~prdp_fem.errors.CoordinateRangeError`

@@ -108,7 +108,7 @@ from ._zoom import zoom_linesearch as _optax_zoom
 __all__ = ["FIRST_STEPS", "Contradiction", "ZoomSearchState", "lbfgs",
            "scale_by_zoom_linesearch"]
 
-#: The first line search's initial trial: optax's unit step, or J(z_0) / |s_0|.
+#: The first line search's initial trial: optax's unit step, or ``J(z_0) / |s_0|``.
 FIRST_STEPS = ("unit", "polyak")
 
 

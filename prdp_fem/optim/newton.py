@@ -171,6 +171,8 @@ def newton_cg(*, hessian: str = "exact", max_cg: int = 100,
     gtol, rtol
         Skip the update once ``||g|| <= max(gtol, rtol ||g_0||)`` (both ``>= 0``; ``0``: never).
 
+    Notes
+    -----
     The update needs ``params``, ``value`` and ``value_fn`` as :func:`optax.lbfgs` does (the
     :func:`~prdp_fem.inverse.driver.invert` driver passes them).
     """

@@ -3,44 +3,53 @@
 A scene says what a problem needs and nothing else. Sections (all optional; everything unsaid
 takes the default written in the dataclass below):
 
-``[mesh]``        ``generator`` (unit_square | unit_cube | l_shape | disk | rectangle_with_hole)
-                  with ``n`` and ``cell``, *or* ``file`` (relative to the scene file;
-                  ``"@meshes/NAME"`` is a mesh shipped with the package); ``refine``, ``repair``
-``[pde]``         ``element``, ``kappa_space``, ``kappa``, ``source`` (numbers or formulas in
-                  x, y, z, see :mod:`.expressions`), ``dirichlet`` (a value for the whole
-                  boundary or a table ``{boundary = value}``), ``neumann`` (a table), ``exact``
-``[inverse]``     ``unknown`` (source | log_kappa), ``truth``, ``data``, ``observations``
-                  (full_field | sensors | boundary), ``norm``, ``sensors``, ``boundaries``,
-                  ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
-``[solver]``      ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
-``[refinement]``  ``kind`` (prdp | fixed | converged) and that kind's settings, ``monitor``;
-                  ``ema_window`` unset is 2 for an inversion's loss under a line-search
-                  optimiser, else 6 (:func:`default_ema_window`)
-``[optimizer]``   ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton | hig), ``steps``,
-                  ``learning_rate``; lbfgs: ``memory_size``, ``first_step`` (unit | polyak:
-                  the first line search starts at J / |slope|); Newton: ``max_cg``,
-                  ``forcing``, ``c1``, ``max_backtracking``, ``gradient_rtol`` (see
-                  :mod:`.newton`); hig
-                  (:func:`~prdp_fem.optim.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``;
-                  adam, sgd: ``decay`` (constant | cosine: to zero over the run)
-``[learned]``     a learned inverse (:mod:`.learned`): ``samples``, ``validation_samples``,
-                  ``noise`` (relative to each sample's RMS), ``width`` (of the random source
-                  bumps), ``hidden`` (layer sizes), ``epochs``, ``batch_size``, ``seed``,
-                  ``supervised``; its observations come from ``[inverse]`` (``unknown =
-                  "source"``; ``truth``/``data`` are not needed: the sources are random)
-``[heat]``        a learned heat stepper (:mod:`.heat`, :class:`HeatSpec`): ``dt``,
-                  ``steps``, ``substeps``, ``trajectories``, ``validation_trajectories``,
-                  ``test_trajectories``, ``width``, ``hidden``, ``setup`` (correction |
-                  prediction), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
-                  ``batch_size``, ``seed``; ``[pde]`` gives ``kappa``, ``source`` and the
-                  Dirichlet data, ``[optimizer]`` is adam (default) or sgd
-``[study]``       ``kind`` (inverse | forward | h | learned | heat; a ``[learned]`` or
-                  ``[heat]`` table makes its kind the default), ``[[study.runs]]`` (``name``
-                  plus tables that override the scene's: ``refinement`` replaces it, ``mesh``,
-                  ``pde``, ``solver``, ``optimizer``, ``learned``, ``heat`` merge key by
-                  key), ``reference``,
-                  ``target_error``, ``band``, ``reached`` (band | at_or_below: when a run
-                  counts as at the target), ``levels``, ``elements``
+``[mesh]``
+    ``generator`` (unit_square | unit_cube | l_shape | disk | rectangle_with_hole)
+    with ``n`` and ``cell``, *or* ``file`` (relative to the scene file;
+    ``"@meshes/NAME"`` is a mesh shipped with the package); ``refine``, ``repair``
+``[pde]``
+    ``element``, ``kappa_space``, ``kappa``, ``source`` (numbers or formulas in
+    x, y, z, see :mod:`.expressions`), ``dirichlet`` (a value for the whole
+    boundary or a table ``{boundary = value}``), ``neumann`` (a table), ``exact``
+``[inverse]``
+    ``unknown`` (source | log_kappa), ``truth``, ``data``, ``observations``
+    (full_field | sensors | boundary), ``norm``, ``sensors``, ``boundaries``,
+    ``noise``, ``seed``, ``alpha``, ``regularization``, ``bounds``, ``init``
+``[solver]``
+    ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
+``[refinement]``
+    ``kind`` (prdp | fixed | converged | adaptive) and that kind's settings, ``monitor``;
+    ``ema_window`` unset is 2 for an inversion's loss under a line-search
+    optimiser, else 6 (:func:`default_ema_window`)
+``[optimizer]``
+    ``name`` (lbfgs | adam | sgd | newton_cg | gauss_newton | hig), ``steps``,
+    ``learning_rate``; lbfgs: ``memory_size``, ``first_step`` (unit | polyak:
+    the first line search starts at ``J / |slope|``); Newton: ``max_cg``,
+    ``forcing``, ``c1``, ``max_backtracking``, ``gradient_rtol`` (see
+    :mod:`prdp_fem.optim.newton`); hig
+    (:func:`~prdp_fem.optim.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``;
+    adam, sgd: ``decay`` (constant | cosine: to zero over the run)
+``[learned]``
+    a learned inverse (:mod:`prdp_fem.learning.learned`): ``samples``, ``validation_samples``,
+    ``noise`` (relative to each sample's RMS), ``width`` (of the random source
+    bumps), ``hidden`` (layer sizes), ``epochs``, ``batch_size``, ``seed``,
+    ``supervised``; its observations come from ``[inverse]`` (``unknown =
+    "source"``; ``truth``/``data`` are not needed: the sources are random)
+``[heat]``
+    a learned heat stepper (:mod:`prdp_fem.learning.heat`, :class:`HeatSpec`): ``dt``,
+    ``steps``, ``substeps``, ``trajectories``, ``validation_trajectories``,
+    ``test_trajectories``, ``width``, ``hidden``, ``setup`` (correction |
+    prediction), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
+    ``batch_size``, ``seed``; ``[pde]`` gives ``kappa``, ``source`` and the
+    Dirichlet data, ``[optimizer]`` is adam (default) or sgd
+``[study]``
+    ``kind`` (inverse | forward | h | learned | heat; a ``[learned]`` or
+    ``[heat]`` table makes its kind the default), ``[[study.runs]]`` (``name``
+    plus tables that override the scene's: ``refinement`` replaces it, ``mesh``,
+    ``pde``, ``solver``, ``optimizer``, ``learned``, ``heat`` merge key by
+    key), ``reference``,
+    ``target_error``, ``band``, ``reached`` (band | at_or_below: when a run
+    counts as at the target), ``levels``, ``elements``
 
 A scene's size is estimated before anything is built: a ``mesh.n``, ``mesh.refine`` or
 ``study.levels`` whose mesh would carry more than :func:`max_dofs` degrees of freedom (default
@@ -93,12 +102,17 @@ __all__ = [
     "LINE_SEARCH_OPTIMIZERS",
     "MONOTONE_EMA_WINDOW",
     "REFERENCE_EMA_WINDOW",
+    "REFINEMENT_SPECS",
+    "AdaptiveSpec",
+    "ConvergedSpec",
+    "FixedSpec",
     "HeatSpec",
     "InverseSpec",
     "LearnedSpec",
     "MeshSpec",
     "OptimizerSpec",
     "PdeSpec",
+    "PrdpSpec",
     "RefinementSpec",
     "Scene",
     "SceneCoefficientError",
@@ -392,23 +406,34 @@ class SolverSpec:
 
 @dataclasses.dataclass(frozen=True)
 class RefinementSpec:
-    """How the CG iterations are chosen during an inversion (see
-    :mod:`prdp_fem.inverse.refinement`).
+    """How the CG iterations are chosen during an inversion or a training (see
+    :mod:`prdp_fem.inverse.refinement`): what every kind has. One subclass per ``kind``
+    holds that controller's settings, with the controller's own defaults (checked by the
+    test suite against its signature): :class:`PrdpSpec`, :class:`FixedSpec`,
+    :class:`ConvergedSpec`, :class:`AdaptiveSpec`.
 
-    ``kind = "prdp"`` uses ``K0, dK, K_max, factor, adjoint_K0, adjoint_dK, adjoint_K_max,
-    adjoint_factor, tau_step, tau_stop, ema_window, delta, latch, restart, stall_on_failure,
-    rtol``;
-    ``"fixed"`` uses ``K, K_adj``; ``"converged"`` uses ``rtol``; ``"adaptive"``
-    (:func:`prdp_fem.inverse.refinement.adaptive_tolerance`) uses ``rtol0, power, rtol_min,
-    failure_factor`` and watches the gradient. ``monitor``: loss |
-    gradient | validation (``validation_every``, ``validation_rtol``).
+    ``monitor``: what the controller watches, ``"loss"``, ``"gradient"`` or
+    ``"validation"`` (a converged solve every ``validation_every`` steps, to
+    ``validation_rtol``).
+    """
+
+    kind: str = dataclasses.field(default="", init=False)
+    monitor: str = "loss"
+    validation_every: int = 1
+    validation_rtol: float = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class PrdpSpec(RefinementSpec):
+    """``kind = "prdp"``: :func:`prdp_fem.inverse.prdp`'s schedule and stopping rule.
 
     ``ema_window`` left unset is :data:`MONOTONE_EMA_WINDOW` (2) in an inversion whose
     controller watches the loss of a line-search optimiser, else the reference's 6 (see
-    :func:`default_ema_window`).
+    :func:`default_ema_window`); ``restart`` is on in scenes (an inversion's loss moves when
+    ``K`` does).
     """
 
-    kind: str = "prdp"
+    kind: str = dataclasses.field(default="prdp", init=False)
     K0: int = 25
     dK: int = 10
     K_max: int = 600
@@ -424,17 +449,46 @@ class RefinementSpec:
     latch: bool = False
     restart: bool = True
     stall_on_failure: bool = False
-    rtol: float | None = None
-    rtol_factor: float = 0.1      # tolerance mode: rtol *= rtol_factor at a refinement ...
+    rtol: float | None = None     # tolerance mode: the first relative tolerance ...
+    rtol_factor: float = 0.1      # ... rtol *= rtol_factor at a refinement ...
     rtol_min: float = 1e-12       # ... down to rtol_min
-    rtol0: float = 1e-2           # adaptive: the first steps' tolerance ...
-    power: float = 1.0            # ... followed as rtol0 (|g| / |g_1|) ** power
-    failure_factor: float = 0.1   # ... and tightened so at a failed line search
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedSpec(RefinementSpec):
+    """``kind = "fixed"``: :func:`prdp_fem.inverse.fixed`, ``K`` primal and ``K_adj``
+    adjoint iterations every step (``None``: ``K``)."""
+
+    kind: str = dataclasses.field(default="fixed", init=False)
     K: int = 20
     K_adj: int | None = None
-    monitor: str = "loss"
-    validation_every: int = 1
-    validation_rtol: float = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class ConvergedSpec(RefinementSpec):
+    """``kind = "converged"``: :func:`prdp_fem.inverse.converged`, every solve to ``rtol``."""
+
+    kind: str = dataclasses.field(default="converged", init=False)
+    rtol: float = 1e-10
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptiveSpec(RefinementSpec):
+    """``kind = "adaptive"``: :func:`prdp_fem.inverse.adaptive_tolerance`, every solve to
+    ``rtol0 (|g_k| / |g_1|) ** power``, clipped to ``[rtol_min, rtol0]``, tightened by
+    ``failure_factor`` at a failed line search; it watches the gradient."""
+
+    kind: str = dataclasses.field(default="adaptive", init=False)
+    monitor: str = "gradient"
+    rtol0: float = 1e-2
+    power: float = 1.0
+    rtol_min: float = 1e-10
+    failure_factor: float = 0.1
+
+
+#: The spec class of each ``refinement.kind``.
+REFINEMENT_SPECS: dict[str, type[RefinementSpec]] = {
+    "prdp": PrdpSpec, "fixed": FixedSpec, "converged": ConvergedSpec, "adaptive": AdaptiveSpec}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -722,59 +776,55 @@ def _solver(t: _Table) -> SolverSpec:
 
 
 _REFINEMENT_KEYS = {
-    "prdp": ("K0", "dK", "K_max", "factor", "adjoint_K0", "adjoint_dK", "adjoint_K_max",
-             "adjoint_factor", "tau_step", "tau_stop", "ema_window", "delta", "latch",
-             "restart", "stall_on_failure", "rtol", "rtol_factor", "rtol_min"),
-    "fixed": ("K", "K_adj"),
-    "converged": ("rtol",),
-    "adaptive": ("rtol0", "power", "rtol_min", "failure_factor"),
-}
+    kind: tuple(f.name for f in dataclasses.fields(spec) if f.init and
+                f.name not in {g.name for g in dataclasses.fields(RefinementSpec)})
+    for kind, spec in REFINEMENT_SPECS.items()}
 
 
 def _refinement(t: _Table) -> RefinementSpec:
     kind = t.choice("kind", "prdp", tuple(_REFINEMENT_KEYS))
-    defaults = RefinementSpec()
-    values: dict[str, Any] = {"kind": kind}
+    spec_class = REFINEMENT_SPECS[kind]
+    defaults = spec_class()
+    values: dict[str, Any] = {}
     readers = {
         "K0": lambda k: t.integer(k, defaults.K0, 1),
         "dK": lambda k: t.integer(k, defaults.dK, 0),
         "K_max": lambda k: t.integer(k, defaults.K_max, 1),
-        "factor": lambda k: t.number(k, 1.0, low=1.0),
-        "adjoint_K0": lambda k: t.integer(k, None, 1),
+        "factor": lambda k: t.number(k, defaults.factor, low=1.0),
+        "adjoint_K0": lambda k: t.integer(k, defaults.adjoint_K0, 1),
         "adjoint_dK": lambda k: t.integer(k, defaults.adjoint_dK, 0),
         "adjoint_K_max": lambda k: t.integer(k, defaults.adjoint_K_max, 1),
-        "adjoint_factor": lambda k: t.number(k, 1.0, low=1.0),
+        "adjoint_factor": lambda k: t.number(k, defaults.adjoint_factor, low=1.0),
         "tau_step": lambda k: t.number(k, defaults.tau_step, low=0.0, open_low=True),
         "tau_stop": lambda k: t.number(k, defaults.tau_stop, low=0.0, high=1.0, open_low=True),
-        "ema_window": lambda k: t.integer(k, None, 1),
+        "ema_window": lambda k: t.integer(k, defaults.ema_window, 1),
         "delta": lambda k: t.integer(k, defaults.delta, 2),
         "latch": lambda k: t.boolean(k, defaults.latch),
         "restart": lambda k: t.boolean(k, defaults.restart),
         "stall_on_failure": lambda k: t.boolean(k, defaults.stall_on_failure),
-        "rtol": lambda k: t.number(k, 1e-10 if kind == "converged" else None, low=0.0,
-                                   high=0.5, open_low=True),
+        "rtol": lambda k: t.number(k, defaults.rtol, low=0.0, high=0.5, open_low=True),
         "rtol_factor": lambda k: t.number(k, defaults.rtol_factor, low=0.0, high=1.0,
                                           open_low=True),
-        "rtol_min": lambda k: t.number(
-            k, ADAPTIVE_RTOL_MIN if kind == "adaptive" else defaults.rtol_min, low=0.0,
-            high=0.5, open_low=True),
+        "rtol_min": lambda k: t.number(k, defaults.rtol_min, low=0.0, high=0.5,
+                                       open_low=True),
         "rtol0": lambda k: t.number(k, defaults.rtol0, low=0.0, high=0.5, open_low=True),
         "power": lambda k: t.number(k, defaults.power, low=0.0, open_low=True),
         "failure_factor": lambda k: t.number(k, defaults.failure_factor, low=0.0, high=1.0,
                                              open_low=True),
         "K": lambda k: t.integer(k, defaults.K, 0),
-        "K_adj": lambda k: t.integer(k, None, 0),
+        "K_adj": lambda k: t.integer(k, defaults.K_adj, 0),
     }
     for key in _REFINEMENT_KEYS[kind]:
         values[key] = readers[key](key)
     # the adaptive controller is fed the gradient norm (prdp.adaptive_tolerance)
-    values["monitor"] = t.choice("monitor", "gradient", ("gradient",)) if kind == "adaptive" \
-        else t.choice("monitor", "loss", ("loss", "gradient", "validation"))
-    values["validation_every"] = t.integer("validation_every", 1, 1)
-    values["validation_rtol"] = t.number("validation_rtol", 1e-10, low=0.0, high=0.5,
-                                         open_low=True)
+    values["monitor"] = t.choice("monitor", defaults.monitor, ("gradient",)) \
+        if kind == "adaptive" else t.choice("monitor", defaults.monitor,
+                                            ("loss", "gradient", "validation"))
+    values["validation_every"] = t.integer("validation_every", defaults.validation_every, 1)
+    values["validation_rtol"] = t.number("validation_rtol", defaults.validation_rtol, low=0.0,
+                                         high=0.5, open_low=True)
     t.finish()
-    spec = RefinementSpec(**values)
+    spec = spec_class(**values)
     if kind == "adaptive" and spec.rtol_min > spec.rtol0:
         raise SceneSolverConfigError(f"{t.source}: refinement.rtol_min = {spec.rtol_min} "
                                      f"exceeds rtol0 = {spec.rtol0}; expected rtol_min <= rtol0")
@@ -785,7 +835,7 @@ def _refinement(t: _Table) -> RefinementSpec:
 
 
 #: ``rtol_min`` of an adaptive controller: the converged baseline's tolerance
-ADAPTIVE_RTOL_MIN = 1e-10
+ADAPTIVE_RTOL_MIN = AdaptiveSpec.rtol_min
 
 #: Optimisers that step only where their line search found a decrease: between two
 #: refinements the loss they report falls monotonically.
@@ -816,7 +866,7 @@ def default_ema_window(study_kind: str, monitor: str, optimizer: str) -> int:
 
 def ema_window_of(scene: Scene) -> int:
     """The scene's moving-average window: the one its table gives, else
-    :func:`default_ema_window` (a :class:`RefinementSpec` built by hand leaves it unset)."""
+    :func:`default_ema_window` (a :class:`PrdpSpec` built by hand leaves it unset)."""
     spec = scene.refinement
     if spec.ema_window is not None:
         return spec.ema_window
@@ -1022,8 +1072,9 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
         raw=json.dumps(table, sort_keys=True),
         learned=_learned(_Table(sections["learned"], "learned", source)) if learned else None,
         heat=_heat(_Table(sections["heat"], "heat", source)) if heat else None)
-    scene = dataclasses.replace(scene, refinement=dataclasses.replace(
-        scene.refinement, ema_window=ema_window_of(scene)))
+    if isinstance(scene.refinement, PrdpSpec):
+        scene = dataclasses.replace(scene, refinement=dataclasses.replace(
+            scene.refinement, ema_window=ema_window_of(scene)))
     if learned:
         _check_learned_optimizer(scene)
     if kind != "inverse" and scene.refinement.kind == "adaptive":
