@@ -70,12 +70,12 @@ def test_ctrl_c_inside_a_jax_host_callback_counts_as_an_interrupt():
     CLI as a JaxRuntimeError naming KeyboardInterrupt, which must exit 130 like any Ctrl-C."""
     import jax
 
-    from prdp_fem.cli.main import _is_interrupt
+    from prdp_fem.cli._shared import is_interrupt
     wrapped = jax.errors.JaxRuntimeError(
         "INTERNAL: CpuCallback error calling callback: ... KeyboardInterrupt: ")
-    assert _is_interrupt(KeyboardInterrupt()) and _is_interrupt(wrapped)
-    assert not _is_interrupt(jax.errors.JaxRuntimeError("INTERNAL: out of memory"))
-    assert not _is_interrupt(RuntimeError("KeyboardInterrupt"))
+    assert is_interrupt(KeyboardInterrupt()) and is_interrupt(wrapped)
+    assert not is_interrupt(jax.errors.JaxRuntimeError("INTERNAL: out of memory"))
+    assert not is_interrupt(RuntimeError("KeyboardInterrupt"))
 
 
 def test_bad_learned_table_is_one_line_and_exit_2(tmp_path, capsys):

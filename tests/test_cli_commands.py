@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 from conftest import SMALL_STUDY as SMALL
 
-from prdp_fem.cli.main import _Bars, _stop_between_steps, main
+from prdp_fem.cli._shared import Bars, stop_between_steps
+from prdp_fem.cli.main import main
 
 ROOT = Path(__file__).resolve().parent.parent
 MESHES = sorted((ROOT / "meshes").glob("*.msh"))
@@ -154,10 +155,10 @@ def _interrupts(action) -> bool:
 
 def test_first_ctrl_c_stops_between_steps_and_a_second_at_once():
     """No KeyboardInterrupt inside a running step (it could land in a JAX host callback)."""
-    bars = _Bars(total=1)
+    bars = Bars(total=1)
     ctrl_c = lambda: os.kill(os.getpid(), signal.SIGINT)  # noqa: E731
     before = signal.getsignal(signal.SIGINT)
-    with _stop_between_steps(bars):
+    with stop_between_steps(bars):
         bars.run_started("run", steps=3)
         assert not _interrupts(ctrl_c) and bars.stop_requested  # deferred to the step's end
         assert _interrupts(bars.step)  # the step's record is written: the stop is here

@@ -1,0 +1,417 @@
+"""``prdp-fem bench ...``: the benchmarks (cg, memory, amg, mother, prdp, descent)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import shlex
+from pathlib import Path
+
+from ..errors import SolverConfigError
+from ._shared import (
+    Bars,
+    as_option,
+    fresh_directory,
+    interrupt_kept,
+    percent,
+    percent_range,
+    print_table,
+    scene_for,
+)
+
+#: The files of a ``bench prdp`` output directory, beside its scenes' own directories.
+BENCH_MANIFEST, SAVING_TABLE, SEED_TABLE = "bench.json", "saving.csv", "seeds.csv"
+DEFAULT_INNER_K = 5  # prdp_fem.bench.inverse.DEFAULT_K (not imported here: jax loads slowly)
+
+
+def _bench_cg(args) -> None:
+    from ..bench.cg import cg_iteration_cost, scaling_slope
+
+    sides = args.sides or ([128, 256, 512, 1024] if args.dim == 2 else [32, 48, 64, 80])
+    for option, values, minimum in (("--sides", sides, 2), ("--iterations",
+                                    [args.iterations], 1), ("--repeats", [args.repeats], 1)):
+        if any(v < minimum for v in values):
+            shown = " ".join(map(str, values))
+            raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
+    import jax
+
+    if args.reference == "device" or (args.reference == "auto"
+                                      and jax.default_backend() != "cpu"):
+        return _bench_cg_device(args, sides)
+    print(f"P1 Laplacian, {args.dim}-D; Jacobi-PCG iteration inside the jitted loop / one SciPy "
+          f"CSR SpMV (median of {args.repeats} interleaved repeats); PCG: as the package "
+          "compiles it, XLA: XLA's own fusion emitters forced, COO: the segment-sum kernel")
+    print(f"{'dofs':>9} {'nnz':>9} {'SpMV [ms]':>10} {'PCG it [ms]':>12} {'ratio':>7} "
+          f"{'XLA it [ms]':>12} {'XLA ratio':>10} {'COO it [ms]':>12} {'COO ratio':>10} "
+          f"{'compile [s]':>12}")
+    costs = []
+    for side in sides:
+        cost = cg_iteration_cost(side, dim=args.dim, iterations=args.iterations,
+                                 repeats=args.repeats)
+        costs.append(cost)
+        print(f"{cost.n_dofs:>9} {cost.nnz:>9} {1e3 * cost.spmv_s:>10.3f} "
+              f"{1e3 * cost.iteration_s:>12.3f} {cost.ratio:>7.2f} "
+              f"{1e3 * cost.xla_iteration_s:>12.3f} {cost.xla_ratio:>10.2f} "
+              f"{1e3 * cost.coo_iteration_s:>12.3f} {cost.coo_ratio:>10.2f} "
+              f"{cost.compile_s:>12.2f}", flush=True)
+    if len({c.n_dofs for c in costs}) > 1:
+        print(f"log-log slope of the PCG iteration time against dofs: "
+              f"{scaling_slope(costs):.2f}")
+
+
+def _bench_cg_device(args, sides: list[int]) -> None:
+    import jax
+
+    from ..bench.cg import device_iteration_cost, scaling_slope
+    from ..linalg.operator import KERNELS, default_kernel
+
+    device = jax.devices()[0].device_kind
+    print(f"P1 Laplacian, {args.dim}-D, on {device}; Jacobi-PCG iteration inside the jitted "
+          f"loop per kernel / one device CSR SpMV (median of {args.repeats} interleaved "
+          f"repeats); default kernel: {default_kernel()}")
+    print(f"{'dofs':>9} {'nnz':>9} {'SpMV [us]':>10} "
+          + " ".join(f"{name + ' it [us]':>12}" for name in KERNELS)
+          + f" {'ratio':>7} {'compile [s]':>12}")
+    costs = []
+    for side in sides:
+        cost = device_iteration_cost(side, dim=args.dim, iterations=args.iterations,
+                                     repeats=args.repeats)
+        costs.append(cost)
+        print(f"{cost.n_dofs:>9} {cost.nnz:>9} {1e6 * cost.spmv_s:>10.1f} "
+              + " ".join(f"{1e6 * cost.kernel_s[name]:>12.1f}" for name in KERNELS)
+              + f" {cost.ratio:>7.2f} {cost.compile_s:>12.2f}", flush=True)
+    if len({c.n_dofs for c in costs}) > 1:
+        print(f"log-log slope of the PCG iteration time against dofs: "
+              f"{scaling_slope(costs):.2f}")
+
+
+def _bench_memory(args) -> None:
+    from ..bench.memory import ALLOCATORS, memory_cost
+
+    columns = ["mode", "K", "segment", "allocator", "peak MB", "n-vectors", "XLA temp MB",
+               "grad [s]", "faults/call", "ratio"]
+    widths = [12, 6, 8, 9, 9, 10, 12, 9, 11, 6]
+    allocators = ALLOCATORS if args.allocator == "both" else (args.allocator,)
+    header_printed = False
+    default_time = {}  # (mode, K) -> the default allocator's time, for the reuse row's ratio
+
+    def ratio(row) -> str:
+        if row.allocator == "default":
+            default_time[row.mode, row.iterations] = row.gradient_s
+            return "-"
+        base = default_time.get((row.mode, row.iterations))
+        if base is None or math.isnan(base) or not row.ran:  # no pair, or one side skipped
+            return "-"
+        return f"{row.gradient_s / base:.2f}"
+
+    def emit(row):
+        nonlocal header_printed
+        if not header_printed:
+            print(f"P1 Poisson on unit_square({args.side}): {row.n_dofs} dofs, one n-vector = "
+                  f"{row.vector_mb:.3g} MB\npeak: resident memory of one jitted gradient above "
+                  "its own process's baseline (problem built, gradient compiled)"
+                  + ("" if row.hwm_reset else " [high-water mark not reset: small peaks read 0]"))
+            print("  ".join(c.rjust(w) for c, w in zip(columns, widths, strict=True)))
+            header_printed = True
+        cells = [row.mode, str(row.iterations), "-" if row.segment is None else str(row.segment),
+                 row.allocator, f"{row.peak_mb:.1f}" if row.ran else "skipped",
+                 f"{row.peak_mb / row.vector_mb:.1f}" if row.ran else "-",
+                 f"{row.xla_temp_mb:.1f}", f"{row.gradient_s:.3g}" if row.ran else "-",
+                 "-" if math.isnan(row.faults_per_call) else f"{row.faults_per_call:.0f}",
+                 ratio(row)]
+        print("  ".join(c.rjust(w) for c, w in zip(cells, widths, strict=True)), flush=True)
+
+    try:
+        memory_cost(args.side, tuple(args.iterations), modes=tuple(args.modes),
+                    segment=args.segment, repeats=args.repeats, max_mb=args.max_mb,
+                    allocators=allocators, on_row=emit)
+    except SolverConfigError as error:  # name the command-line option, not the keyword
+        raise SolverConfigError(as_option(str(error))) from None
+
+
+def _bench_amg(args) -> None:
+    from ..bench.amg import amg_cost
+    from ..linalg.amg import IMPLEMENTATIONS
+
+    for option, values, minimum in (("--sides", args.sides, 2),
+                                    ("--cube-sides", args.cube_sides, 2),
+                                    ("--repeats", [args.repeats], 1)):
+        if any(v < minimum for v in values):
+            shown = " ".join(map(str, values))
+            raise SolverConfigError(f"{option} {shown}: expected integers >= {minimum}")
+    if not args.sides and not args.cube_sides:
+        raise SolverConfigError("--sides, --cube-sides: both empty; expected a problem size")
+    unknown = [i for i in args.implementations if i not in IMPLEMENTATIONS]
+    if unknown:
+        raise SolverConfigError(f"--implementations {' '.join(args.implementations)}: "
+                                f"expected some of {' '.join(IMPLEMENTATIONS)}")
+    print(f"P1 Poisson to rtol 1e-10; ours: jitted ConvergedCG + AMG, pyamg: "
+          f"ml.solve(accel='cg') on the same hierarchy; median of {args.repeats} pairs")
+    print(f"{'dim':>3} {'dofs':>8} {'impl':>8} {'its':>4} {'pyamg':>5} {'equal':>5} "
+          f"{'setup [s]':>9} {'pyamg':>6} {'ratio':>5} {'solve [s]':>9} {'pyamg':>6} "
+          f"{'ratio':>5} {'compile [s]':>11}")
+    problems = [(side, 2) for side in args.sides] + [(side, 3) for side in args.cube_sides]
+    for side, dim in problems:
+        for c in amg_cost(side, dim=dim, implementations=tuple(args.implementations),
+                          repeats=args.repeats):
+            print(f"{c.dim:>3} {c.n_dofs:>8} {c.implementation:>8} {c.iterations:>4} "
+                  f"{c.pyamg_iterations:>5} {'yes' if c.iterations_equal else 'no':>5} "
+                  f"{c.setup_s:>9.3f} {c.pyamg_setup_s:>6.3f} {c.setup_ratio:>5.2f} "
+                  f"{c.solve_s:>9.3f} {c.pyamg_solve_s:>6.3f} {c.ratio:>5.2f} "
+                  f"{c.compile_s:>11.2f}", flush=True)
+
+
+def _bench_mother(args) -> None:
+    from ..bench.inverse import CACHES, check_mother_options, mother_whole_process
+
+    caches = CACHES if args.cache == "both" else (args.cache,)  # argparse checked the name
+    check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
+                         K=args.iterations, inner_rtol=args.inner_rtol,
+                         preconditioner=args.preconditioner)
+    inner = f"PRDP K0 = dK = {args.iterations}" if args.inner_rtol is None else \
+        f"rtol {args.inner_rtol:g}"
+    print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
+    print(f"{'n':>5} {'dofs':>7} {'target':>8} {'error':>8} {'outer':>5} {'CG its':>6} "
+          f"{'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} {'exit':>5} "
+          f"{'whole [s]':>9} {'peer [s]':>8} {'ratio':>6} {'cache':>5}  goal")
+    for n, cache in itertools.product(args.sizes, caches):
+        b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=args.iterations,
+                                 inner_rtol=args.inner_rtol, preconditioner=args.preconditioner,
+                                 cache=cache)
+        goal = "-" if b.goal_met is None else (
+            f"<= {b.peer.goal_ratio:g} {'met' if b.goal_met else 'NOT met'}")
+        peer = f"{b.peer.seconds:>8.1f}" if b.peer else f"{'-':>8}"
+        print(f"{b.n:>5} {b.dofs:>7} {b.target:>8.1e} {b.error:>8.2e} {b.outer_iterations:>5} "
+              f"{b.cg_iterations:>6} {b.start_s:>6.2f} {b.import_s:>6.2f} {b.assembly_s:>6.2f} "
+              f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.exit_s:>5.2f} {b.whole_s:>9.2f} "
+              f"{peer} {b.ratio:>6.2f} {b.cache:>5}  {goal}", flush=True)
+    print(f"whole: median wall time of {args.repeats} fresh process(es) per size (Python start, "
+          "imports, mesh, assembly, compilation, optimisation, exit); phases: medians inside "
+          "the process; exit: from its last print to its end (the interpreter's shutdown); "
+          "start = whole - phases - exit; CG its: primal + adjoint state-solve iterations "
+          "(Riesz-map mass solves apart); error: relative L2 of f against the analytic optimum; "
+          "cache: cold = the program compiled in the process, warm = loaded from a cache one "
+          "untimed process filled (no goal: the goal's time includes compiling)")
+
+
+def _bench_prdp(args) -> None:
+    from .._atomic import write_csv_atomic
+    from .._lock import directory_lock
+    from ..bench.inverse import prdp_saving, saving_configurations
+
+    scenes, instances = _saving_instances(args)
+    out = _bench_directory(args)
+    runs = sum(len(saving_configurations(scene)) * args.repeats for _, scene in instances)
+    print(f"PRDP saving: {len(instances)} problem instance(s), {runs} run(s) into {out}/",
+          flush=True)
+    bars, rows = Bars(runs), []
+    with directory_lock(out):  # one writer: a second bench on ``out`` fails at once
+        with interrupt_kept(bars, f"finished runs are kept in {out}/ (continue with: "
+                                   f"{_bench_prdp_command(args, out)})"):
+            for seed, scene in instances:
+                bars.stop_if_requested()  # a Ctrl-C between two studies
+                rows += prdp_saving(scene, repeats=args.repeats,
+                                    out=out / _instance_name(scene.name, seed),
+                                    resume=args.resume, progress=bars)
+        bars.close()
+        tables = _print_saving(rows, seeded=args.seeds is not None, repeats=args.repeats)
+        for name, table in tables.items():
+            write_csv_atomic(out / name, table)
+    if bars.skipped:
+        print(f"{bars.skipped} of {runs} run(s) read back from {out}/, as timed in an earlier "
+              "process" + ("" if bars.skipped == runs else
+                           ": a saving may compare runs timed in different processes"))
+    print(f"wrote {out}/: {', '.join(tables)}, and the studies in "
+          f"{', '.join(scene.name + '/' for scene in scenes)}")
+
+
+def _saving_instances(args) -> tuple[list, list]:
+    """``bench prdp``'s scenes and ``(seed, scene)`` instances, every option and scene
+    checked before the first study runs."""
+    from ..bench.inverse import SAVING_SCENES, saving_configurations, seed_variants
+
+    if args.steps is not None and args.steps < 1:
+        raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
+    if args.repeats < 1:
+        raise SolverConfigError(f"--repeats {args.repeats}: expected an integer >= 1")
+    if args.seeds is not None and (min(args.seeds) < 0 or len(set(args.seeds)) < len(args.seeds)):
+        raise SolverConfigError(f"--seeds {' '.join(map(str, args.seeds))}: expected distinct "
+                                "integers >= 0")
+    if args.resume and args.out is None:
+        raise SolverConfigError("--resume: expected --out DIR, the directory of the run to "
+                                "continue")
+    scenes = [scene_for(name, args.steps) for name in (args.scene or SAVING_SCENES)]
+    names = [scene.name for scene in scenes]
+    for name in names:  # each names a directory of the output
+        if name in (".", "..", BENCH_MANIFEST, SAVING_TABLE, SEED_TABLE) or "/" in name \
+                or "\\" in name:
+            raise SolverConfigError(f"--scene: a scene named {name!r}; expected a name that "
+                                    "can be a directory of --out (no '/' or '\\', not '.', "
+                                    f"'..', {BENCH_MANIFEST}, {SAVING_TABLE} or {SEED_TABLE})")
+    # the rows, the summary and the directories go by the scene's name (whatever the case)
+    if len({name.casefold() for name in names}) < len(names):
+        raise SolverConfigError(f"--scene {' '.join(args.scene)}: scenes named {names}; "
+                                "expected scenes of distinct names")
+    instances = []
+    for scene in scenes:
+        saving_configurations(scene)
+        instances += seed_variants(scene, args.seeds)
+    return scenes, instances
+
+
+def _bench_directory(args) -> Path:
+    """``bench prdp``'s output directory, with its manifest of the options: a new or empty
+    ``--out`` (default: a new ``./bench-prdp``), or, resumed, one written with the same
+    options (its studies would otherwise start afresh beside the old ones, or fail late)."""
+    from .._atomic import write_text_atomic
+
+    options = {"scene": args.scene, "steps": args.steps, "repeats": args.repeats,
+               "seeds": args.seeds}
+    out = fresh_directory("bench-prdp") if args.out is None else args.out
+    manifest = out / BENCH_MANIFEST
+    if args.resume:
+        try:
+            before = json.loads(manifest.read_text())
+        except (OSError, json.JSONDecodeError):
+            raise SolverConfigError(f"--resume: {manifest} is missing or unreadable; expected "
+                                    "the --out of an earlier bench prdp run") from None
+        changed = [f"--{key}" for key in options if before.get(key) != options[key]]
+        if changed:
+            raise SolverConfigError(
+                f"--resume: {out} was run with other {', '.join(changed)} ({before}); expected "
+                "the options of the run it continues")
+        return out
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise SolverConfigError(f"--out {out}: is not empty; expected a new or empty "
+                                "directory, or --resume to continue the run in it")
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(manifest, json.dumps(options, indent=2) + "\n")
+    return out
+
+
+def _instance_name(scene: str, seed: int | None) -> str:
+    """An instance's directory under ``bench prdp``'s output: the scene, then its seed."""
+    return scene if seed is None else f"{scene}/seed-{seed}"
+
+
+def _bench_prdp_command(args, out: Path) -> str:
+    """The command line that continues this ``bench prdp`` run."""
+    words = ["prdp-fem", "bench", "prdp"]
+    if args.scene:
+        words += ["--scene", *args.scene]
+    if args.steps is not None:
+        words += ["--steps", str(args.steps)]
+    if args.repeats != 1:
+        words += ["--repeats", str(args.repeats)]
+    if args.seeds is not None:
+        words += ["--seeds", *map(str, args.seeds)]
+    return shlex.join([*words, "--out", str(out), "--resume"])
+
+
+def _print_saving(rows, *, seeded: bool, repeats: int) -> dict[str, list[dict]]:
+    """Print ``bench prdp``'s table (and the summary over the seeds); return the tables to
+    write, every figure at full precision, with the goal's readings."""
+    from ..bench.inverse import seed_summary
+
+    cells = [_saving_cells(row, seeded) for row in rows]
+    print_table(cells, list(cells[0]))
+    tables = {SAVING_TABLE: [{**row._asdict(), "error_difference": row.error_difference,
+                              "met": row.goal_met}
+                             for row in rows]}
+    if seeded:
+        print()
+        per_run = seed_summary(rows)
+        summary = [_seed_cells(one_run) for one_run in per_run]
+        print_table(summary, list(summary[0]))
+        tables[SEED_TABLE] = [one_run._asdict() for one_run in per_run]
+    medians = (f"medians of {repeats} studies run one after another (save_t range: the "
+               "lowest and highest time saving among them); " if repeats > 1 else "")
+    print(medians + "save: 1 - (run time or CG iterations of the PRDP run up to the step from "
+          "which its parameter error stays within +-1 % of the converged run's final error e* "
+          "(band@)) / (the same for the converged run: its own time to that band, not its "
+          "whole run); times exclude compilation; err_diff: (PRDP - converged) / converged "
+          "final error; met: save_t >= 80 % and |err_diff| <= 1 %; below: the final error is "
+          "at most 1.01 e* (a run that ends below the band has not reached it: no saving)" + (
+              "; per seed (inverse.seed: noise and random sensors; '-': the scene's data draw "
+              "nothing), then per run over the seeds: band, met, below: instances that reach "
+              "the band / meet the goal / end at or below; medians of the savings over the "
+              "instances that reach the band" if seeded else ""))
+    return tables
+
+
+def _saving_cells(row, seeded: bool = False) -> dict:
+    def step(value):
+        return "-" if value is None else value
+
+    return {"scene": row.scene, "run": row.run,
+            **({"seed": step(row.seed)} if seeded else {}), "conv_s": row.converged_s,
+            "conv_its": row.converged_iterations, "prdp_s": row.prdp_s,
+            "prdp_its": row.prdp_iterations, "band@": step(row.reached_step),
+            "save_t": percent(row.time_saving),
+            **({"save_t_range": percent_range(row.time_saving_low, row.time_saving_high)}
+               if row.repeats > 1 else {}),
+            "save_its": percent(row.iteration_saving),
+            "err_diff": percent(row.error_difference, digits=2),
+            "met": "yes" if row.goal_met else "no",
+            "below": "yes" if row.ends_at_or_below else "no"}
+
+
+def _seed_cells(summary) -> dict:
+    """A row of ``bench prdp --seeds``' summary: the goal met in how many instances."""
+    return {"scene": summary.scene, "run": summary.run,
+            "band": f"{summary.reached}/{summary.instances}",
+            "met": f"{summary.met}/{summary.instances}",
+            "below": f"{summary.ends_below}/{summary.instances}",
+            "median save_t": percent(summary.time_saving),
+            "median save_its": percent(summary.iteration_saving),
+            "median err_diff": percent(summary.error_difference, digits=2)}
+
+
+def bench_command(args) -> None:
+    return {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory,
+            "mother": _bench_mother, "prdp": _bench_prdp,
+            "descent": _bench_descent}[args.bench](args)
+
+
+def _bench_descent(args) -> None:
+    from .._atomic import write_csv_atomic
+    from .._lock import directory_lock
+    from ..bench.descent import descent_rows
+    from ..bench.inverse import SAVING_SCENES
+
+    scenes = [scene_for(name, args.steps) for name in (args.scene or SAVING_SCENES)]
+    if args.steps is not None and args.steps < 1:
+        raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
+    out = fresh_directory("bench-descent") if args.out is None else args.out
+    if out.exists() and (not out.is_dir() or (out / DESCENT_TABLE).exists()):
+        raise SolverConfigError(f"--out {out}: holds a {DESCENT_TABLE} already; expected a "
+                                "new directory or one without it")
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    with directory_lock(out):
+        for scene in scenes:
+            print(f"{scene.name}: ", end="", flush=True)
+            rows += descent_rows(scene, progress=lambda name: print(f"{name}; ", end="",
+                                                                    flush=True))
+            print(flush=True)
+        cells = [{"scene": r.scene, "run": r.run, "rule": r.rule, "steps": r.steps,
+                  "descend": f"{r.descending}/{r.moved}", "fraction": percent(r.fraction),
+                  "approach": percent(r.approach_fraction), "cos": r.median_cosine,
+                  "err_gap": percent(r.error_gap, 1),
+                  "band@": "-" if r.settled_step is None else r.settled_step,
+                  "save_t": percent(r.time_saving), "save_cg": percent(r.iteration_saving)}
+                 for r in rows]
+        print_table(cells, list(cells[0]))
+        print("descend: steps that moved along a descent direction of the converged objective "
+              "(slope of J at rtol 1e-10 < 0) / steps that moved; approach: the same up to the "
+              "step from which the run stays within +-1 % of the converged run's final error "
+              "(band@); cos: median cosine between a step and the converged steepest descent; "
+              "save: 1 - time or CG iterations to band@ / the converged run's own (times "
+              "exclude compilation)")
+        write_csv_atomic(out / DESCENT_TABLE, [row._asdict() for row in rows])
+    print(f"wrote {out / DESCENT_TABLE}")
+
+
+#: What ``bench descent`` writes.
+DESCENT_TABLE = "descent.csv"
