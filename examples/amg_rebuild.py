@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import prdp_fem as pf
-from prdp_fem.inverse.refinement import converged
+from prdp_fem.inverse import converged
 
 CONTRAST = 1e3
 NOISE = 0.01

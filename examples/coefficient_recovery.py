@@ -17,10 +17,8 @@ from pathlib import Path
 import numpy as np
 
 import prdp_fem as pf
-from prdp_fem.fem.observations import full_field, point_sensors, with_noise
-from prdp_fem.inverse.comparison import compare, format_table
-from prdp_fem.inverse.driver import inverse_problem
-from prdp_fem.inverse.refinement import converged, fixed, prdp
+from prdp_fem.fem import full_field, point_sensors, with_noise
+from prdp_fem.inverse import compare, converged, fixed, format_table, inverse_problem, prdp
 
 GAMMA = 1e-8
 NOISE = 0.05

@@ -28,7 +28,7 @@ import numpy as np
 import optax
 
 import prdp_fem as pf
-from prdp_fem.inverse.refinement import converged, prdp
+from prdp_fem.inverse import converged, prdp
 from prdp_fem.learning import heat, learned
 
 ROWS = tuple((setup, mode) for setup in heat.SETUPS for mode in heat.MODES)

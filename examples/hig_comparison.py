@@ -26,11 +26,10 @@ import time
 import jax.numpy as jnp
 import optax
 
-from prdp_fem.inverse.driver import invert
-from prdp_fem.inverse.refinement import converged, fixed
-from prdp_fem.optim.hig import hig
-from prdp_fem.scene import build
-from prdp_fem.scene.spec import load_scene, with_overrides
+from prdp_fem.inverse import converged, fixed, invert
+from prdp_fem.optim import hig
+from prdp_fem.scene import build, load_scene
+from prdp_fem.scene.spec import with_overrides
 
 METHODS = ("adam", "lbfgs", "gradient descent", "gauss-newton", "hig")
 SOLVERS = {"converged": lambda: converged(1e-10), "K=10": lambda: fixed(10)}

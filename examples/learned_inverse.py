@@ -20,7 +20,7 @@ import numpy as np
 import optax
 
 import prdp_fem as pf
-from prdp_fem.inverse.refinement import converged, prdp
+from prdp_fem.inverse import converged, prdp
 from prdp_fem.learning import learned
 
 

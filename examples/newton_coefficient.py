@@ -23,10 +23,9 @@ import time
 import numpy as np
 
 import prdp_fem as pf
-from prdp_fem.fem.observations import full_field, with_noise
-from prdp_fem.inverse.driver import inverse_problem, invert
-from prdp_fem.inverse.refinement import converged
-from prdp_fem.optim.newton import newton_cg, regularization_preconditioner
+from prdp_fem.fem import full_field, with_noise
+from prdp_fem.inverse import converged, inverse_problem, invert
+from prdp_fem.optim import newton_cg, regularization_preconditioner
 
 GAMMA = 1e-8
 NOISE = 0.05

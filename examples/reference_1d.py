@@ -41,8 +41,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
 import prdp_fem as pf
-from prdp_fem.inverse.refinement import fixed, prdp
-from prdp_fem.linalg.operator import SparseMatrix
+from prdp_fem.inverse import fixed, prdp
+from prdp_fem.linalg import SparseMatrix
 
 N = 30
 THETA_REF, THETA0 = 2.0, 5.0

@@ -16,10 +16,8 @@ import sys
 import numpy as np
 
 import prdp_fem as pf
-from prdp_fem.fem.observations import full_field
-from prdp_fem.inverse.comparison import compare, format_table
-from prdp_fem.inverse.driver import inverse_problem
-from prdp_fem.inverse.refinement import converged, fixed, prdp
+from prdp_fem.fem import full_field
+from prdp_fem.inverse import compare, converged, fixed, format_table, inverse_problem, prdp
 
 ALPHA = 1e-6
 PEER_ERROR = {128: 6.4e-4, 256: 2.2e-4, 512: 7.5e-5}

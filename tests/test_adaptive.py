@@ -8,11 +8,19 @@ import pytest
 
 import prdp_fem as pf
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.fem.observations import full_field, with_noise
-from prdp_fem.inverse.descent import IterateRecorder, descent_check
-from prdp_fem.inverse.driver import Objective, initial_params, inverse_problem, invert
-from prdp_fem.inverse.refinement import adaptive_tolerance, converged, fixed
-from prdp_fem.linalg.cg import ConvergedCG
+from prdp_fem.fem import full_field, with_noise
+from prdp_fem.inverse import (
+    IterateRecorder,
+    Objective,
+    adaptive_tolerance,
+    converged,
+    descent_check,
+    fixed,
+    initial_params,
+    inverse_problem,
+    invert,
+)
+from prdp_fem.linalg import ConvergedCG
 
 
 def _coefficient_problem(n=12):

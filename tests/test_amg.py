@@ -18,14 +18,8 @@ import scipy.sparse as sp
 import prdp_fem as pf
 from prdp_fem.bench import cg as pf_bench_cg
 from prdp_fem.cli.main import main
-from prdp_fem.inverse.refinement import fixed
-from prdp_fem.linalg.amg import (
-    AMGCycle,
-    PyamgCycle,
-    amg_hierarchy,
-    amg_preconditioner,
-    rebuild_policy,
-)
+from prdp_fem.inverse import fixed
+from prdp_fem.linalg import AMGCycle, PyamgCycle, amg_hierarchy, amg_preconditioner, rebuild_policy
 
 IMPLEMENTATIONS = ["jax", "callback"]
 SMOOTHER = {"jax": "jacobi", "callback": "gauss_seidel"}  # the cycle each implementation runs

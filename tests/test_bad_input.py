@@ -20,24 +20,33 @@ import pytest
 import prdp_fem as pf
 from prdp_fem import errors
 from prdp_fem.bench.cg import cg_iteration_cost
-from prdp_fem.fem.observations import boundary_values, full_field, point_sensors, with_noise
-from prdp_fem.fem.parameters import Parameterization
-from prdp_fem.fem.regularizers import regularizer
-from prdp_fem.inverse.driver import Validation, inverse_problem, invert
-from prdp_fem.inverse.history import History
-from prdp_fem.inverse.parameter_choice import l_curve, morozov
-from prdp_fem.inverse.refinement import fixed, prdp
-from prdp_fem.mesh.vtu import write_vtu
-from prdp_fem.scene import build
+from prdp_fem.fem import (
+    Parameterization,
+    boundary_values,
+    full_field,
+    point_sensors,
+    regularizer,
+    with_noise,
+)
+from prdp_fem.inverse import (
+    History,
+    Validation,
+    fixed,
+    inverse_problem,
+    invert,
+    l_curve,
+    morozov,
+    prdp,
+)
+from prdp_fem.mesh import write_vtu
+from prdp_fem.scene import SceneError, build, load_scene
 from prdp_fem.scene.expressions import ExpressionError, compile_field
 from prdp_fem.scene.spec import (
     SceneCoefficientError,
     SceneDataError,
     SceneDiscretizationError,
-    SceneError,
     SceneSensorError,
     SceneSolverConfigError,
-    load_scene,
 )
 from prdp_fem.studies.forward import build_scene, forward_convergence
 

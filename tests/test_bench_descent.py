@@ -6,7 +6,7 @@ import pytest
 
 from prdp_fem.bench.descent import descent_rows, descent_runs
 from prdp_fem.cli.main import main
-from prdp_fem.scene.spec import SceneError, load_scene
+from prdp_fem.scene import SceneError, load_scene
 
 SCENE = """
 name = "tiny"

@@ -35,11 +35,8 @@ from prdp_fem.bench.inverse import (
 )
 from prdp_fem.cli.main import main
 from prdp_fem.errors import SceneError, SolverConfigError
-from prdp_fem.inverse import reduced
-from prdp_fem.inverse.history import History, StepRecord
-from prdp_fem.inverse.reduced import homogeneous, reduced_cg
-from prdp_fem.inverse.refinement import converged, fixed
-from prdp_fem.scene.spec import load_scene, parse_scene
+from prdp_fem.inverse import History, StepRecord, converged, fixed, homogeneous, reduced, reduced_cg
+from prdp_fem.scene import load_scene, parse_scene
 from prdp_fem.studies import runner as study
 
 

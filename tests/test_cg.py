@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.linalg.cg import ConvergedCG, TruncatedCG, solve
+from prdp_fem.linalg import ConvergedCG, TruncatedCG, solve
 
 
 def solve_problem(disc, kappa, f, solver, x0=None):

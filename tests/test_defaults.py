@@ -4,7 +4,7 @@ arguments, except where a difference is deliberate and named here."""
 import dataclasses
 import inspect
 
-from prdp_fem.inverse.refinement import adaptive_tolerance, converged, fixed, prdp
+from prdp_fem.inverse import adaptive_tolerance, converged, fixed, prdp
 from prdp_fem.scene.spec import (
     REFINEMENT_SPECS,
     AdaptiveSpec,

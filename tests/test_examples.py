@@ -30,8 +30,7 @@ def test_gradient_check_example(load_example):
 
 
 def _converged_error(problem, steps):
-    from prdp_fem.inverse.driver import invert
-    from prdp_fem.inverse.refinement import converged
+    from prdp_fem.inverse import converged, invert
     return invert(problem, refinement=converged(1e-10), steps=steps).history[-1].parameter_error
 
 

@@ -11,12 +11,11 @@ import pytest
 import prdp_fem as pf
 from prdp_fem import _executables as executables
 from prdp_fem._executables import SharedCompile, kept_programs
-from prdp_fem.fem.observations import full_field
+from prdp_fem.fem import full_field
+from prdp_fem.inverse import Validation, fixed, inverse_problem, invert, prdp
 from prdp_fem.inverse import driver as inverse
-from prdp_fem.inverse.driver import Validation, inverse_problem, invert
-from prdp_fem.inverse.refinement import fixed, prdp
+from prdp_fem.linalg import IterationCounter, TruncatedCG, solve
 from prdp_fem.linalg import _tally as tally
-from prdp_fem.linalg.cg import IterationCounter, TruncatedCG, solve
 
 
 @pytest.fixture(scope="module")

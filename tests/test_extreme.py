@@ -8,7 +8,7 @@ import pytest
 import scipy.sparse as sp
 
 import prdp_fem as pf
-from prdp_fem.linalg.cg import ConvergedCG, Status, TruncatedCG, solve
+from prdp_fem.linalg import ConvergedCG, Status, TruncatedCG, solve
 from prdp_fem.studies.conditioning import condition_estimate
 
 MODES = ("unrolled", "implicit")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.fem.observations import full_field, with_noise
-from prdp_fem.inverse.driver import inverse_problem
-from prdp_fem.linalg.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
+from prdp_fem.fem import full_field, with_noise
+from prdp_fem.inverse import inverse_problem
+from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve
 
 
 @pytest.fixture(scope="module")

@@ -14,8 +14,7 @@ from conftest import shared_compiles_made
 
 import prdp_fem as pf
 from prdp_fem.errors import ShapeError, SolverConfigError
-from prdp_fem.inverse.driver import InversionError
-from prdp_fem.inverse.refinement import prdp
+from prdp_fem.inverse import InversionError, prdp
 from prdp_fem.learning import heat, learned
 
 DT = 0.02
@@ -247,7 +246,7 @@ def test_the_adjoint_tally_counts_wig_solves_only_and_records_carry_the_test_err
     *second* solve depends on the parameters (the first starts from ground truth), so
     K_adj x 1 x 60 per epoch; ONE and NOG run none. Every record reaches ``callback`` with the
     held-out rollout error of the network at that epoch (converged solves)."""
-    from prdp_fem.inverse.refinement import fixed
+    from prdp_fem.inverse import fixed
 
     _, problem, trajectories, validation = small
     seen = []
@@ -288,7 +287,7 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     """A study's PRDP and converged runs of one mode call train with equal settings: the
     step is traced once and the trainings are what they were alone; another optimizer
     object is another step."""
-    from prdp_fem.inverse.refinement import converged, fixed
+    from prdp_fem.inverse import converged, fixed
 
 
     heat._step_program.cache_clear()

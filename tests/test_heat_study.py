@@ -10,17 +10,13 @@ import pytest
 from conftest import resume_after_losing_done
 
 from prdp_fem.cli.main import main
-from prdp_fem.inverse.comparison import settled
+from prdp_fem.inverse import settled
 from prdp_fem.learning import heat
+from prdp_fem.scene import SceneError, load_scene, parse_scene
 from prdp_fem.scene.build import build_heat, heat_train_options, optimizer
-from prdp_fem.scene.spec import (
-    SceneError,
-    SceneSolverConfigError,
-    load_scene,
-    parse_scene,
-    with_overrides,
-)
-from prdp_fem.studies.runner import ResultsLog, heat_history, run_study
+from prdp_fem.scene.spec import SceneSolverConfigError, with_overrides
+from prdp_fem.studies import run_study
+from prdp_fem.studies.runner import ResultsLog, heat_history
 
 SCENES = Path(__file__).resolve().parent.parent / "examples" / "scenes"
 

@@ -12,16 +12,12 @@ import scipy.sparse as sp
 
 import prdp_fem as pf
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.fem.observations import full_field, point_sensors, with_noise
-from prdp_fem.fem.regularizers import regularizer
-from prdp_fem.fem.residuals import square_root_factor
-from prdp_fem.inverse.driver import inverse_problem, invert
-from prdp_fem.inverse.refinement import converged
-from prdp_fem.inverse.taylor import taylor_test
-from prdp_fem.linalg.cg import ConvergedCG, TruncatedCG
-from prdp_fem.optim.hig import hig, hig_direction, hig_update, randomized_svd, residual_jacobian
-from prdp_fem.scene import build
-from prdp_fem.scene.spec import SceneSolverConfigError, parse_scene
+from prdp_fem.fem import full_field, point_sensors, regularizer, square_root_factor, with_noise
+from prdp_fem.inverse import converged, inverse_problem, invert, taylor_test
+from prdp_fem.linalg import ConvergedCG, TruncatedCG
+from prdp_fem.optim import hig, hig_direction, hig_update, randomized_svd, residual_jacobian
+from prdp_fem.scene import build, parse_scene
+from prdp_fem.scene.spec import SceneSolverConfigError
 
 
 def _linear_least_squares(m=30, n=12, seed=0):

@@ -13,20 +13,22 @@ from conftest import json_from_a_process, shared_compiles_made
 
 import prdp_fem as pf
 from prdp_fem.errors import PrdpFemError, SolverConfigError
-from prdp_fem.fem.observations import boundary_values, full_field, point_sensors, with_noise
-from prdp_fem.fem.regularizers import regularizer
-from prdp_fem.inverse.comparison import settled
-from prdp_fem.inverse.driver import (
+from prdp_fem.fem import boundary_values, full_field, point_sensors, regularizer, with_noise
+from prdp_fem.inverse import (
+    History,
     InversionError,
     Validation,
+    converged,
+    fixed,
     inverse_problem,
     invert,
+    l_curve,
+    morozov,
+    prdp,
+    settled,
 )
-from prdp_fem.inverse.history import History
-from prdp_fem.inverse.parameter_choice import l_curve, morozov
-from prdp_fem.inverse.refinement import converged, fixed, prdp
 from prdp_fem.inverse.steps import step_failed
-from prdp_fem.linalg.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
+from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve
 
 
 def _coefficient_problem(n=10, kappa_space="P1", noise=0.0, alpha=1e-6, reg="h1",
@@ -249,7 +251,7 @@ def test_invert_reaches_the_discrete_optimum_and_records_costs():
 def test_a_controller_written_with_jnp_runs_in_the_host_loop():
     """invert updates its controller eagerly on the host state; a user's controller written
     with jnp (device arrays from its first update on) steers the same run as the NumPy one."""
-    from prdp_fem.inverse.refinement import Refinement
+    from prdp_fem.inverse import Refinement
 
     _disc, problem = _source_problem(n=6)
     base = prdp(K0=2, dK=3, tau_step=0.5, tau_stop=0.99)
@@ -313,8 +315,7 @@ def test_a_refinement_discards_the_optimizer_s_stored_value_and_gradient():
     """When K changes, the line search's stored value and gradient belong to the old solver:
     invert marks them stale (inf), so the next step's loss is the new solver's, and the
     line search knows the objective changed (pf.optim.scale_by_zoom_linesearch's restart)."""
-    from prdp_fem.inverse.driver import Objective
-    from prdp_fem.inverse.refinement import Refinement
+    from prdp_fem.inverse import Objective, Refinement
 
     _disc, problem = _coefficient_problem(n=8, alpha=1e-6)
     base = fixed(2, 2)
@@ -556,7 +557,7 @@ def test_non_finite_parameters_raise_with_the_step():
 
 
 def test_settled_ignores_pass_throughs():
-    from prdp_fem.inverse.history import StepRecord
+    from prdp_fem.inverse import StepRecord
     errors = [1.0, 0.5, 0.2, 0.31, 0.298, 0.301, 0.3]
     records = [StepRecord(i + 1, 1, 1, 0.0, 0, 0, 0, 0, 0, float(i), 0.0, 0.0, 0.0, e,
                           math.nan) for i, e in enumerate(errors)]

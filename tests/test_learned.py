@@ -14,9 +14,8 @@ from skfem.models.poisson import laplace
 
 import prdp_fem as pf
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.inverse.refinement import converged, fixed, prdp
-from prdp_fem.learning import learned
-from prdp_fem.learning.learned import EpochRecord
+from prdp_fem.inverse import converged, fixed, prdp
+from prdp_fem.learning import EpochRecord, learned
 
 
 @pytest.fixture(scope="module")

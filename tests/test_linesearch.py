@@ -16,7 +16,8 @@ import pytest
 
 import prdp_fem as pf
 from prdp_fem.inverse.steps import step_failed
-from prdp_fem.optim.linesearch import Contradiction, ZoomSearchState, _nothing_seen, _watch
+from prdp_fem.optim import Contradiction, ZoomSearchState
+from prdp_fem.optim.linesearch import _nothing_seen, _watch
 
 
 def _rosenbrock(z):

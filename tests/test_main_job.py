@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from prdp_fem.cli.main import _parser
+from prdp_fem.scene import load_scene
 from prdp_fem.scene.build import build_mesh
-from prdp_fem.scene.spec import load_scene, with_overrides
-from prdp_fem.studies.runner import run_study
+from prdp_fem.scene.spec import with_overrides
+from prdp_fem.studies import run_study
 
 
 def test_study_runs_the_main_job_by_default():

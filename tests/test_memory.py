@@ -20,7 +20,8 @@ from prdp_fem.bench.memory import (
     memory_cost,
 )
 from prdp_fem.cli.main import main
-from prdp_fem.linalg.cg import TruncatedCG, _scan_iterations, segment_length, solve
+from prdp_fem.linalg import TruncatedCG, solve
+from prdp_fem.linalg.cg import _scan_iterations, segment_length
 
 # ------------------------------------------------------------------------------------------
 # the segmented scan is the plain scan

@@ -11,7 +11,8 @@ from conftest import MESH_DIR, SHIPPED_MESHES
 
 import prdp_fem as pf
 from prdp_fem import errors
-from prdp_fem.mesh.io import _distinct_columns, save_mesh, with_names
+from prdp_fem.mesh import save_mesh
+from prdp_fem.mesh.io import _distinct_columns, with_names
 
 EXPECTED_TAGS = {
     "square_tri.msh": ("MeshTri1", {"left", "right", "bottom", "top"}),

@@ -10,11 +10,10 @@ import optax
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.fem.observations import full_field, point_sensors, with_noise
-from prdp_fem.inverse.driver import inverse_problem, invert
-from prdp_fem.inverse.refinement import converged
-from prdp_fem.linalg.cg import ConvergedCG
-from prdp_fem.optim.newton import gauss_newton, newton_cg
+from prdp_fem.fem import full_field, point_sensors, with_noise
+from prdp_fem.inverse import converged, inverse_problem, invert
+from prdp_fem.linalg import ConvergedCG
+from prdp_fem.optim import gauss_newton, newton_cg
 
 
 def update(optimizer, state, z, fn, **extra):
@@ -300,7 +299,7 @@ def test_newton_cg_on_the_hippylib_problem_at_16(load_example):
 
 
 def newton_scene(**optimizer):
-    from prdp_fem.scene.spec import parse_scene
+    from prdp_fem.scene import parse_scene
     return parse_scene({"mesh": {"n": 4},
                         "inverse": {"unknown": "source", "truth": "x*y", "alpha": 1e-4,
                                     "regularization": "h1"},

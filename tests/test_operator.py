@@ -323,7 +323,7 @@ def test_rectangular_ell_has_no_diagonal_and_multiplies_right(shape):
 def test_a_kernel_prepared_on_the_host_is_the_device_kernel_of_its_layout(shape):
     """host_prepared (AMG levels, FixedMatrix) skips the device round trip of
     prepare_on_host(from_scipy(...)): the same arrays, in NumPy, the same product."""
-    from prdp_fem.linalg.operator import host_prepared, prepare_on_host
+    from prdp_fem.linalg import host_prepared, prepare_on_host
     matrix = sp.random(*shape, density=0.3, random_state=4, format="csr")
     matrix.setdiag(np.arange(1.0, min(shape) + 1))  # a diagonal, as A_l has
     kernel = host_prepared(matrix)

@@ -14,14 +14,7 @@ import numpy as np
 import pytest
 
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.inverse.refinement import (
-    Schedule,
-    converged,
-    fixed,
-    prdp,
-    state_from_dict,
-    state_to_dict,
-)
+from prdp_fem.inverse import Schedule, converged, fixed, prdp, state_from_dict, state_to_dict
 
 
 def _ema(values, window):

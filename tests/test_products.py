@@ -19,8 +19,8 @@ import pytest
 import scipy.sparse as sp
 from conftest import count_primitives
 
+from prdp_fem.linalg import FixedMatrix, SparseMatrix, matvec, prepare, symmetric_matvec
 from prdp_fem.linalg._products import paired_product, symmetric_product
-from prdp_fem.linalg.operator import FixedMatrix, SparseMatrix, matvec, prepare, symmetric_matvec
 
 N = 30
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from prdp_fem.errors import SolverConfigError
-from prdp_fem.inverse.refinement import prdp, state_to_dict
+from prdp_fem.inverse import prdp, state_to_dict
 
 # ------------------------------------------------------------------------------------------
 # the reference notebook, in NumPy

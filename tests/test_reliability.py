@@ -17,7 +17,7 @@ import prdp_fem as pf
 from prdp_fem._atomic import atomic_path
 from prdp_fem._lock import directory_lock
 from prdp_fem.errors import OutputLockedError, SceneError, ShapeError
-from prdp_fem.scene.spec import parse_scene
+from prdp_fem.scene import parse_scene
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -183,8 +183,9 @@ def test_a_mesh_files_refinement_is_estimated_on_the_file_before_refining(tmp_pa
                                                                          monkeypatch):
     import prdp_fem as pf
     from prdp_fem.errors import ResourceLimitError
+    from prdp_fem.scene import load_scene
     from prdp_fem.scene.build import build_mesh
-    from prdp_fem.scene.spec import load_scene, max_dofs
+    from prdp_fem.scene.spec import max_dofs
 
     pf.save_mesh(pf.unit_square(2), tmp_path / "m.msh")  # 9 vertices
     (tmp_path / "s.toml").write_text('[mesh]\nfile = "m.msh"\nrefine = 4\n')
@@ -270,7 +271,7 @@ def test_a_failed_pyamg_reference_is_reported_as_such(tmp_path, monkeypatch, cap
     import numpy as np
 
     from prdp_fem.cli import main as cli
-    from prdp_fem.fem.reference import ReferenceSolution
+    from prdp_fem.fem import ReferenceSolution
     from prdp_fem.scene import build
 
     (tmp_path / "s.toml").write_text('name = "s"\n[mesh]\nn = 4\n')
@@ -338,8 +339,8 @@ def test_load_mesh_of_a_number_is_a_typed_error():
 def test_tracers_where_host_values_are_needed_raise_a_typed_error():
     import prdp_fem as pf
     from prdp_fem.errors import TracerError
-    from prdp_fem.fem.observations import full_field
-    from prdp_fem.inverse.driver import inverse_problem, invert
+    from prdp_fem.fem import full_field
+    from prdp_fem.inverse import inverse_problem, invert
 
     disc = pf.discretize(pf.unit_square(3))
     for method in (disc.interpolate, disc.interpolate_kappa, disc.project):

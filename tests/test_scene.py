@@ -9,17 +9,16 @@ import optax
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.scene import build
-from prdp_fem.scene.expressions import ExpressionError, compile_field
-from prdp_fem.scene.spec import (
+from prdp_fem.scene import (
     BUILTIN_SCENES,
     SceneError,
+    build,
     builtin_scene_path,
     load_scene,
-    mesh_scene,
     parse_scene,
-    with_overrides,
 )
+from prdp_fem.scene.expressions import ExpressionError, compile_field
+from prdp_fem.scene.spec import mesh_scene, with_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -67,7 +66,7 @@ def test_defaults_are_documented_values():
 def test_first_step_reaches_the_line_search():
     """`[optimizer] first_step = "polyak"` builds L-BFGS whose first search takes J / |s_0|
     in one evaluation; the scene reader knows the same choices as the line search."""
-    from prdp_fem.optim.linesearch import FIRST_STEPS
+    from prdp_fem.optim import FIRST_STEPS
     from prdp_fem.scene.spec import _FIRST_STEPS
     assert _FIRST_STEPS == FIRST_STEPS
 
@@ -394,9 +393,8 @@ def test_scenes_with_a_fixed_kappa_build_no_kappa_map(no_kappa_map, tmp_path):
     """Source inversions (data synthetic from the truth, or given), learned inverses, the heat
     problem, forward and h-studies never change kappa: they assemble at it and never build G
     (an inversion reads only its problem)."""
-    from prdp_fem.learning.heat import heat_problem
-    from prdp_fem.learning.learned import learned_inverse
-    from prdp_fem.studies.runner import run_study
+    from prdp_fem.learning import heat_problem, learned_inverse
+    from prdp_fem.studies import run_study
 
     source = {"mesh": {"n": 6}, "pde": {"kappa": "1 + x"},
               "inverse": {"truth": "sin(pi*x)*sin(pi*y)", "alpha": 1e-4,
@@ -428,7 +426,7 @@ def test_forward_solve_reference_uses_pyamg_only_when_asked():
 
 
 def test_inverse_study_with_jacobi_builds_no_amg(no_amg, tmp_path):
-    from prdp_fem.studies.runner import run_study
+    from prdp_fem.studies import run_study
 
     scene = parse_scene({
         "mesh": {"n": 6}, "inverse": {"truth": "sin(pi*x)*sin(pi*y)", "alpha": 1e-4},
@@ -438,7 +436,8 @@ def test_inverse_study_with_jacobi_builds_no_amg(no_amg, tmp_path):
 
 
 def test_an_amg_scene_solves_forward_and_rebuilds_during_an_inversion(tmp_path):
-    from prdp_fem.studies.runner import ResultsLog, run_study
+    from prdp_fem.studies import run_study
+    from prdp_fem.studies.runner import ResultsLog
 
     table = {"mesh": {"n": 8},
              "inverse": {"unknown": "log_kappa", "truth": "0.5*sin(pi*x)*y", "alpha": 1e-6},

@@ -11,9 +11,7 @@ import scipy.sparse.linalg as spl
 
 import prdp_fem as pf
 from prdp_fem.errors import DataError, SolverBreakdownError, SolverConfigError
-from prdp_fem.linalg.cg import Status, solve
-from prdp_fem.linalg.operator import SparseMatrix
-from prdp_fem.linalg.stationary import TruncatedJacobi
+from prdp_fem.linalg import SparseMatrix, Status, TruncatedJacobi, solve
 
 N = 12
 

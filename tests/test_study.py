@@ -11,10 +11,12 @@ import pytest
 from conftest import SMALL_STUDY, resume_after_losing_done
 
 import prdp_fem as pf
+from prdp_fem.scene import load_scene, parse_scene
 from prdp_fem.scene.build import build_inverse, invert_options
-from prdp_fem.scene.spec import load_scene, parse_scene, with_overrides
+from prdp_fem.scene.spec import with_overrides
+from prdp_fem.studies import StudyError, run_study
 from prdp_fem.studies import runner as study_module
-from prdp_fem.studies.runner import ResultsLog, StudyError, run_study
+from prdp_fem.studies.runner import ResultsLog
 
 
 @pytest.fixture

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
+from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve
 from prdp_fem.linalg import _tally as tally
-from prdp_fem.linalg.cg import ConvergedCG, IterationCounter, TruncatedCG, solve
 
 
 @pytest.fixture(scope="module")

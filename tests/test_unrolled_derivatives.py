@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 
 import prdp_fem as pf
 from prdp_fem.bench.cg import poisson_operator
-from prdp_fem.linalg.cg import ConvergedCG, Status, TruncatedCG, solve, unrolled_length
+from prdp_fem.linalg import ConvergedCG, Status, TruncatedCG, solve, unrolled_length
 
 STEPS = 10.0 ** -np.arange(3, 9)  # finite-difference steps, relative to |b|
 

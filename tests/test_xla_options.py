@@ -25,9 +25,7 @@ from prdp_fem._xla_options import (
     solver_options,
 )
 from prdp_fem.bench.inverse import mother_problem
-from prdp_fem.inverse import reduced
-from prdp_fem.inverse.driver import invert
-from prdp_fem.inverse.refinement import fixed
+from prdp_fem.inverse import fixed, invert, reduced
 from prdp_fem.linalg import cg
 
 
