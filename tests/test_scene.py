@@ -331,6 +331,11 @@ def test_non_positive_kappa_is_caught_at_build():
     with pytest.raises(pf.PrdpFemError, match=r"k.toml: pde.kappa = 'x - 0.5': expected values "
                        r"> 0 on the mesh"):
         build.forward_solve(scene)
+    # positive at every cell centre (P0), not at every quadrature point, where it is evaluated
+    between = parse_scene({"mesh": {"n": 4}, "pde": {"kappa": "x - 0.05"}}, source="k.toml")
+    with pytest.raises(pf.scene.spec.SceneCoefficientError,
+                       match=r"k.toml: pde.kappa\(x\) is <= 0 at 8 quadrature point\(s\)"):
+        build.forward_solve(between)
 
 
 def test_non_finite_formula_values_are_caught():

@@ -58,11 +58,17 @@ _ELEMENTS = {
     skfem.MeshQuad1: {"Q1": skfem.ElementQuad1, "Q2": skfem.ElementQuad2},
     skfem.MeshHex1: {"Q1": skfem.ElementHex1, "Q2": skfem.ElementHex2},
 }
+# "P2" is the second-order space (Q2 on quadrilaterals and hexahedra): a coefficient of the
+# state's order keeps a P2/Q2 state's L2 rate 3 where a P1 coefficient holds it to 2
 _KAPPA_ELEMENTS = {
-    skfem.MeshTri1: {"P0": skfem.ElementTriP0, "P1": skfem.ElementTriP1},
-    skfem.MeshTet1: {"P0": skfem.ElementTetP0, "P1": skfem.ElementTetP1},
-    skfem.MeshQuad1: {"P0": skfem.ElementQuad0, "P1": skfem.ElementQuad1},
-    skfem.MeshHex1: {"P0": skfem.ElementHex0, "P1": skfem.ElementHex1},
+    skfem.MeshTri1: {"P0": skfem.ElementTriP0, "P1": skfem.ElementTriP1,
+                     "P2": skfem.ElementTriP2},
+    skfem.MeshTet1: {"P0": skfem.ElementTetP0, "P1": skfem.ElementTetP1,
+                     "P2": skfem.ElementTetP2},
+    skfem.MeshQuad1: {"P0": skfem.ElementQuad0, "P1": skfem.ElementQuad1,
+                      "P2": skfem.ElementQuad2},
+    skfem.MeshHex1: {"P0": skfem.ElementHex0, "P1": skfem.ElementHex1,
+                     "P2": skfem.ElementHex2},
 }
 KAPPA_KINDS = ("scalar", "tensor")
 # (i, j) of each stored tensor component, Voigt order
@@ -294,7 +300,12 @@ class Discretization:
         """``(A, b)`` at ``kappa`` on the host: the condensed operator (SciPy CSR) and the
         right-hand side ``S f + h - A_ID g`` (``f`` nodal; ``None``: 0), as
         :meth:`stiffness_matrix` and :meth:`rhs` give them, assembled in one pass as
-        :meth:`system_at` is, without the map ``G``. ``name`` names ``kappa`` in errors."""
+        :meth:`system_at` is, without the map ``G``. ``name`` names ``kappa`` in errors.
+
+        ``kappa`` may also be a function of the coordinates (``x`` of shape ``(dim, ...)``,
+        scalar coefficients): it is then evaluated at the quadrature points, so the operator
+        has no interpolation error in the coefficient (P2/Q2 keep their L2 rate 3 with a
+        variable ``kappa``; interpolated into P0 or P1 it limits them to 2)."""
         operator, lifting = self._blocks_at(kappa, name)
         b = self.neumann - lifting @ self.dirichlet_values
         if f is not None:
@@ -306,9 +317,33 @@ class Discretization:
         if is_traced(kappa):
             raise CoefficientError(f"{name}: traced; expected concrete values (the system at "
                                    "one kappa is assembled on the host)")
-        full = _assembled_at(self.basis, self.kappa_basis, self._forms,
-                             self.check_kappa(kappa, name))
-        return _condensed(full, self.free_dofs, self.dirichlet_dofs)
+        if callable(kappa):
+            full = self._forms[0].assemble(self.basis,
+                                           kappa=self._at_quadrature_points(kappa, name))
+        else:
+            full = _assembled_at(self.basis, self.kappa_basis, self._forms,
+                                 self.check_kappa(kappa, name))
+        return _condensed(full.tocsr(), self.free_dofs, self.dirichlet_dofs)
+
+    def _at_quadrature_points(self, fn: Callable[[np.ndarray], np.ndarray],
+                              name: str) -> np.ndarray:
+        """``fn`` at the state basis's quadrature points, ``(cells, points)``, finite and
+        ``> 0``, or a :class:`CoefficientError` naming ``name``."""
+        if self.kappa_kind != "scalar":
+            raise CoefficientError(f"{name}: a function for a tensor coefficient; expected "
+                                   f"its {self.n_kappa} Voigt components (see interpolate_kappa)")
+        x = np.asarray(self.basis.global_coordinates())
+        values = real_array(host_values(fn(x), f"{name}(x)"), f"{name}(x)",
+                            error=CoefficientError)
+        values = np.array(_broadcast(values, x.shape[1:], f"{name}(x)"), dtype=float)
+        if not np.isfinite(values).all():
+            raise CoefficientError(f"{name}(x) has NaN/Inf values at quadrature points; "
+                                   "expected a finite coefficient")
+        if (values <= 0).any():
+            raise CoefficientError(f"{name}(x) is <= 0 at {int((values <= 0).sum())} "
+                                   f"quadrature point(s) (min {values.min():.3g}); expected "
+                                   "kappa > 0")
+        return values
 
     def _linear_system(self, assembly: FixedMatrix, pattern, lifting: FixedMatrix,
                        lifting_pattern) -> LinearSystem:
@@ -392,7 +427,8 @@ class Discretization:
             else projection.x
 
     def interpolate_kappa(self, fn: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-        """``fn`` as a coefficient vector: cell centroids (P0) or vertices (P1).
+        """``fn`` as a coefficient vector: cell centroids (P0) or the space's nodes (P1: the
+        vertices; P2: vertices and edge midpoints, plus face and cell centres on Q2).
 
         For a tensor coefficient ``fn(x)`` returns ``(dim, dim)`` (constant) or
         ``(dim, dim, n_points)``; the result holds its Voigt components, component-major.
@@ -440,7 +476,11 @@ def discretize(
         ``"P1"``/``"P2"`` on triangle and tetrahedron meshes, ``"Q1"``/``"Q2"`` on quads and
         hexahedra (``"P1"``/``"P2"`` are accepted there as aliases of Q1/Q2).
     kappa_space
-        ``"P0"`` (one value per cell) or ``"P1"`` (nodal, linear/multilinear).
+        ``"P0"`` (one value per cell), ``"P1"`` (nodal, linear/multilinear) or ``"P2"``
+        (second order, Q2 on quadrilaterals and hexahedra: the order of a P2/Q2 state, whose
+        L2 rate 3 a P1 coefficient would hold to 2). For one fixed coefficient,
+        :meth:`Discretization.host_system_at` also takes a function of ``x``, evaluated at the
+        quadrature points.
     kappa_kind
         ``"scalar"`` or ``"tensor"`` (symmetric, Voigt components per point; see the module).
     dirichlet

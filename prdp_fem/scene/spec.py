@@ -687,7 +687,7 @@ def _mesh(t: _Table) -> MeshSpec:
 
 def _pde(t: _Table) -> PdeSpec:
     element = t.choice("element", "P1", ("P1", "P2", "Q1", "Q2"))
-    kappa_space = t.choice("kappa_space", "P0", ("P0", "P1"))
+    kappa_space = t.choice("kappa_space", "P0", ("P0", "P1", "P2"))
     kappa, source = t.field("kappa", 1.0), t.field("source", 1.0)
     if _is_number(kappa) and kappa <= 0:
         raise t.fail("kappa", "a coefficient > 0 (a number or a formula positive on the mesh)",

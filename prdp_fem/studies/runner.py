@@ -74,6 +74,7 @@ from ..scene.build import (
     field_function,
     heat_train_options,
     invert_options,
+    operator_at_coefficient,
     solver_preconditioner,
     train_options,
 )
@@ -346,7 +347,7 @@ def _run_level(name, config, attempt, log, progress, out: Path, scene: Scene) ->
     disc = build_discretization(scene, mesh, element)
     dim = mesh.dim()
     exact = field_function(scene, "pde.exact", scene.pde.exact, dim)
-    A, b = disc.host_system_at(coefficient(scene, disc))  # one kappa: no map kappa -> A
+    A, b = operator_at_coefficient(scene, disc)  # kappa at the quadrature points, no map G
     b = b + disc.load_vector(field_function(scene, "pde.source", scene.pde.source, dim))
     # our setup (the operator's layout, an AMG hierarchy) is timed as pyamg's is in amg_time
     (A_jax, preconditioner), setup_time = _timed(
