@@ -4,7 +4,15 @@ and pyamg-converged reference solves with their norms.
 
 from .discretization import Discretization, discretize
 from .observations import Observation, boundary_values, full_field, point_sensors, with_noise
-from .parameters import UNKNOWNS, Parameterization, parameter_basis, parameter_mass
+from .parameters import (
+    COEFFICIENT_UNKNOWNS,
+    UNKNOWNS,
+    Parameterization,
+    Simp,
+    parameter_basis,
+    parameter_mass,
+    simp,
+)
 from .reference import (
     ReferenceSolution,
     amg_solve,
@@ -21,6 +29,7 @@ from .residuals import ResidualFactors, residual_factors, square_root_factor
 from .system import LinearSystem
 
 __all__ = [
+    "COEFFICIENT_UNKNOWNS",
     "REGULARIZERS",
     "UNKNOWNS",
     "Discretization",
@@ -30,6 +39,7 @@ __all__ = [
     "ReferenceSolution",
     "Regularizer",
     "ResidualFactors",
+    "Simp",
     "amg_solve",
     "boundary_values",
     "direct_solve",
@@ -47,6 +57,7 @@ __all__ = [
     "relative_h1_error",
     "relative_l2_error",
     "residual_factors",
+    "simp",
     "square_root_factor",
     "with_noise",
 ]

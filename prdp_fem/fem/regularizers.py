@@ -40,7 +40,7 @@ from .._transfer import as_jax
 from ..errors import SolverConfigError
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from .discretization import Discretization
-from .parameters import parameter_basis, parameter_mass
+from .parameters import COEFFICIENT_UNKNOWNS, parameter_basis, parameter_mass
 
 __all__ = ["REGULARIZERS", "Regularizer", "gradient_gram", "regularizer"]
 
@@ -79,7 +79,7 @@ class Regularizer:
 
 def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
                 reference: np.ndarray | float = 0.0, epsilon: float = 1e-3) -> Regularizer:
-    """Build ``kind`` for the parameter space of ``unknown`` (``"source"``/``"log_kappa"``).
+    """Build ``kind`` for the parameter space of ``unknown`` (one of :data:`UNKNOWNS`).
 
     ``reference`` is ``m_0`` (L2, H1); ``epsilon`` smooths TV (in units of the gradient).
     """
@@ -95,7 +95,7 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
     m0 = finite_vector(reference, f"reference (m_0 of the {unknown} field)", basis.N)
     if kind == "l2":
         matrix, weights, dim = parameter_mass(disc, unknown), np.ones(1), 1
-    elif unknown == "log_kappa" and disc.kappa_space == "P0":
+    elif unknown in COEFFICIENT_UNKNOWNS and disc.kappa_space == "P0":
         matrix, weights = _facet_jumps(disc.mesh)
         dim = 1
     else:

@@ -231,6 +231,7 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
                     alpha: float, regularization: str | Regularizer = "h1",
                     known: np.ndarray | float | None = None, truth: np.ndarray | None = None,
                     bounds: tuple[float, float] | None = None,
+                    coefficient_map: Callable | None = None,
                     residual: bool = False) -> InverseProblem:
     """Assemble an :class:`InverseProblem` on ``disc`` (checks sizes at the edge).
 
@@ -239,6 +240,10 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     frozen at it, so no map ``kappa -> A`` is built (see :class:`InverseProblem`).
     ``unknown="log_kappa"``:
     ``m = log kappa`` in the kappa space, ``known`` is the nodal source ``f`` (default 0).
+    ``unknown="density"``: a density ``rho`` in the kappa space, ``kappa`` from the SIMP law
+    ``coefficient_map`` (default :func:`~prdp_fem.fem.parameters.simp`; ``bounds`` default
+    ``(0, 1)``); ``unknown="coefficient"``: ``kappa = coefficient_map(field)``, any
+    differentiable JAX function (see :class:`~prdp_fem.fem.parameters.Parameterization`).
     ``residual=True`` also factors the misfit weight and the regulariser, for
     :meth:`InverseProblem.residual` (needed by :func:`prdp_fem.optim.hig.hig`; a sparse factor of
     a mass-matrix weight costs about three times its memory, so it is off by default).
@@ -249,12 +254,12 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     :class:`~prdp_fem.errors.SolverConfigError` for bad ``unknown``, ``alpha`` or
     ``regularization``.
     """
-    parameterization = Parameterization(unknown, bounds)
+    parameterization = Parameterization(unknown, bounds, coefficient_map)
     n_param = parameter_basis(disc, unknown).N
-    if unknown == "log_kappa" and disc.kappa_kind != "scalar":
+    if parameterization.is_coefficient and disc.kappa_kind != "scalar":
         raise DiscretizationError(
-            f"unknown='log_kappa' on a discretisation with kappa_kind={disc.kappa_kind!r}: "
-            "expected kappa_kind='scalar' (a log-coefficient is one field)")
+            f"unknown={unknown!r} on a discretisation with kappa_kind={disc.kappa_kind!r}: "
+            "expected kappa_kind='scalar' (a mapped coefficient is one field)")
     try:
         valid_alpha = np.ndim(alpha) == 0 and bool(np.isfinite(alpha) and alpha >= 0)
     except (TypeError, ValueError):
@@ -274,11 +279,11 @@ def inverse_problem(disc: Discretization, observation: Observation, *, unknown: 
     else:
         system = disc.system
         known = finite_vector(0.0 if known is None else known,
-                              "known (nodal source f of a log_kappa inversion)", disc.n_dofs)
+                              f"known (nodal source f of a {unknown} inversion)", disc.n_dofs)
     if truth is not None:
         truth = as_jax(finite_vector(
             truth, f"truth ({unknown} field)", n_param,
-            error=CoefficientError if unknown == "log_kappa" else DataError))
+            error=CoefficientError if parameterization.is_coefficient else DataError))
     if isinstance(regularization, str):
         regularization = regularizer(disc, unknown, regularization)
     if not isinstance(regularization, Regularizer):
@@ -318,7 +323,7 @@ class Inversion(NamedTuple):
     """What :func:`invert` returns."""
 
     params: jax.Array          # the optimisation vector z
-    field: jax.Array           # the recovered field (source or log kappa)
+    field: jax.Array           # the recovered field (source, log kappa, density, ...)
     refinement: RefinementState
     optimizer_state: Any
     history: History

@@ -38,6 +38,7 @@ from ..errors import (
 )
 from ..fem.discretization import Discretization, discretize
 from ..fem.observations import boundary_values, full_field, point_sensors, with_noise
+from ..fem.parameters import Parameterization, Simp
 from ..fem.reference import amg_solve, direct_solve
 from ..inverse.driver import InverseProblem, Validation, inverse_problem
 from ..inverse.refinement import Refinement, adaptive_tolerance, converged, fixed, prdp
@@ -86,6 +87,7 @@ __all__ = [
     "invert_options",
     "operator_at_coefficient",
     "optimizer",
+    "parameterization_of",
     "train_options",
 ]
 
@@ -255,6 +257,7 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
     disc = build_discretization(scene) if disc is None else disc
     dim = disc.mesh.dim()
     source_unknown = spec.unknown == "source"
+    parameterization = parameterization_of(scene)
     to_field = disc.interpolate if source_unknown else disc.interpolate_kappa
     truth = None if spec.truth is None else to_field(
         field_function(scene, "inverse.truth", spec.truth, dim))
@@ -266,15 +269,25 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
         observation = full_field(disc, norm=spec.norm, data=disc.project(
             field_function(scene, "inverse.data", spec.data, dim)))
     else:
-        kappa, f = (known, truth) if source_unknown else (np.exp(truth), known)
+        kappa, f = (known, truth) if source_unknown else (
+            np.asarray(parameterization.kappa(truth)), known)
         u_true = _true_state(disc, kappa, f)
         observation = _observation(scene, disc, u_true)
         if spec.noise > 0:
             observation = with_noise(observation, spec.noise, spec.seed)
     problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
                               regularization=spec.regularization, known=known, truth=truth,
-                              bounds=spec.bounds, residual=scene.optimizer.name == "hig")
+                              bounds=spec.bounds,
+                              coefficient_map=parameterization.coefficient_map,
+                              residual=scene.optimizer.name == "hig")
     return InverseSetup(disc, problem, truth)
+
+
+def parameterization_of(scene: Scene) -> Parameterization:
+    """The scene's unknown, bounds and coefficient map (a density's SIMP law)."""
+    spec = scene.inverse
+    law = None if spec.simp is None else Simp(*spec.simp)
+    return Parameterization(spec.unknown, spec.bounds, law)
 
 
 def _observation(scene: Scene, disc: Discretization, u: np.ndarray):
@@ -341,7 +354,7 @@ def initial_field(scene: Scene, disc: Discretization) -> np.ndarray | None:
     unknown, bounds = scene.inverse.unknown, scene.inverse.bounds
     field = disc.interpolate(fn) if unknown == "source" else disc.interpolate_kappa(fn)
     if bounds is not None and ((field < bounds[0]) | (field > bounds[1])).any():
-        error = SceneCoefficientError if unknown == "log_kappa" else SceneDataError
+        error = SceneDataError if unknown == "source" else SceneCoefficientError
         raise error(f"{scene.source}: inverse.init = {scene.inverse.init!r}: values from "
                     f"{field.min():.3g} to {field.max():.3g} on the mesh; expected values within "
                     f"inverse.bounds = {list(bounds)}")

@@ -94,6 +94,7 @@ from ..errors import (
     SensorError,
     SolverConfigError,
 )
+from ..fem.parameters import Simp
 from .expressions import compile_field
 
 __all__ = [
@@ -135,7 +136,8 @@ __all__ = [
     "with_overrides",
 ]
 
-BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h")
+BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h",
+                  "simp_cube")
 GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
 PACKAGE_MESH_PREFIX = "@meshes/"
 
@@ -367,7 +369,9 @@ class InverseSpec:
     Data are ``data`` (a field observed in full: the misfit is against its L2 projection) or,
     when absent, synthetic: the state of ``truth`` (solved once, directly), observed, plus
     Gaussian noise ``noise * max|d|`` seeded with ``seed``. ``sensors``: a count of random
-    interior mesh vertices, or a list of coordinates.
+    interior mesh vertices, or a list of coordinates. ``unknown = "density"`` recovers a SIMP
+    density (``kappa = k_min + (k_max - k_min) rho ** penalty``, ``simp = (k_min, k_max,
+    penalty)``; bounds default to ``[0, 1]``).
     """
 
     unknown: str = "source"
@@ -383,6 +387,12 @@ class InverseSpec:
     regularization: str = "h1"
     bounds: tuple[float, float] | None = None
     init: Field | None = None
+    simp: tuple[float, float, float] | None = None   # density: (k_min, k_max, penalty)
+
+    @property
+    def is_coefficient(self) -> bool:
+        """Whether the unknown is mapped to kappa (log kappa or a density), not the source."""
+        return self.unknown != "source"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -715,7 +725,7 @@ def _sensors(t: _Table):
 
 
 def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
-    unknown = t.choice("unknown", "source", ("source", "log_kappa"))
+    unknown = t.choice("unknown", "source", ("source", "log_kappa", "density"))
     truth, data = t.field("truth", None), t.field("data", None)
     observations = t.choice("observations", "full_field", ("full_field", "sensors", "boundary"))
     norm = t.choice("norm", "l2", ("l2", "nodal"))
@@ -729,11 +739,25 @@ def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
                               SceneSolverConfigError)
     bounds = t.get("bounds", None, lambda v: isinstance(v, list) and len(v) == 2 and all(
         _is_number(b) for b in v) and v[0] < v[1], "[lower, upper] with finite lower < upper",
-        SceneCoefficientError if unknown == "log_kappa" else SceneDataError)
+        SceneDataError if unknown == "source" else SceneCoefficientError)
+    law = None
+    if unknown == "density":  # the SIMP law's keys exist for a density only
+        defaults = Simp()
+        law = (t.number("k_min", defaults.k_min, low=0.0, open_low=True,
+                        error=SceneCoefficientError),
+               t.number("k_max", defaults.k_max, low=0.0, open_low=True,
+                        error=SceneCoefficientError),
+               t.number("penalty", defaults.penalty, low=1.0, error=SceneCoefficientError))
+        if not law[0] < law[1]:
+            raise SceneCoefficientError(f"{t.source}: inverse.k_min = {law[0]} and k_max = "
+                                        f"{law[1]}: expected k_min < k_max")
+        if bounds is not None and not 0 <= bounds[0] < bounds[1] <= 1:
+            raise SceneCoefficientError(f"{t.source}: inverse.bounds = {bounds}: expected "
+                                        "0 <= lower < upper <= 1 for a density")
     spec = InverseSpec(unknown, truth, data, observations, norm, sensors, boundaries, noise,
                        seed, alpha, regularization,
                        None if bounds is None else (float(bounds[0]), float(bounds[1])),
-                       t.field("init", None))
+                       t.field("init", None), law)
     t.finish()
     if learned:
         if unknown != "source":
