@@ -384,3 +384,30 @@ def test_rhs_follows_the_dirichlet_data_leaf():
     g = once.system.dirichlet_values
     _, tangent = jax.jvp(rhs_of, (g,), (g,))
     np.testing.assert_allclose(tangent, rhs_of(g) - rhs_of(0 * g), atol=1e-13)
+
+
+def test_a_pinned_pure_neumann_problem_is_the_balanced_solution_shifted():
+    """A pin at a vertex fixes the constant a pure Neumann problem leaves free: the pinned
+    state is the nullspace-projected one shifted to the pinned value there. A point that is
+    no vertex, or a malformed pin, is refused by name."""
+    def flux(x):
+        return (x[0] - 0.5) * x[1] * (x[1] - 1.0)
+    sides = {side: flux for side in ("left", "right", "bottom", "top")}
+    mesh = pf.unit_square(8)
+    free = pf.discretize(mesh, element="P2", dirichlet=None, neumann=sides)
+    pinned = pf.discretize(mesh, element="P2", dirichlet=None, neumann=sides,
+                           pins=[((0.5, 0.5), 0.25)])
+    kappa = free.interpolate_kappa(lambda x: 1.0 + x[0])
+    A, b = free.host_system_at(kappa)
+    u_free = pf.linalg.solve(pf.SparseMatrix.from_scipy(A), b, pf.ConvergedCG(rtol=1e-13),
+                             nullspace=free.nullspace).x
+    u_pin = pf.direct_solve(*pinned.host_system_at(kappa)).x
+    centre = int(pinned.dirichlet_dofs[0])
+    u_pin_full = pinned.expand(u_pin)
+    np.testing.assert_allclose(u_pin_full, free.expand(u_free) - free.expand(u_free)[centre]
+                               + 0.25, atol=1e-9)
+    with pytest.raises(pf.errors.DiscretizationError, match=r"pins\[0\]: point \[0.51, 0.5\] "
+                       r"is not a node of the mesh \(nearest dof location \[0.5, 0.5\]"):
+        pf.discretize(mesh, dirichlet=None, pins=[((0.51, 0.5), 0.0)])
+    with pytest.raises(pf.errors.DiscretizationError, match=r"pins\[0\] = .*expected a finite"):
+        pf.discretize(mesh, dirichlet=None, pins=[((0.5,), 0.0)])

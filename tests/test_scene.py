@@ -502,3 +502,20 @@ def test_learned_scene_reads_its_table_and_runs_merge_it():
     assert runs["prdp"].learned.batch_size == 8 < runs["lbfgs prdp"].learned.batch_size == 32
     assert runs["lbfgs prdp"].learned.samples == 32 and runs["lbfgs prdp"].learned.epochs == 30
     assert runs["hig prdp"].optimizer.name == "hig" and runs["hig prdp"].study.kind == "learned"
+
+
+def test_a_scene_pins_its_state_at_a_vertex():
+    """pde.pins: a pure Neumann scene (dirichlet = {}) pinned at the centre solves forward;
+    a malformed list or a point that is no vertex is an error naming the key."""
+    table = {"mesh": {"n": 4}, "pde": {
+        "source": 0.0, "dirichlet": {}, "pins": [[0.5, 0.5, 1.5]],
+        "neumann": {side: "(x - 0.5)*y*(y - 1)" for side in ("left", "right", "bottom", "top")}}}
+    result = build.forward_solve(parse_scene(table, source="p.toml"), reference=True)
+    centre = int(result.disc.dirichlet_dofs[0])
+    assert result.u[centre] == 1.5 and result.relative_error < 1e-8
+    bad = {**table, "pde": {**table["pde"], "pins": [[0.5, 0.5]]}}
+    with pytest.raises(pf.SceneError, match=r"p.toml: pde.pins"):
+        parse_scene(bad, source="p.toml")
+    off = {**table, "pde": {**table["pde"], "pins": [[0.55, 0.5, 0.0]]}}
+    with pytest.raises(pf.SceneError, match=r"pins\[0\]: point \[0.55, 0.5\] is not a node"):
+        build.forward_solve(parse_scene(off, source="p.toml"))

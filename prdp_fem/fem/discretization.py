@@ -27,7 +27,7 @@ so every solver and gradient path is the same as for a scalar.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from functools import cached_property
 from typing import NamedTuple
 
@@ -467,6 +467,7 @@ def discretize(
     kappa_kind: str = "scalar",
     dirichlet: BoundaryData = 0.0,
     neumann: Mapping[str, BoundaryValue] | None = None,
+    pins: Sequence[tuple[Sequence[float], float]] | None = None,
 ) -> Discretization:
     """Discretise ``-div(kappa grad u) = f`` on ``mesh``.
 
@@ -491,6 +492,11 @@ def discretize(
     neumann
         ``kappa du/dn = h`` data as ``{boundary name: number | callable}``; boundaries in
         neither dict are natural (``h = 0``).
+    pins
+        Point constraints ``[(point, value), ...]``: ``u(point) = value`` at a node of the
+        mesh (a vertex; any dof location of the element), as hIPPYlib pins a pure Neumann
+        problem's state at one point. A point that is no dof location (within ``1e-9`` of the
+        mesh's size) is refused, naming the nearest one.
     """
     mesh_type = type(mesh)
     if mesh_type not in _ELEMENTS:
@@ -503,7 +509,8 @@ def discretize(
         raise DiscretizationError(f"kappa_kind={kappa_kind!r}: expected one of {KAPPA_KINDS}")
     basis = skfem.CellBasis(mesh, element_cls())
     kappa_basis = basis.with_element(kappa_cls())
-    dirichlet_dofs, dirichlet_values = _dirichlet(basis, mesh, dirichlet)
+    dirichlet_dofs, dirichlet_values = _with_pins(basis, *_dirichlet(basis, mesh, dirichlet),
+                                                  pins)
     constrained = np.zeros(basis.N, dtype=bool)  # a mask, not setdiff1d's sort
     constrained[dirichlet_dofs] = True
     free = np.flatnonzero(~constrained)
@@ -579,6 +586,38 @@ def _dirichlet(basis, mesh, data: BoundaryData) -> tuple[np.ndarray, np.ndarray]
         values[dofs] = _evaluate(value, basis.doflocs[:, dofs], f"dirichlet[{name!r}]")
     dofs = np.flatnonzero(~np.isnan(values))
     return dofs, values[dofs]
+
+
+def _with_pins(basis, dofs: np.ndarray, values: np.ndarray, pins) -> tuple[np.ndarray,
+                                                                          np.ndarray]:
+    """The Dirichlet dofs and values with each pinned point's dof added (sorted, as
+    :func:`_dirichlet` gives them)."""
+    if not pins:
+        return dofs, values
+    locations = basis.doflocs
+    size = float(np.ptp(locations, axis=1).max())
+    constrained = dict(zip(dofs.tolist(), values.tolist(), strict=True))
+    for i, pin in enumerate(pins):
+        try:
+            point, value = pin
+            point = np.asarray(point, dtype=float).reshape(-1)
+            value = float(value)
+        except (TypeError, ValueError):
+            raise DiscretizationError(f"pins[{i}] = {pin!r}: expected (point, value) with a "
+                                      f"point of {locations.shape[0]} coordinates") from None
+        if point.shape != (locations.shape[0],) or not np.isfinite([*point, value]).all():
+            raise DiscretizationError(f"pins[{i}] = {pin!r}: expected a finite point of "
+                                      f"{locations.shape[0]} coordinates and a finite value")
+        distance = np.linalg.norm(locations - point[:, None], axis=0)
+        nearest = int(np.argmin(distance))
+        if distance[nearest] > 1e-9 * size:
+            raise DiscretizationError(
+                f"pins[{i}]: point {point.tolist()} is not a node of the mesh (nearest dof "
+                f"location {locations[:, nearest].tolist()} at distance {distance[nearest]:.3g}); "
+                "expected a mesh vertex")
+        constrained[nearest] = value
+    order = sorted(constrained)
+    return np.array(order, dtype=dofs.dtype), np.array([constrained[d] for d in order])
 
 
 def _evaluate(value: BoundaryValue, x: np.ndarray, field: str) -> np.ndarray:

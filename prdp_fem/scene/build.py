@@ -136,7 +136,8 @@ def build_discretization(scene: Scene, mesh: skfem.Mesh | None = None,
                           kappa_space=scene.pde.kappa_space,
                           dirichlet=_boundary_data(scene, "pde.dirichlet", scene.pde.dirichlet,
                                                    dim),
-                          neumann=neumann)
+                          neumann=neumann,
+                          pins=[(pin[:-1], pin[-1]) for pin in scene.pde.pins])
     except DiscretizationError as exc:  # boundary names, or an element the mesh has not
         raise SceneDiscretizationError(f"{scene.source}: [pde] {exc}") from None
 

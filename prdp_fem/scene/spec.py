@@ -10,7 +10,9 @@ takes the default written in the dataclass below):
 ``[pde]``
     ``element``, ``kappa_space``, ``kappa``, ``source`` (numbers or formulas in
     x, y, z, see :mod:`.expressions`), ``dirichlet`` (a value for the whole
-    boundary or a table ``{boundary = value}``), ``neumann`` (a table), ``exact``
+    boundary or a table ``{boundary = value}``), ``neumann`` (a table), ``exact``, ``pins``
+    (``[[x, y, value], ...]``: the
+    state pinned at mesh vertices, for pure Neumann data)
 ``[inverse]``
     ``unknown`` (source | log_kappa), ``truth``, ``data``, ``observations``
     (full_field | sensors | boundary), ``norm``, ``sensors``, ``boundaries``,
@@ -360,6 +362,7 @@ class PdeSpec:
     dirichlet: Field | tuple[tuple[str, Field], ...] = 0.0
     neumann: tuple[tuple[str, Field], ...] = ()
     exact: Field | None = None
+    pins: tuple[tuple[float, ...], ...] = ()   # (x, y[, z], value): u pinned at a vertex
 
 
 @dataclasses.dataclass(frozen=True)
@@ -706,8 +709,12 @@ def _pde(t: _Table) -> PdeSpec:
         dirichlet = t.field_table("dirichlet")
     else:
         dirichlet = t.field("dirichlet", 0.0)
+    pins = t.get("pins", [], lambda v: isinstance(v, list) and all(
+        isinstance(p, list) and len(p) in (3, 4) and len(p) == len(v[0])
+        and all(_is_number(c) for c in p) for p in v),
+        "a list of [x, y, value] (or all [x, y, z, value]) point constraints")
     spec = PdeSpec(element, kappa_space, kappa, source, dirichlet, t.field_table("neumann"),
-                   t.field("exact", None))
+                   t.field("exact", None), tuple(tuple(float(c) for c in p) for p in pins))
     t.finish()
     return spec
 
