@@ -348,17 +348,41 @@ def test_the_hippylib_tutorial_problem_at_16_pins_its_state_and_converges(load_e
     disc, _ = example.build_tutorial(16)
     centre = int(np.argmin(np.linalg.norm(disc.basis.doflocs - 0.5, axis=0)))
     assert disc.dirichlet_dofs.tolist() == [centre] and disc.dirichlet_values.tolist() == [0.0]
-    result = example.run(16, "gauss_newton", "eisenstat_walker", problem="tutorial")
+    result = example.run(16, "gauss_newton", "eisenstat_walker", problem="tutorial", cycles=8)
     assert result["converged"] and result["newton_iterations"] <= 8
     assert result["relative_misfit"] == pytest.approx(result["noise_level"], rel=0.1)
 
 
-@pytest.mark.slow  # 64 x 64 with converged solves: about 45 s on 2 cores
-def test_the_hippylib_tutorial_at_64_meets_its_newton_count_and_misfit(load_example):
-    """At hIPPYlib's size: 6 Newton iterations (its published run: 6) and a final misfit within
-    5 % of its 3.89e-8 (another noise draw); the inner CG takes 45 (its run: 26)."""
+@pytest.mark.slow  # 64 x 64 with converged solves: about 30 s on 2 cores
+def test_the_hippylib_tutorial_at_64_meets_its_newton_and_cg_counts_and_misfit(load_example):
+    """At hIPPYlib's size, the inner CG preconditioned by 8 V-cycles of the regularisation
+    operator (hIPPYlib solves it exactly): at most its 6 Newton and 26 CG iterations (measured:
+    5 / 26), a final misfit within 5 % of its 3.89e-8 (another noise draw)."""
     example = load_example("newton_coefficient")
-    result = example.run(64, "gauss_newton", "eisenstat_walker", problem="tutorial")
+    result = example.run(64, "gauss_newton", "eisenstat_walker", problem="tutorial", cycles=8)
     assert result["newton_iterations"] <= example.TUTORIAL_ANCHOR["newton"]
+    assert result["cg_iterations"] <= example.TUTORIAL_ANCHOR["cg"]
     assert result["misfit"] == pytest.approx(example.TUTORIAL_ANCHOR["misfit"], rel=0.05)
-    assert result["cg_iterations"] <= 50
+
+
+def test_more_v_cycles_are_a_symmetric_map_closer_to_the_inverse(load_example):
+    """CycledPreconditioner: symmetric, and ||I - P A|| falls with the number of cycles."""
+    import scipy.sparse as sp
+
+    from prdp_fem.optim import regularization_preconditioner
+
+    _, problem = load_example("newton_coefficient").build_tutorial(8)
+    reg = problem.regularizer
+    A = (pf.fem.gradient_gram(reg.matrix.to_scipy(), reg.weights, reg.dim)
+         + problem.parameter_mass.to_scipy()).toarray()
+    eye = np.eye(A.shape[0])
+    gaps = []
+    for cycles in (1, 2, 8):
+        P = np.stack([np.asarray(regularization_preconditioner(problem, cycles)(jnp.asarray(e)))
+                      for e in eye], axis=1)
+        assert np.abs(P - P.T).max() < 1e-10 * np.abs(P).max()
+        gaps.append(np.linalg.norm(eye - P @ A, 2))
+    assert gaps[0] > gaps[1] > gaps[2] and gaps[2] < 0.2  # measured: 1.23, 0.81, 0.10
+    with pytest.raises(pf.SolverConfigError, match="cycles=0"):
+        regularization_preconditioner(problem, 0)
+    assert sp.issparse(problem.parameter_mass.to_scipy())

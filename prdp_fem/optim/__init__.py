@@ -16,6 +16,7 @@ from .linesearch import FIRST_STEPS, Contradiction, ZoomSearchState, lbfgs, scal
 from .newton import (
     FORCING_TERMS,
     HESSIANS,
+    CycledPreconditioner,
     NewtonCGState,
     gauss_newton,
     newton_cg,
@@ -28,6 +29,7 @@ __all__ = [
     "HESSIANS",
     "JACOBIAN_MODES",
     "Contradiction",
+    "CycledPreconditioner",
     "HigInfo",
     "HigState",
     "NewtonCGState",
