@@ -16,12 +16,15 @@ log 2). Stop at ||g|| <= 1e-6 ||g_0|| (Euclidean norms).
 centre (a point constraint), the inclusion |x - (0.5, 0.5)| <= 0.2; its published run: 6 Newton
 and 26 CG iterations, final misfit 3.89e-8.
 
-    python examples/newton_coefficient.py [n] [hessian] [forcing] [problem] [cycles]
+    python examples/newton_coefficient.py [n] [hessian] [forcing] [problem] [cycles] [solves]
 
 hessian: exact | gauss_newton; forcing: hippylib | eisenstat_walker; problem: inclusion |
 tutorial; cycles: AMG V-cycles of the regularisation operator in the inner preconditioner
 (default 1; 8 come close to hIPPYlib's exact solve: on the tutorial with gauss_newton and
-eisenstat_walker, 5 Newton / 26 CG against 6 / 45 with one cycle).
+eisenstat_walker, 5 Newton / 26 CG against 6 / 45 with one cycle); solves: converged |
+prdp (the PDE solves truncated under PRDP: on the tutorial the same misfit and a parameter
+error 0.1 % apart with 74 % fewer PCG iterations, though the gradient no longer falls to
+1e-6 of its first norm).
 """
 
 import math
@@ -32,7 +35,7 @@ import numpy as np
 
 import prdp_fem as pf
 from prdp_fem.fem import full_field, with_noise
-from prdp_fem.inverse import converged, inverse_problem, invert
+from prdp_fem.inverse import converged, inverse_problem, invert, prdp
 from prdp_fem.optim import newton_cg, regularization_preconditioner
 
 GAMMA = 1e-8
@@ -82,10 +85,12 @@ def build_tutorial(n: int = 64, seed: int = 1):
 
 def run(n: int = 64, hessian: str = "exact", forcing: str = "hippylib", rtol: float = 1e-6,
         max_steps: int = 30, solver_rtol: float = 1e-10, problem: str = "inclusion",
-        cycles: int = 1) -> dict:
+        cycles: int = 1, solves: str = "converged") -> dict:
     """Newton-CG through :func:`prdp_fem.invert`; the numbers of the run as a dict.
     ``cycles``: AMG V-cycles of the regularisation operator per preconditioner application
-    (8 come close to hIPPYlib's exact solve)."""
+    (8 come close to hIPPYlib's exact solve). ``solves``: the state, adjoint and tangent
+    solves converged (PCG to ``solver_rtol``) or ``"prdp"``, truncated PCG under PRDP
+    (K0 = dK = 200, restarted at each refinement, refined at a failed line search)."""
     disc, problem = (build_tutorial if problem == "tutorial" else build)(n)
     optimizer = newton_cg(hessian=hessian, forcing=forcing, max_cg=100, rtol=rtol,
                           preconditioner=regularization_preconditioner(problem, cycles))
@@ -99,7 +104,9 @@ def run(n: int = 64, hessian: str = "exact", forcing: str = "hippylib", rtol: fl
         return still
 
     start = time.perf_counter()
-    result = invert(problem, optimizer=optimizer, refinement=converged(solver_rtol),
+    refinement = converged(solver_rtol) if solves == "converged" else \
+        prdp(K0=200, dK=200, restart=True, stall_on_failure=True)
+    result = invert(problem, optimizer=optimizer, refinement=refinement,
                     steps=max_steps, init=np.full(disc.n_kappa, START),
                     callback=stop_when_still)
     wall = time.perf_counter() - start
@@ -108,7 +115,8 @@ def run(n: int = 64, hessian: str = "exact", forcing: str = "hippylib", rtol: fl
     data_norm = float(np.sqrt(np.asarray(data.data) @ (data.weight.to_scipy()
                                                        @ np.asarray(data.data))))
     return {
-        "n": n, "hessian": hessian, "forcing": forcing,
+        "n": n, "hessian": hessian, "forcing": forcing, "solves": solves,
+        "pcg_iterations": last.primal_iterations + last.adjoint_iterations_total,
         "newton_iterations": int(state.steps),
         "cg_iterations": int(state.total_cg_iterations),
         "line_search_evaluations": int(state.total_line_search_evaluations),
@@ -132,8 +140,9 @@ def main(argv=()):
     forcing = argv[2] if len(argv) > 2 else "hippylib"
     problem = argv[3] if len(argv) > 3 else "inclusion"
     cycles = int(argv[4]) if len(argv) > 4 else 1
+    solves = argv[5] if len(argv) > 5 else "converged"
     anchor = TUTORIAL_ANCHOR if problem == "tutorial" else ANCHOR
-    result = run(n, hessian, forcing, problem=problem, cycles=cycles)
+    result = run(n, hessian, forcing, problem=problem, cycles=cycles, solves=solves)
     print(f"Newton-CG ({hessian} Hessian, {forcing} forcing) on hIPPYlib's coefficient "
           f"{problem}, {n} x {n}, P2/P1, 5 % noise, gamma = {GAMMA:g}")
     print(f"  Newton iterations {result['newton_iterations']} (hIPPYlib: {anchor['newton']}), "
