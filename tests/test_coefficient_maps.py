@@ -33,7 +33,7 @@ def _problem(unknown, coefficient_map=None, kappa_space="P0", cell="triangle"):
 @pytest.mark.parametrize("unknown, coefficient_map, kappa_space", [
     ("log_kappa", None, "P1"),
     ("density", None, "P0"),
-    ("density", simp(0.05, 2.0, 2.0), "P1"),
+    pytest.param("density", simp(0.05, 2.0, 2.0), "P1", marks=pytest.mark.slow),
     ("coefficient", _softplus_map, "P0"),
 ])
 def test_every_map_s_gradient_passes_the_taylor_test(unknown, coefficient_map, kappa_space):

@@ -246,7 +246,8 @@ def test_half_squared_residual_is_the_loss(reg, observation):
     assert 0.5 * float(misfit @ misfit) == pytest.approx(float(parts.misfit), rel=1e-12)
 
 
-@pytest.mark.parametrize("reg", ["h1", "tv"])
+# h1 with the slow cases (7 s): tv's Jacobian holds the same misfit block and more
+@pytest.mark.parametrize("reg", [pytest.param("h1", marks=pytest.mark.slow), "tv"])
 def test_residual_jacobian_taylor(reg):
     """``J v`` from the Jacobian HIG uses (reverse mode, implicit solves) against r itself."""
     _, problem = _coefficient_problem(reg, alpha=1e-2)
