@@ -402,3 +402,61 @@ def test_prdp_truncated_solves_reach_the_tutorial_s_answer_with_far_fewer_pcg_it
     assert truncated["misfit"] == pytest.approx(exact["misfit"], rel=0.01)
     assert truncated["parameter_error"] == pytest.approx(exact["parameter_error"], rel=0.01)
     assert truncated["pcg_iterations"] <= 0.5 * exact["pcg_iterations"]
+
+
+def test_the_tutorial_scene_builds_a_preconditioned_newton_for_its_problem():
+    """hippylib_tutorial: the pin, and a Gauss-Newton optimiser built for the problem with 8
+    V-cycles of its regularisation operator; preconditioner_cycles is refused for L-BFGS."""
+    import tomllib
+
+    from prdp_fem.scene import build, builtin_scene_path, parse_scene
+
+    table = tomllib.loads(builtin_scene_path("hippylib_tutorial").read_text())
+    table["mesh"]["n"] = 4
+    scene = parse_scene(table, source="t.toml")
+    setup = build.build_inverse(scene)
+    centre = int(np.argmin(np.linalg.norm(setup.disc.basis.doflocs - 0.5, axis=0)))
+    assert setup.disc.dirichlet_dofs.tolist() == [centre]
+    optimizer = build.invert_options(scene, setup.disc, setup.problem)["optimizer"]
+    state = optimizer.init(jnp.zeros(setup.problem.n_parameters))
+    assert state.preconditioner.cycles == 8 and optimizer is not build.optimizer(scene)
+    with pytest.raises(pf.SceneError, match=r"needs the inverse problem"):
+        build.invert_options(scene, setup.disc)
+    with pytest.raises(pf.SceneError, match=r"preconditioner_cycles = 8 with optimizer\.name = "
+                       "'lbfgs'"):
+        newton_scene(name="lbfgs", preconditioner_cycles=8)
+
+
+@pytest.mark.slow  # two inversions and a study at 16 x 16: about 18 s
+def test_the_tutorial_scene_preconditions_newton_with_its_regularisation_operator(tmp_path):
+    """hippylib_tutorial at 16 x 16 through the study runner: the scene's pin and flux, a
+    Gauss-Newton optimiser whose inner CG takes 8 V-cycles of the regularisation operator
+    (fewer inner iterations than without), and a PRDP run that reaches the converged run's
+    band with no more PCG iterations (at 16 x 16, K0 = 200 is about a converged solve; the
+    64 x 64 saving is the slow test above). preconditioner_cycles is refused for L-BFGS."""
+    import tomllib
+
+    from prdp_fem.optim.newton import CycledPreconditioner
+    from prdp_fem.scene import build, builtin_scene_path, parse_scene
+    from prdp_fem.studies import run_study
+
+    table = tomllib.loads(builtin_scene_path("hippylib_tutorial").read_text())
+    table["mesh"]["n"] = 16
+    scene = parse_scene(table, source="t.toml")
+    setup = build.build_inverse(scene)
+    options = build.invert_options(scene, setup.disc, setup.problem)
+    assert setup.disc.dirichlet_dofs.size == 1 and scene.optimizer.preconditioner_cycles == 8
+    cg_iterations = {}
+    for cycles in (0, 8):
+        variant = parse_scene({**table, "optimizer": {**table["optimizer"],
+                                                      "preconditioner_cycles": cycles}})
+        opts = build.invert_options(variant, setup.disc, setup.problem)
+        opts["refinement"] = pf.converged(1e-10)
+        state = invert(setup.problem, **opts).optimizer_state
+        cg_iterations[cycles] = int(state.total_cg_iterations)
+        if cycles:
+            assert isinstance(state.preconditioner, CycledPreconditioner)
+    assert cg_iterations[8] < cg_iterations[0]
+    rows = {row["run"]: row for row in run_study(scene, tmp_path / "t").summary}
+    assert rows["prdp"]["reached_step"] is not None and rows["prdp"]["iteration_saving"] >= 0
+    assert options["optimizer"] is not build.optimizer(scene)  # built for this problem

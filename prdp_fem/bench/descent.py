@@ -81,7 +81,7 @@ def descent_rows(scene, *, band: float = 0.01, progress=None) -> list[DescentRow
     setup = build_inverse(scene)
     results = []
     for name, variant in descent_runs(scene):
-        options = invert_options(variant, setup.disc)
+        options = invert_options(variant, setup.disc, setup.problem)
         recorder = IterateRecorder()
         history = invert(setup.problem, callback=recorder, **options).history
         check = descent_check(setup.problem, recorder.iterates(setup.problem, options["init"]))

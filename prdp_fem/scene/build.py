@@ -59,7 +59,7 @@ from ..mesh import generators
 from ..mesh.io import load_mesh, refine
 from ..optim.hig import hig
 from ..optim.linesearch import lbfgs
-from ..optim.newton import newton_cg
+from ..optim.newton import newton_cg, regularization_preconditioner
 from .expressions import compile_field
 from .spec import (
     OptimizerSpec,
@@ -435,6 +435,16 @@ def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransfo
     return _optimizer(spec, spec.steps if updates is None else int(updates))
 
 
+def _preconditioned_newton(spec: OptimizerSpec, problem: InverseProblem):
+    """Newton-CG / Gauss-Newton with its inner CG preconditioned by ``preconditioner_cycles``
+    V-cycles of ``problem``'s regularisation operator (built for this problem: not shared)."""
+    return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
+                     max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
+                     max_backtracking=spec.max_backtracking, rtol=spec.gradient_rtol,
+                     preconditioner=regularization_preconditioner(
+                         problem, spec.preconditioner_cycles))
+
+
 @functools.lru_cache(maxsize=16)
 def _optimizer(spec: OptimizerSpec, updates: int) -> optax.GradientTransformation:
     if spec.name == "lbfgs":
@@ -476,13 +486,21 @@ def inversion_preconditioner(scene: Scene) -> str | RebuiltAMG:
     return RebuiltAMG(policy, kind=spec.amg_kind, implementation=spec.amg_implementation)
 
 
-def invert_options(scene: Scene, disc: Discretization) -> dict[str, Any]:
-    """Keyword arguments of :func:`~prdp_fem.inverse.driver.invert` for this scene."""
+def invert_options(scene: Scene, disc: Discretization,
+                   problem: InverseProblem | None = None) -> dict[str, Any]:
+    """Keyword arguments of :func:`~prdp_fem.inverse.driver.invert` for this scene.
+    ``problem``: the inversion's, which a Newton optimiser preconditioned by the
+    regularisation operator (``optimizer.preconditioner_cycles``) is built for."""
     spec = scene.refinement
     monitor: str | Validation | None = None if spec.kind == "adaptive" else spec.monitor
     if monitor == "validation":
         monitor = Validation(spec.validation_every, spec.validation_rtol)
-    return dict(optimizer=optimizer(scene), refinement=controller(scene),
+    cycles = scene.optimizer.preconditioner_cycles
+    if cycles and problem is None:
+        raise SceneError(f"{scene.source}: optimizer.preconditioner_cycles = {cycles} needs "
+                         "the inverse problem (invert_options(scene, disc, problem))")
+    built = _preconditioned_newton(scene.optimizer, problem) if cycles else optimizer(scene)
+    return dict(optimizer=built, refinement=controller(scene),
                 gradient=scene.solver.gradient, steps=scene.optimizer.steps,
                 init=initial_field(scene, disc), preconditioner=inversion_preconditioner(scene),
                 monitor=monitor)

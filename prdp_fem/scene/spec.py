@@ -96,7 +96,6 @@ from ..errors import (
     SensorError,
     SolverConfigError,
 )
-from ..fem.parameters import Simp
 from .expressions import compile_field
 
 __all__ = [
@@ -139,7 +138,7 @@ __all__ = [
 ]
 
 BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h",
-                  "simp_cube")
+                  "simp_cube", "hippylib_tutorial")
 GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
 PACKAGE_MESH_PREFIX = "@meshes/"
 
@@ -519,6 +518,9 @@ class OptimizerSpec:
     c1: float = 1e-4
     max_backtracking: int = 10
     gradient_rtol: float = 0.0
+    # newton_cg, gauss_newton: the inner CG preconditioned by this many AMG V-cycles of the
+    # regularisation operator (prdp_fem.optim.newton.regularization_preconditioner); 0: none
+    preconditioner_cycles: int = 0
     exponent: float = -0.5        # hig: -0.5 half-inverse, -1 Gauss-Newton, +1 gradient descent
     tau: float = 1e-6             # hig: singular values below tau * s_max are dropped
     rank: int | None = None       # hig: None explicit Jacobian, k matrix-free rank-k SVD
@@ -749,6 +751,8 @@ def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
         SceneDataError if unknown == "source" else SceneCoefficientError)
     law = None
     if unknown == "density":  # the SIMP law's keys exist for a density only
+        from ..fem.parameters import Simp  # its defaults; loaded only for a density scene
+
         defaults = Simp()
         law = (t.number("k_min", defaults.k_min, low=0.0, open_low=True,
                         error=SceneCoefficientError),
@@ -918,6 +922,11 @@ def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
         raise SceneSolverConfigError(f"{t.source}: optimizer.first_step = "
                                      f"{spec.first_step!r} with optimizer.name = "
                                      f"{spec.name!r}: expected a first step only for 'lbfgs'")
+    if spec.preconditioner_cycles and spec.name not in _NEWTON:
+        raise SceneSolverConfigError(f"{t.source}: optimizer.preconditioner_cycles = "
+                                     f"{spec.preconditioner_cycles} with optimizer.name = "
+                                     f"{spec.name!r}: expected it only for 'newton_cg' or "
+                                     "'gauss_newton'")
     if spec.decay != "constant" and spec.name not in ("adam", "sgd"):
         raise SceneSolverConfigError(f"{t.source}: optimizer.decay = {spec.decay!r} with "
                                      f"optimizer.name = {spec.name!r}: expected a decay only "
@@ -951,7 +960,8 @@ def _newton_options(t: _Table) -> dict[str, Any]:
                 c1=float(t.get("c1", 1e-4, lambda v: _is_number(v) and 0 < v < 0.5,
                                "a number in (0, 0.5)")),
                 max_backtracking=t.integer("max_backtracking", 10, 0),
-                gradient_rtol=t.number("gradient_rtol", 0.0, low=0.0))
+                gradient_rtol=t.number("gradient_rtol", 0.0, low=0.0),
+                preconditioner_cycles=t.integer("preconditioner_cycles", 0, 0))
 
 
 def _runs(t: _Table) -> tuple[tuple[str, str], ...]:

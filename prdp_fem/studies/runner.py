@@ -291,7 +291,8 @@ def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups
         log.append({"type": "step", "run": name, "attempt": attempt, **record._asdict()})
         progress.step()
 
-    result = invert(setup.problem, callback=record_step, **invert_options(variant, setup.disc))
+    result = invert(setup.problem, callback=record_step, **invert_options(variant, setup.disc,
+                                                                       setup.problem))
     space = "nodal" if variant.inverse.unknown == "source" else variant.pde.kappa_space
     fields = {"recovered": (space, np.asarray(result.field))}
     if setup.truth is not None:
