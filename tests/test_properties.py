@@ -530,7 +530,7 @@ forward_cases = st.sampled_from(FORWARD_CASES)
 kappa_spaces = st.sampled_from(["P0", "P1"])
 
 
-@settings(max_examples=6, **SETTINGS)  # each example compiles both modes: 40 took 27 s
+@settings(max_examples=4, **SETTINGS)  # each example compiles both modes: 40 took 27 s
 @given(case=st.sampled_from(GRADIENT_CASES), amplitude=jitters, sigma=sigmas, seed=seeds,
        source=st.floats(0.0, 2.0), boundary=st.floats(-1.0, 1.0))
 # found by the search: data of 1e-161, whose b.b underflowed to 0, so CG stopped at x = 0
