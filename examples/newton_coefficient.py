@@ -85,15 +85,18 @@ def build_tutorial(n: int = 64, seed: int = 1):
 
 def run(n: int = 64, hessian: str = "exact", forcing: str = "hippylib", rtol: float = 1e-6,
         max_steps: int = 30, solver_rtol: float = 1e-10, problem: str = "inclusion",
-        cycles: int = 1, solves: str = "converged") -> dict:
+        cycles: int = 1, solves: str = "converged", gauss_newton_steps: int = 0) -> dict:
     """Newton-CG through :func:`prdp_fem.invert`; the numbers of the run as a dict.
     ``cycles``: AMG V-cycles of the regularisation operator per preconditioner application
     (8 come close to hIPPYlib's exact solve). ``solves``: the state, adjoint and tangent
     solves converged (PCG to ``solver_rtol``) or ``"prdp"``, truncated PCG under PRDP
-    (K0 = dK = 200, restarted at each refinement, refined at a failed line search)."""
+    (K0 = dK = 200, restarted at each refinement, refined at a failed line search).
+    ``gauss_newton_steps``: with the exact Hessian, the first updates that use Gauss-Newton's
+    (hIPPYlib: 5)."""
     disc, problem = (build_tutorial if problem == "tutorial" else build)(n)
     optimizer = newton_cg(hessian=hessian, forcing=forcing, max_cg=100, rtol=rtol,
-                          preconditioner=regularization_preconditioner(problem, cycles))
+                          preconditioner=regularization_preconditioner(problem, cycles),
+                          gauss_newton_steps=gauss_newton_steps)
     previous = {}
 
     def stop_when_still(record, z):

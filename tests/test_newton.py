@@ -460,3 +460,32 @@ def test_the_tutorial_scene_preconditions_newton_with_its_regularisation_operato
     rows = {row["run"]: row for row in run_study(scene, tmp_path / "t").summary}
     assert rows["prdp"]["reached_step"] is not None and rows["prdp"]["iteration_saving"] >= 0
     assert options["optimizer"] is not build.optimizer(scene)  # built for this problem
+
+
+@pytest.mark.slow  # four Newton runs at 12 x 12: about 19 s
+def test_gauss_newton_first_then_exact_switches_at_the_given_update(load_example):
+    """newton_cg(gauss_newton_steps=N): with N past the run's updates it is the Gauss-Newton
+    run, update for update; with N = 0 the exact one."""
+    example = load_example("newton_coefficient")
+    runs = {label: example.run(12, hessian, "eisenstat_walker", problem="tutorial", cycles=8,
+                               gauss_newton_steps=steps)
+            for label, hessian, steps in [("gn", "gauss_newton", 0), ("exact", "exact", 0),
+                                          ("gn first", "exact", 100)]}
+    keys = ("newton_iterations", "cg_iterations", "line_search_evaluations")
+    assert [runs["gn first"][k] for k in keys] == [runs["gn"][k] for k in keys]
+    assert runs["gn"]["cg_iterations"] != runs["exact"]["cg_iterations"]
+    assert all(run["converged"] for run in runs.values())
+
+
+def test_gauss_newton_steps_are_checked_and_belong_to_newton_cg():
+    """A bad N, or N with the Gauss-Newton Hessian, is refused; the scene key belongs to
+    newton_cg only."""
+    for bad, message in [(dict(gauss_newton_steps=-1), "expected an integer >= 0"),
+                         (dict(hessian="gauss_newton", gauss_newton_steps=2),
+                          "expected hessian='exact'")]:
+        with pytest.raises(pf.SolverConfigError, match=message):
+            newton_cg(**bad)
+    with pytest.raises(pf.SceneError, match=r"gauss_newton_steps = 3 with optimizer\.name = "
+                       "'gauss_newton'"):
+        newton_scene(name="gauss_newton", gauss_newton_steps=3)
+    assert newton_scene(name="newton_cg", gauss_newton_steps=5).optimizer.gauss_newton_steps == 5

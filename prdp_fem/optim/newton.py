@@ -146,13 +146,15 @@ class _Options(NamedTuple):
     max_backtracking: int
     gtol: float
     rtol: float
+    gauss_newton_steps: int
 
 
 def newton_cg(*, hessian: str = "exact", max_cg: int = 100,
               forcing: str | float = "eisenstat_walker", forcing_max: float = 0.5,
               c1: float = 1e-4, shrink: float = 0.5, max_backtracking: int = 10,
               preconditioner: Any = None, gtol: float = 0.0,
-              rtol: float = 0.0) -> optax.GradientTransformationExtraArgs:
+              rtol: float = 0.0, gauss_newton_steps: int = 0
+              ) -> optax.GradientTransformationExtraArgs:
     """Inexact Newton-CG with Armijo backtracking (see the module docstring for the maths).
 
     Parameters
@@ -173,6 +175,10 @@ def newton_cg(*, hessian: str = "exact", max_cg: int = 100,
         definite (e.g. :func:`regularization_preconditioner`).
     gtol, rtol
         Skip the update once ``||g|| <= max(gtol, rtol ||g_0||)`` (both ``>= 0``; ``0``: never).
+    gauss_newton_steps
+        With ``hessian="exact"``: the first this many Newton updates use the Gauss-Newton
+        Hessian (positive semi-definite far from the minimiser), the rest the exact one, as
+        hIPPYlib's Newton-CG does (its default: 5). ``0``: exact throughout.
 
     Notes
     -----
@@ -180,7 +186,7 @@ def newton_cg(*, hessian: str = "exact", max_cg: int = 100,
     :func:`~prdp_fem.inverse.driver.invert` driver passes them).
     """
     options = _checked_options(hessian, max_cg, forcing, forcing_max, c1, shrink,
-                               max_backtracking, gtol, rtol)
+                               max_backtracking, gtol, rtol, gauss_newton_steps)
     _check_preconditioner(preconditioner)
 
     def init_fn(params) -> NewtonCGState:
@@ -197,7 +203,12 @@ def newton_cg(*, hessian: str = "exact", max_cg: int = 100,
                 "newton_cg: update() needs params, value= and value_fn= (as optax.lbfgs "
                 "does); prdp_fem.invert passes them")
         def hessian():  # linearised inside the Newton branch: a skipped update solves nothing
-            return _hessian_operator(options.hessian, value_fn, params, extra_args)
+            exact = _hessian_operator(options.hessian, value_fn, params, extra_args)
+            if not options.gauss_newton_steps:
+                return exact
+            gauss_newton = _hessian_operator("gauss_newton", value_fn, params, extra_args)
+            early = state.steps < options.gauss_newton_steps
+            return lambda v: jax.lax.cond(early, gauss_newton, exact, v)
 
         return _update(options, updates, state, params, jnp.asarray(value), value_fn, hessian)
 
@@ -227,7 +238,7 @@ def _is_number(value) -> bool:
 
 
 def _checked_options(hessian, max_cg, forcing, forcing_max, c1, shrink, max_backtracking,
-                     gtol, rtol) -> _Options:
+                     gtol, rtol, gauss_newton_steps=0) -> _Options:
     if hessian not in HESSIANS:
         raise SolverConfigError(f"hessian={hessian!r}: expected one of {HESSIANS}")
     if not (_is_int(max_cg) and max_cg >= 1):
@@ -249,9 +260,16 @@ def _checked_options(hessian, max_cg, forcing, forcing_max, c1, shrink, max_back
     for name, value in (("gtol", gtol), ("rtol", rtol)):
         if not (_is_number(value) and value >= 0):
             raise SolverConfigError(f"{name}={value!r}: expected a finite number >= 0")
+    if not (_is_int(gauss_newton_steps) and gauss_newton_steps >= 0):
+        raise SolverConfigError(f"gauss_newton_steps={gauss_newton_steps!r}: expected an "
+                                "integer >= 0")
+    if gauss_newton_steps and hessian != "exact":
+        raise SolverConfigError(f"gauss_newton_steps={gauss_newton_steps} with "
+                                f"hessian={hessian!r}: expected hessian='exact' (the steps "
+                                "after them use it)")
     return _Options(hessian, int(max_cg), forcing if isinstance(forcing, str) else float(forcing),
                     float(forcing_max), float(c1), float(shrink), int(max_backtracking),
-                    float(gtol), float(rtol))
+                    float(gtol), float(rtol), int(gauss_newton_steps))
 
 
 def _check_preconditioner(preconditioner) -> None:

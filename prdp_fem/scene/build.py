@@ -441,6 +441,7 @@ def _preconditioned_newton(spec: OptimizerSpec, problem: InverseProblem):
     return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                      max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
                      max_backtracking=spec.max_backtracking, rtol=spec.gradient_rtol,
+                     gauss_newton_steps=spec.gauss_newton_steps,
                      preconditioner=regularization_preconditioner(
                          problem, spec.preconditioner_cycles))
 
@@ -452,7 +453,8 @@ def _optimizer(spec: OptimizerSpec, updates: int) -> optax.GradientTransformatio
     if spec.name in ("newton_cg", "gauss_newton"):
         return newton_cg(hessian="exact" if spec.name == "newton_cg" else "gauss_newton",
                          max_cg=spec.max_cg, forcing=spec.forcing, c1=spec.c1,
-                         max_backtracking=spec.max_backtracking, rtol=spec.gradient_rtol)
+                         max_backtracking=spec.max_backtracking, rtol=spec.gradient_rtol,
+                         gauss_newton_steps=spec.gauss_newton_steps)
     if spec.name == "hig":
         return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank,
                    relative=spec.relative)

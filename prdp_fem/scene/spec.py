@@ -521,6 +521,7 @@ class OptimizerSpec:
     # newton_cg, gauss_newton: the inner CG preconditioned by this many AMG V-cycles of the
     # regularisation operator (prdp_fem.optim.newton.regularization_preconditioner); 0: none
     preconditioner_cycles: int = 0
+    gauss_newton_steps: int = 0   # newton_cg: the first updates with the Gauss-Newton Hessian
     exponent: float = -0.5        # hig: -0.5 half-inverse, -1 Gauss-Newton, +1 gradient descent
     tau: float = 1e-6             # hig: singular values below tau * s_max are dropped
     rank: int | None = None       # hig: None explicit Jacobian, k matrix-free rank-k SVD
@@ -927,6 +928,11 @@ def _optimizer(t: _Table, default_name: str = "lbfgs") -> OptimizerSpec:
                                      f"{spec.preconditioner_cycles} with optimizer.name = "
                                      f"{spec.name!r}: expected it only for 'newton_cg' or "
                                      "'gauss_newton'")
+    if spec.gauss_newton_steps and spec.name != "newton_cg":
+        raise SceneSolverConfigError(f"{t.source}: optimizer.gauss_newton_steps = "
+                                     f"{spec.gauss_newton_steps} with optimizer.name = "
+                                     f"{spec.name!r}: expected it only for 'newton_cg' (its "
+                                     "first updates then use the Gauss-Newton Hessian)")
     if spec.decay != "constant" and spec.name not in ("adam", "sgd"):
         raise SceneSolverConfigError(f"{t.source}: optimizer.decay = {spec.decay!r} with "
                                      f"optimizer.name = {spec.name!r}: expected a decay only "
@@ -961,7 +967,8 @@ def _newton_options(t: _Table) -> dict[str, Any]:
                                "a number in (0, 0.5)")),
                 max_backtracking=t.integer("max_backtracking", 10, 0),
                 gradient_rtol=t.number("gradient_rtol", 0.0, low=0.0),
-                preconditioner_cycles=t.integer("preconditioner_cycles", 0, 0))
+                preconditioner_cycles=t.integer("preconditioner_cycles", 0, 0),
+                gauss_newton_steps=t.integer("gauss_newton_steps", 0, 0))
 
 
 def _runs(t: _Table) -> tuple[tuple[str, str], ...]:
