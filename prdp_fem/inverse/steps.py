@@ -16,11 +16,13 @@ import numpy as np
 import optax
 import optax.tree_utils as otu
 
+from ..errors import SolverConfigError
 from ..linalg.amg import AMGCycle
 from ..linalg.cg import ConvergedCG, TruncatedCG, unrolled_length
 from ..optim.linesearch import ZoomSearchState
 
 __all__ = [
+    "check_training_refinement",
     "cycle_argument",
     "device_settings",
     "keeps_program",
@@ -168,3 +170,16 @@ def with_stale_value(opt_state):
 def cycle_argument(preconditioner) -> tuple:
     """The programs' trailing argument: an :class:`~prdp_fem.linalg.amg.AMGCycle`, else none."""
     return (preconditioner,) if isinstance(preconditioner, AMGCycle) else ()
+
+
+def check_training_refinement(refinement, gradient: str) -> None:
+    """Refuse a controller a training loop cannot feed: one that watches an inversion step's
+    gradient (training feeds a validation error), or a tolerance-mode controller with
+    unrolled gradients (a loop of unknown length)."""
+    if getattr(refinement, "monitor", None) is not None:
+        raise SolverConfigError(
+            f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
+            "inversion step; training feeds its controller a validation error (expected "
+            "prdp(), fixed(K) or converged(rtol))")
+    if refinement.tolerance_mode and gradient == "unrolled":
+        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")

@@ -78,6 +78,7 @@ from ..errors import ShapeError, SolverConfigError
 from ..fem.discretization import Discretization
 from ..inverse.refinement import Refinement, prdp
 from ..inverse.steps import (
+    check_training_refinement,
     cycle_argument,
     device_settings,
     keeps_program,
@@ -477,13 +478,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
                                 f"windows ({train_set.states.shape[0]} trajectories x "
                                 f"{train_set.steps - unroll + 1} starts)")
     refinement = prdp(K0=1, dK=1) if refinement is None else refinement
-    if getattr(refinement, "monitor", None) is not None:
-        raise SolverConfigError(
-            f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
-            "inversion step; training feeds its controller a validation error (expected "
-            "prdp(), fixed(K) or converged(rtol))")
-    if refinement.tolerance_mode and gradient == "unrolled":
-        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
+    check_training_refinement(refinement, gradient)
     solves = setup == "correction"
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     counter = IterationCounter()

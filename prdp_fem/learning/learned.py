@@ -51,6 +51,7 @@ from ..fem.system import LinearSystem
 from ..inverse.comparison import first_settled
 from ..inverse.refinement import Refinement, RefinementState, prdp
 from ..inverse.steps import (
+    check_training_refinement,
     cycle_argument,
     device_settings,
     keeps_program,
@@ -480,13 +481,7 @@ def _check_training_options(optimizer, gradient, epochs, batch_size, n, refineme
     if batch_size > n:
         raise SolverConfigError(f"batch_size={batch_size}: expected at most the {n} training "
                                 "samples")
-    if getattr(refinement, "monitor", None) is not None:
-        raise SolverConfigError(
-            f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
-            "inversion step; training feeds its controller a validation error (expected "
-            "prdp(), fixed(K) or converged(rtol))")
-    if refinement.tolerance_mode and gradient == "unrolled":
-        raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")
+    check_training_refinement(refinement, gradient)
     if not isinstance(optimizer, optax.GradientTransformation):
         raise SolverConfigError(f"optimizer={optimizer!r}: expected an optax "
                                 "GradientTransformation (optax.adam(...), optax.lbfgs(), "
