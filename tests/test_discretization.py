@@ -62,7 +62,8 @@ def _manufactured_variable_kappa():
     return kappa, u, f
 
 
-@pytest.mark.parametrize("cell", ["triangle", "quad"])
+# quads with the slow cases: the same assembly path as triangles, another element
+@pytest.mark.parametrize("cell", ["triangle", pytest.param("quad", marks=pytest.mark.slow)])
 def test_a_variable_kappa_at_element_order_keeps_p2_s_rates(cell):
     """P2/Q2 with kappa = 1 + x^2 y: assembled at the quadrature points (a function) or
     interpolated into the state's order ("P2"), L2 rate 3 and H1 rate 2; interpolated into

@@ -181,6 +181,7 @@ def test_matrix_free_through_an_unrolled_solve_matches_explicit():
     assert _rel(free, explicit) < 1e-9
 
 
+@pytest.mark.slow  # 5 s; test_forward_mode checks jvp against vjp through implicit solves
 def test_forward_mode_through_an_implicit_solve_equals_reverse_mode():
     # implicit solves are a custom_jvp (tangent solves), so forward-mode Jacobians and the
     # matrix-free SVD go through them; converged here, so every mode gives one Jacobian

@@ -341,6 +341,8 @@ def test_scene_rejects_bad_newton_options(key, value, expected):
         newton_scene(**{"name": "newton_cg", key: value})
 
 
+@pytest.mark.slow  # 5 s; the pin is checked in test_discretization and test_scene, Newton-CG's
+# convergence on the inclusion at 16 x 16 above
 def test_the_hippylib_tutorial_problem_at_16_pins_its_state_and_converges(load_example):
     """hIPPYlib's tutorial itself (flux on the whole boundary, the state pinned at the
     centre): the pin holds, Gauss-Newton-CG with Eisenstat-Walker forcing converges."""
