@@ -61,6 +61,7 @@ def test_source_recovery_table_rows(load_example):
     assert by_name["converged"].reached_step is not None
 
 
+@pytest.mark.slow  # 7 s; the inclusion's inversions are tested in test_inverse and test_newton
 def test_coefficient_recovery_errors_are_pinned(load_example):
     coefficient = load_example("coefficient_recovery")
     _, problem = coefficient.build(16)
@@ -85,6 +86,7 @@ def test_amg_rebuild_example_pins_iterations_and_rebuilds(load_example):
     assert its["amg every 10"] < its["amg once"] and its["amg factor 3"] < its["amg once"]
 
 
+@pytest.mark.slow  # 5 s; test_learned trains the same network through the solver
 def test_learned_inverse_example_trains_both_runs_from_one_start(load_example):
     results = load_example("learned_inverse").run(n=8, epochs=8)
     converged, prdp = results["converged"], results["prdp"]
@@ -96,6 +98,7 @@ def test_learned_inverse_example_trains_both_runs_from_one_start(load_example):
     assert prdp[-1].primal_iterations < 0.5 * converged[-1].primal_iterations
 
 
+@pytest.mark.slow  # 9 s; test_heat and test_heat_study train the hybrid
 def test_heat_hybrid_example_correction_nog_beats_prediction_wig_and_prdp_saves(load_example):
     """6x6 mesh, 12 training trajectories, 30 epochs: the pinned small case of the table."""
     results = load_example("heat_hybrid").run(n=6, epochs=30, hidden=32, n_train=12,
