@@ -28,7 +28,7 @@ from prdp_fem.inverse import (
     settled,
 )
 from prdp_fem.inverse.steps import step_failed
-from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve
+from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve, zero_counts
 
 
 def _coefficient_problem(n=10, kappa_space="P1", noise=0.0, alpha=1e-6, reg="h1",
@@ -413,41 +413,52 @@ def test_a_step_traces_its_objective_once(monkeypatch):
     assert np.array_equal(again.history.column("loss"), reference.history.column("loss"))
 
 
-def _compiled_step_host_calls(problem, optimizer) -> int:
-    """The host calls (the tally's, one per CG solve) in a compiled implicit-mode step."""
+def _compiled_text(fn, *args) -> str:
+    return jax.jit(fn, static_argnums=4 if len(args) > 4 else None).lower(*args).compile() \
+        .as_text()
+
+
+def _compiled_step(problem, optimizer) -> tuple[int, int]:
+    """``(host calls, while loops)`` in a compiled implicit-mode step (a host call is the
+    iteration tally's; every CG solve is a loop)."""
     from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     optimizer = optax.with_extra_args_support(optimizer)
     z = jnp.zeros(problem.n_parameters)
     step = inverse._make_step(optimizer, "implicit", False, "jacobi")
-    lowered = jax.jit(step, static_argnums=4).lower(
-        problem, IterationCounter(), z, optimizer.init(z), 0,
-        *inverse._device_settings((8, 8, 0.0)))
-    return lowered.compile().as_text().count("custom-call(")
+    text = _compiled_text(step, problem, IterationCounter(), z, optimizer.init(z), 0,
+                          *steps.device_settings((8, 8, 0.0)))
+    return text.count("custom-call("), text.count(" while(")
 
 
 @pytest.mark.slow  # the program's structure, not a number a user sees
-def test_an_l_bfgs_step_holds_its_objective_once(monkeypatch):
+def test_an_l_bfgs_step_holds_its_objective_once_and_no_host_call(monkeypatch):
     """A step whose stored value is stale (none yet, or PRDP refined K) gets the value and
     gradient at its start from the line search's own trial (``pf.lbfgs``'s search refreshes
     a non-finite value), so the compiled step holds the objective -- a CG solve and its
-    adjoint, each compiled anew where it appears -- once: as many host calls as one
-    ``value_and_grad``, where the evaluation before the update held it twice."""
+    adjoint, each compiled anew where it appears -- once, where the evaluation before the
+    update held it twice. Its evaluations return their iteration counts
+    (``Objective.value_grad_and_counts``): the step holds no host call, where optax's own
+    search evaluates the plain objective (host-counted) in both of its branches."""
     from prdp_fem.inverse import driver as inverse
     from prdp_fem.inverse import steps
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     solver = TruncatedCG(8, "jacobi", gradient="implicit", adjoint_iterations=8)
-    alone = jax.jit(lambda z, counter: inverse.Objective(problem, solver, counter)
-                    .value_and_grad(z)).lower(jnp.zeros(problem.n_parameters),
-                                              IterationCounter()).compile()
-    per_objective = alone.as_text().count("custom-call(")
-    assert per_objective == 2  # the primal and the adjoint solve
-    assert _compiled_step_host_calls(problem, pf.lbfgs()) == per_objective
-    # optax's own L-BFGS evaluates before the update and in both branches of its search
-    assert _compiled_step_host_calls(problem, optax.lbfgs()) == 3 * per_objective
+    counted = _compiled_text(inverse.Objective(problem, solver, None).value_grad_and_counts,
+                             jnp.zeros(problem.n_parameters))
+    loops_per_objective = counted.count(" while(")
+    assert counted.count("custom-call(") == 0 and loops_per_objective >= 2
+    host = _compiled_text(lambda z, counter: inverse.Objective(problem, solver, counter)
+                          .value_and_grad(z), jnp.zeros(problem.n_parameters),
+                          IterationCounter())
+    assert host.count("custom-call(") == 2  # the primal and the adjoint solve's tallies
+    host_calls, loops = _compiled_step(problem, pf.lbfgs())
+    assert host_calls == 0
+    assert _compiled_step(problem, optax.lbfgs())[0] == 2 * 2  # both branches, host-counted
     monkeypatch.setattr(steps, "_refreshes", lambda opt_state: False)
-    assert _compiled_step_host_calls(problem, pf.lbfgs()) == 2 * per_objective
+    assert _compiled_step(problem, pf.lbfgs()) == (0, loops + loops_per_objective)
 
 
 def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(monkeypatch):
@@ -469,6 +480,35 @@ def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(mon
                  "failed_steps"):
         assert np.array_equal(refreshed.column(name), evaluated_first.column(name)), name
     inverse._step_program.cache_clear()  # no step with the patched test kept for later tests
+
+
+@pytest.mark.parametrize("gradient, refinement", [
+    ("implicit", prdp(K0=3, dK=3)),
+    # 8 + 4 s; the solves' counts in these modes: test_tally.py's reverse-tally cases
+    pytest.param("unrolled", fixed(6), marks=pytest.mark.slow),
+    pytest.param("implicit", converged(1e-8), marks=pytest.mark.slow)])
+def test_a_step_returns_the_counts_the_host_counter_would_hear(monkeypatch, gradient,
+                                                               refinement):
+    """``pf.lbfgs``'s evaluations return their iteration counts as outputs
+    (``Objective.value_grad_and_counts``); forced through the host counter instead, a run has
+    the same losses and the same counts at every step."""
+    from prdp_fem.inverse import driver as inverse
+
+    _, problem = _coefficient_problem(n=6, alpha=1e-5)
+    returned = invert(problem, refinement=refinement, gradient=gradient, steps=12).history
+
+    def host_counted(objective):
+        value_and_grad = objective.value_and_grad  # counts into the objective's counter
+        return lambda z: (*value_and_grad(z), zero_counts())
+
+    monkeypatch.setattr(inverse.Objective, "value_grad_and_counts", property(host_counted))
+    inverse._step_program.cache_clear()
+    heard = invert(problem, refinement=refinement, gradient=gradient, steps=12).history
+    inverse._step_program.cache_clear()  # no step with the patched objective kept
+    np.testing.assert_allclose(returned.column("loss"), heard.column("loss"), rtol=1e-12)
+    for name in ("evaluations", "primal_iterations", "adjoint_iterations_total"):
+        assert np.array_equal(returned.column(name), heard.column(name)), name
+    assert returned[-1].adjoint_iterations_total > 0
 
 
 def test_a_kept_step_program_does_not_keep_a_finished_run_s_problem_alive():

@@ -6,7 +6,16 @@ import numpy as np
 import pytest
 
 import prdp_fem as pf
-from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve
+from prdp_fem.linalg import (
+    ConvergedCG,
+    IterationCounter,
+    ReverseTally,
+    TruncatedCG,
+    TruncatedJacobi,
+    read_counts,
+    solve,
+    zero_counts,
+)
 from prdp_fem.linalg import _tally as tally
 
 
@@ -110,3 +119,82 @@ def test_a_vmap_over_a_stack_of_counters_counts_into_each(system):
     run = jax.jit(jax.vmap(lambda counter, b: solve(A, b, TruncatedCG(3), counter=counter).x))
     jax.block_until_ready(run(stacked, B[:2]))
     assert [_counted(c) for c in counters] == [((3, 0), 1, 0)] * 2
+
+
+# --- counts as outputs: a reverse tally ---------------------------------------------------
+
+_SOLVERS = [
+    TruncatedCG(7, "jacobi", gradient="implicit", adjoint_iterations=5),
+    TruncatedCG(7, "jacobi", gradient="unrolled"),
+    ConvergedCG(rtol=1e-10, preconditioner="jacobi"),
+    TruncatedJacobi(6, gradient="implicit", adjoint_iterations=4),
+    TruncatedJacobi(6, gradient="unrolled"),
+]
+
+
+def _objective(system, solver):
+    """``J(theta, counter)``: a solve whose operator and right-hand side depend on theta."""
+    A, b, _ = system
+
+    def J(theta, counter):
+        sol = solve(A.with_values(A.values * jnp.exp(theta)), b * (1 + theta), solver,
+                    counter=counter)
+        return jnp.sum(sol.x ** 2)
+
+    return J
+
+
+@pytest.mark.parametrize("solver", _SOLVERS, ids=lambda s: f"{type(s).__name__}-"
+                         f"{getattr(s, 'gradient', 'converged')}")
+def test_a_reverse_tally_returns_what_the_host_counter_hears(system, solver):
+    """The same value, gradient and counts (primal, adjoint, solves) as outputs, no host
+    call in the program."""
+    J = _objective(system, solver)
+    host = IterationCounter()
+    value, grad = jax.jit(jax.value_and_grad(lambda t: J(t, host)))(0.3)
+    counted = jax.jit(jax.value_and_grad(lambda t, seed: J(t, ReverseTally(seed)),
+                                         argnums=(0, 1)))
+    value_r, (grad_r, counts) = counted(0.3, zero_counts())
+    assert float(value_r) == float(value) and float(grad_r) == float(grad)
+    (primal, adjoint), primal_solves, adjoint_solves = _counted(host)
+    assert read_counts(counts) == dict(primal=primal, adjoint=adjoint,
+                                       primal_solves=primal_solves,
+                                       adjoint_solves=adjoint_solves)
+    assert primal > 0 and adjoint > 0 and primal_solves == adjoint_solves == 1
+    program = counted.lower(0.3, zero_counts()).compile().as_text()
+    assert "custom-call(" not in program  # no host callback: JAX's fast dispatch
+
+
+def test_a_reverse_tally_counts_every_member_under_vmap(system):
+    J = _objective(system, _SOLVERS[0])
+    host = IterationCounter()
+    thetas = jnp.asarray([0.1, 0.2, 0.3])
+    jax.jit(jax.vmap(jax.grad(lambda t: J(t, host))))(thetas)
+    _, (_, counts) = jax.jit(jax.vmap(
+        jax.value_and_grad(lambda t, seed: J(t, ReverseTally(seed)), argnums=(0, 1)),
+        (0, None)))(thetas, zero_counts())
+    (primal, adjoint), primal_solves, adjoint_solves = _counted(host)
+    assert read_counts(counts.sum(axis=0)) == dict(
+        primal=primal, adjoint=adjoint, primal_solves=primal_solves,
+        adjoint_solves=adjoint_solves)
+    assert primal_solves == 3
+
+
+@pytest.mark.parametrize("solver", [
+    _SOLVERS[0],
+    # 5 s (a second-order scan); the primal tap's identity is the same in every mode
+    pytest.param(_SOLVERS[1], marks=pytest.mark.slow),
+    _SOLVERS[2]], ids=["implicit", "unrolled", "converged"])
+def test_a_reverse_tally_whose_seed_is_held_constant_differentiates_as_none(system, solver):
+    """Differentiated in theta alone (the seed a constant), first and second order (forward
+    over reverse) give the derivatives without a tally."""
+    J = _objective(system, solver)
+
+    @jax.jit
+    def derivatives(theta, counter):
+        first = jax.grad(lambda t: J(t, counter))
+        return first(theta), jax.jvp(first, (theta,), (1.0,))[1]
+
+    tallied = derivatives(0.3, ReverseTally(zero_counts()))
+    assert [float(v) for v in tallied] == [float(v) for v in derivatives(0.3, None)]
+    assert float(tallied[1]) != 0.0

@@ -48,7 +48,14 @@ from ..fem.regularizers import Regularizer, regularizer
 from ..fem.residuals import ResidualFactors, residual_factors
 from ..fem.system import LinearSystem
 from ..linalg.amg import RebuiltAMG
-from ..linalg.cg import ConvergedCG, IterationCounter, Solution, TruncatedCG
+from ..linalg.cg import (
+    ConvergedCG,
+    IterationCounter,
+    ReverseTally,
+    Solution,
+    TruncatedCG,
+    zero_counts,
+)
 from ..linalg.operator import SparseMatrix, matvec
 from ..optim.linesearch import lbfgs
 from .history import History, StepRecord
@@ -356,6 +363,26 @@ class Objective:
         0.33-0.40 s on ``plate_hole`` with three copies, 0.20-0.21 s with one)."""
         return jax.jit(jax.value_and_grad(self))
 
+    @cached_property
+    def value_grad_and_counts(self) -> Callable[[jax.Array], tuple[jax.Array, ...]]:
+        """``params -> (J, grad J, counts)``: the value, the gradient and the iterations its
+        solves ran (``[primal, adjoint, primal_solves, adjoint_solves]``) as ordinary outputs
+        -- the gradient with respect to a :class:`~prdp_fem.linalg.ReverseTally`'s seed, no
+        host call. Line searches and :func:`~prdp_fem.inverse.steps.value_grad_and_update`
+        evaluate through it, so that a step whose every evaluation is one of these holds no
+        host callback: JAX then dispatches it on its fast path, and its persistent cache can
+        keep it."""
+        def J(params, seed):
+            return self.problem.loss(params, self.solver, counter=ReverseTally(seed))[0]
+
+        value_and_grads = jax.value_and_grad(J, argnums=(0, 1))
+
+        def evaluate(params):
+            value, (grad, counts) = value_and_grads(params, zero_counts())
+            return value, grad, counts
+
+        return jax.jit(evaluate)
+
     def gauss_newton_operator(self, params: jax.Array) -> Callable[[jax.Array], jax.Array]:
         return self.problem.gauss_newton_operator(params, self.solver, counter=self.counter)
 
@@ -382,13 +409,13 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
 
         value_fn = Objective(problem, solver, counter)
 
-        value, grad, updates, opt_state = value_grad_and_update(optimizer, opt_state, z,
-                                                                 value_fn)
+        value, grad, updates, opt_state, counts = value_grad_and_update(optimizer, opt_state, z,
+                                                                         value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
         return z_next, opt_state, _StepScalars(
             value, misfit, problem.parameter_error(z_next), optax.tree.norm(grad),
-            step_failed(opt_state), jnp.all(jnp.isfinite(z_next))).packed()
+            step_failed(opt_state), jnp.all(jnp.isfinite(z_next)), *counts).packed()
 
     return step
 
@@ -404,6 +431,12 @@ class _StepScalars(NamedTuple):
     grad_norm: float
     failed: float       # 1.0: the optimiser reports the step as failed
     finite_params: float  # 1.0: every new parameter is finite
+    # the iterations of the evaluations that returned them (Objective.value_grad_and_counts);
+    # the rest (an optimiser's own products and searches) are in the host counter
+    primal: float
+    adjoint: float
+    primal_solves: float
+    adjoint_solves: float
 
     def packed(self) -> jax.Array:
         return jnp.stack([jnp.asarray(v, jnp.float64) for v in self])
@@ -412,6 +445,19 @@ class _StepScalars(NamedTuple):
     def read(cls, packed: jax.Array) -> _StepScalars:
         """The host values (waits for the step: the vector is among its outputs)."""
         return cls(*np.asarray(packed).tolist())
+
+
+class _ReturnedCounts(NamedTuple):
+    """The iterations the steps returned as outputs, summed over the run (host integers)."""
+
+    primal: int = 0
+    adjoint: int = 0
+    primal_solves: int = 0
+
+    def add(self, step: _StepScalars) -> _ReturnedCounts:
+        return _ReturnedCounts(self.primal + round(step.primal),
+                               self.adjoint + round(step.adjoint),
+                               self.primal_solves + round(step.primal_solves))
 
 
 @lru_cache(maxsize=1)
@@ -524,7 +570,10 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
     control = refinement.init()  # host arrays: an update is NumPy work, no dispatch
+    # the host counter hears the solves of evaluations that do not return their counts
+    # (an optimiser's own products and searches, the validation); `returned` sums the rest
     counter, validation_counter = IterationCounter(), IterationCounter()
+    returned = _ReturnedCounts()
     rebuild_state = None
     if rebuilt is not None:  # built before the run, as a hierarchy passed in would be
         preconditioner = rebuilt.build(_operator(problem, z))
@@ -559,6 +608,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                                          step_scan_length(gradient, settings[0]), *arguments,
                                          *cycle_argument(preconditioner))
         result = _StepScalars.read(packed)
+        returned = returned.add(result)
         monitored = result.grad_norm if monitor == "gradient" else result.value
         if validate is not None and k % monitor.every == 0:
             monitored = float(validate(problem, validation_counter, z_next,
@@ -588,14 +638,15 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         if settings != previous_K and uses_stored_value(opt_state):
             # the stored value/gradient belong to the old solver: recompute them next step
             opt_state = with_stale_value(opt_state)
-        evaluations = counter.primal_solves
+        evaluations = counter.primal_solves + returned.primal_solves
         state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,
                                    *previous_K, preconditioner) \
             if reference_every and k % reference_every == 0 else math.nan
         record = StepRecord(
             step=k, iterations=previous_K[0], adjoint_iterations=previous_K[1],
             rtol=previous_K[2], refinements=int(control.refinements),
-            primal_iterations=counter.primal, adjoint_iterations_total=counter.adjoint,
+            primal_iterations=counter.primal + returned.primal,
+            adjoint_iterations_total=counter.adjoint + returned.adjoint,
             validation_iterations=validation_counter.primal, evaluations=evaluations,
             time=run_time, compile_time=compile_time - compiled_before_run,
             loss=result.value, misfit=result.misfit, parameter_error=result.parameter_error,

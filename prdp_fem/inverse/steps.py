@@ -19,7 +19,7 @@ import optax.tree_utils as otu
 from ..errors import SolverConfigError
 from ..linalg.amg import AMGCycle
 from ..linalg.cg import ConvergedCG, TruncatedCG, unrolled_length
-from ..optim.linesearch import ZoomSearchState
+from ..optim.linesearch import ZoomSearchState, value_grad_and_counts
 
 __all__ = [
     "check_training_refinement",
@@ -59,13 +59,22 @@ def uses_stored_value(opt_state) -> bool:
     return otu.tree_get(opt_state, "value") is not None
 
 
-def _stored_or_evaluated(value_fn, z, opt_state):
-    """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored,
-    unless that value is not finite (none yet, or :func:`invert` marked it stale), through
-    ``value_fn.value_and_grad``."""
+def _stored_or_evaluated(evaluate, z, opt_state):
+    """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored
+    (no counts), unless that value is not finite (none yet, or :func:`invert` marked it
+    stale), through ``evaluate`` (:func:`~prdp_fem.optim.linesearch.value_grad_and_counts`)."""
     value, grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
-    return jax.lax.cond(jnp.isfinite(value), lambda: (value, grad),
-                        lambda: value_fn.value_and_grad(z))
+    counts = jax.eval_shape(evaluate, z)[2]
+    return jax.lax.cond(jnp.isfinite(value),
+                        lambda: (value, grad, jnp.zeros(counts.shape, counts.dtype)),
+                        lambda: evaluate(z))
+
+
+def _search_counts(opt_state, like: jax.Array) -> jax.Array:
+    """The counts a :class:`~prdp_fem.optim.linesearch.ZoomSearchState` in ``opt_state`` holds
+    of its last update's evaluations; zeros without one."""
+    counts = otu.tree_get(opt_state, "counts")
+    return jnp.zeros_like(like) if counts is None else counts
 
 
 def _refreshes(opt_state) -> bool:
@@ -77,9 +86,15 @@ def _refreshes(opt_state) -> bool:
 
 
 def value_grad_and_update(optimizer, opt_state, z, value_fn):
-    """``(J(z), grad J(z), updates, new_state)``: one optimiser update at ``z``, from the value
-    and gradient its line search stored where it stores them (evaluated first where they are
-    stale), else from a fresh evaluation.
+    """``(J(z), grad J(z), updates, new_state, counts)``: one optimiser update at ``z``, from
+    the value and gradient its line search stored where it stores them (evaluated first where
+    they are stale), else from a fresh evaluation.
+
+    ``counts``: the iterations the update's evaluations ran where ``value_fn`` returns them
+    (``value_grad_and_counts``, :func:`~prdp_fem.optim.linesearch.value_grad_and_counts`;
+    ``[primal, adjoint, primal_solves, adjoint_solves]``), zeros where it counts them
+    otherwise. Evaluations inside other optimisers' own searches (optax's) and their
+    products (Newton-CG's) count only in ``value_fn``'s own counter.
 
     With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
     the stored value is stale: the first trip hands the search the stale value, and the search
@@ -90,15 +105,16 @@ def value_grad_and_update(optimizer, opt_state, z, value_fn):
     optimisers with a stored value: :func:`optax.value_and_grad_from_state`'s evaluation,
     then the update.
     """
+    evaluate = value_grad_and_counts(value_fn)
     if not uses_stored_value(opt_state):
-        value, grad = value_fn.value_and_grad(z)
+        value, grad, counts = evaluate(z)
     elif not _refreshes(opt_state):
-        value, grad = _stored_or_evaluated(value_fn, z, opt_state)
+        value, grad, counts = _stored_or_evaluated(evaluate, z, opt_state)
     else:
         return _refreshed_update(optimizer, opt_state, z, value_fn)
     updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
                                           value_fn=value_fn)
-    return value, grad, updates, new_state
+    return value, grad, updates, new_state, counts + _search_counts(new_state, counts)
 
 
 def _refreshed_update(optimizer, opt_state, z, value_fn):
@@ -107,19 +123,21 @@ def _refreshed_update(optimizer, opt_state, z, value_fn):
     stale = ~jnp.isfinite(stored_value)
 
     def trip(carry):
-        count, value, grad, _, _ = carry
+        count, value, grad, _, _, counts = carry
         updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
                                               value_fn=value_fn)
         refreshed = ~jnp.isfinite(value)  # the search evaluated at z: its state holds them
         value = jnp.where(refreshed, otu.tree_get(new_state, "value"), value)
         grad = optax.tree.where(refreshed, otu.tree_get(new_state, "grad"), grad)
-        return count + 1, value, grad, updates, new_state
+        # each trip's search counted its own evaluations (the refresh, then the search)
+        return count + 1, value, grad, updates, new_state, \
+            counts + otu.tree_get(new_state, "counts")
 
-    _, value, grad, updates, new_state = jax.lax.while_loop(
+    _, value, grad, updates, new_state, counts = jax.lax.while_loop(
         lambda carry: (carry[0] == 0) | ((carry[0] == 1) & stale), trip,
         (jnp.zeros((), jnp.int32), stored_value, stored_grad, optax.tree.zeros_like(z),
-         opt_state))
-    return value, grad, updates, new_state
+         opt_state, jnp.zeros_like(otu.tree_get(opt_state, "counts"))))
+    return value, grad, updates, new_state, counts
 
 
 def step_failed(opt_state) -> jax.Array:

@@ -14,7 +14,19 @@ from .amg import (
     amg_preconditioner,
     rebuild_policy,
 )
-from .cg import ConvergedCG, IterationCounter, Solution, Status, TruncatedCG, solve, unrolled_length
+from .cg import (
+    COUNTS,
+    ConvergedCG,
+    IterationCounter,
+    ReverseTally,
+    Solution,
+    Status,
+    TruncatedCG,
+    read_counts,
+    solve,
+    unrolled_length,
+    zero_counts,
+)
 from .host_cg import HostSolution, dot, jacobi_pcg, power_of_two_scale
 from .operator import (
     KERNELS,
@@ -38,6 +50,7 @@ from .precond import IdentityPreconditioner, JacobiPreconditioner, jacobi, make_
 from .stationary import TruncatedJacobi, jacobi_solve
 
 __all__ = [
+    "COUNTS",
     "DEFAULT_IMPLEMENTATION",
     "KERNELS",
     "AMGCycle",
@@ -56,6 +69,7 @@ __all__ = [
     "RebuildPolicy",
     "RebuildState",
     "RebuiltAMG",
+    "ReverseTally",
     "Solution",
     "SparseMatrix",
     "Status",
@@ -76,9 +90,11 @@ __all__ = [
     "power_of_two_scale",
     "prepare",
     "prepare_on_host",
+    "read_counts",
     "rebuild_policy",
     "rmatvec",
     "solve",
     "symmetric_matvec",
     "unrolled_length",
+    "zero_counts",
 ]

@@ -19,6 +19,22 @@ whose outputs do not depend on it.
 >>> _ = jax.block_until_ready(run(jnp.int32(7))); jax.effects_barrier()
 >>> counter.snapshot(), counter.primal_solves
 ((7, 0), 1)
+
+A host call has a price: JAX dispatches a program that holds one through its Python path,
+argument by argument, and the host calls run inside the program. Where every evaluation is
+differentiated in reverse mode (a line search's value-and-gradient trials), the counts need
+no host at all: a :class:`ReverseTally` makes them the gradient with respect to a dummy
+input, ``seed``. Every solve leaves an identity on its result whose transpose adds the solve's
+count to the seed's cotangent; an implicit-mode adjoint solve, which runs only in the
+backward pass, adds its own count as the seed's part of its transpose solve's result.
+
+>>> import jax.numpy as jnp
+>>> def J(z, seed):
+...     x = tap(ReverseTally(seed), "primal", jnp.int32(7), 2.0 * z)
+...     return jnp.sum(x ** 2)
+>>> value, (grad, counts) = jax.value_and_grad(J, argnums=(0, 1))(jnp.ones(2), zero_counts())
+>>> read_counts(counts)
+{'primal': 7, 'adjoint': 0, 'primal_solves': 1, 'adjoint_solves': 0}
 """
 
 from __future__ import annotations
@@ -31,9 +47,11 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 from jax.experimental import io_callback
 
-__all__ = ["IterationCounter", "tap"]
+__all__ = ["COUNTS", "IterationCounter", "ReverseTally", "counted_linear_solve", "live_tangent",
+           "read_counts", "tap", "zero_counts"]
 
 
 @jax.tree_util.register_pytree_node_class
@@ -117,21 +135,147 @@ def _tally(kind, slot, iterations, solves) -> tuple:
     return ()
 
 
-def tap(counter: IterationCounter | _CounterRef | None, kind: str, iterations: jax.Array,
-        anchor: jax.Array) -> None:
-    """Add ``iterations`` (one solve's) to ``counter``'s ``kind`` (``"primal"`` or
-    ``"adjoint"``) on the host; nothing when ``counter`` is ``None``.
+class ReverseTally(NamedTuple):
+    """Counts that leave an evaluation differentiated in reverse mode as the gradient with
+    respect to ``seed`` (a float vector of :data:`COUNTS`, zero: :func:`zero_counts`).
 
-    ``anchor`` (a vector of the solve, its gradient stopped) carries the batching: under
-    ``vmap`` a batched solve is a batch of solves even when the iteration count is not (a
-    fixed ``K``). The batching rule (:func:`jax.custom_batching.custom_vmap`) adds the sum
-    over the batch in *one* host call, so a batch of ``B`` solves costs one call, not ``B``.
+    Pass ``ReverseTally(seed)`` as a solve's ``counter`` inside a function of ``seed`` and take
+    the gradient with respect to it too (``jax.value_and_grad(f, argnums=(0, 1))``): the
+    seed's gradient is ``[primal, adjoint, primal_solves, adjoint_solves]`` of that
+    evaluation, read by :func:`read_counts`. No host call, so the program keeps JAX's fast
+    dispatch and its persistent compilation cache.
+
+    What it counts: every solve whose result reaches the differentiated value, and every
+    adjoint solve of the backward pass, exactly as an :class:`IterationCounter` would in the
+    same evaluation. What it does not: an evaluation run without a reverse pass (a value
+    alone, a forward-mode product) counts nothing -- use an :class:`IterationCounter` there.
+    First order only: a gradient that is differentiated again with the seed differentiated
+    inside (forward over reverse) is refused by ``jax.lax.custom_linear_solve``; with the seed
+    held constant it differentiates as the plain gradient (and counts nothing).
+    """
+
+    seed: jax.Array
+
+
+#: The order of the counts in a :class:`ReverseTally`'s seed.
+COUNTS = ("primal", "adjoint", "primal_solves", "adjoint_solves")
+
+
+def zero_counts(dtype=jnp.float64) -> jax.Array:
+    """A :class:`ReverseTally`'s seed: zeros, one per entry of :data:`COUNTS`."""
+    return jnp.zeros(len(COUNTS), dtype)
+
+
+def read_counts(counts) -> dict[str, int]:
+    """A seed's gradient (or a sum of them) as ``{name: count}`` (exact below ``2**53``)."""
+    return dict(zip(COUNTS, (round(value) for value in np.asarray(counts).tolist()),
+                    strict=True))
+
+
+def _count_vector(kind: str, iterations, dtype) -> jax.Array:
+    """The counts one ``kind`` solve of ``iterations`` adds, in :data:`COUNTS` order."""
+    index = _KINDS.index(kind)
+    iterations = jax.lax.stop_gradient(jnp.asarray(iterations)).astype(dtype)
+    return zero_counts(dtype).at[index].set(iterations).at[index + 2].set(1)
+
+
+def tap(counter: IterationCounter | _CounterRef | ReverseTally | None, kind: str,
+        iterations: jax.Array, anchor: jax.Array) -> jax.Array:
+    """Count one solve of ``iterations`` as ``kind`` (``"primal"`` or ``"adjoint"``) in
+    ``counter``; returns ``anchor``, the solve's result, to be used in its place.
+
+    An :class:`IterationCounter` adds on the host now, and ``anchor`` comes back unchanged;
+    a :class:`ReverseTally` adds when the reverse pass transposes the returned identity on
+    ``anchor``; ``None`` counts nothing.
+
+    For a host counter ``anchor`` carries the batching: under ``vmap`` a batched solve is a
+    batch of solves even when the iteration count is not (a fixed ``K``). The batching rule
+    (:func:`jax.custom_batching.custom_vmap`) adds the sum over the batch in *one* host call,
+    so a batch of ``B`` solves costs one call, not ``B``.
     """
     if counter is None:
-        return
-    anchor = jax.lax.stop_gradient(jnp.sum(jnp.ravel(anchor)[:1]))
+        return anchor
+    if isinstance(counter, ReverseTally):
+        return _count_on_reverse(anchor, counter.seed,
+                                 _count_vector(kind, iterations, counter.seed.dtype))
+    scalar = jax.lax.stop_gradient(jnp.sum(jnp.ravel(anchor)[:1]))
     _batched_tap(jnp.int32(_KINDS.index(kind)), jnp.asarray(counter.slot, jnp.int32),
-                 jax.lax.stop_gradient(iterations), jnp.ones((), jnp.int32), anchor)
+                 jax.lax.stop_gradient(iterations), jnp.ones((), jnp.int32), scalar)
+    return anchor
+
+
+def _is_zero(tangent) -> bool:
+    return isinstance(tangent, SymbolicZero)
+
+
+@jax.custom_jvp
+def _count_on_reverse(x, seed, counts):
+    """``x``; its transpose adds ``counts`` to the cotangent of ``seed``."""
+    del seed, counts
+    return x
+
+
+def _count_on_reverse_jvp(primals, tangents):
+    x, seed, counts = primals
+    x_dot, seed_dot, _ = tangents
+    out = _count_on_reverse(x, seed, counts)
+    if _is_zero(x_dot):  # nothing of x is differentiated: no reverse pass reaches it
+        return out, jnp.zeros_like(x)
+    if _is_zero(seed_dot):  # the seed is not differentiated: nowhere to count
+        return out, x_dot
+    counts = jax.lax.stop_gradient(counts)
+    # The tangent is the identity, written as a linear solve over (x, seed) so that its
+    # transpose can add to the seed's cotangent: forward, nothing is counted.
+    tangent, _ = jax.lax.custom_linear_solve(
+        lambda v: v, (x_dot, seed_dot), lambda _, right: right,
+        lambda _, right: (right[0], counts))
+    return out, tangent
+
+
+_count_on_reverse.defjvp(_count_on_reverse_jvp, symbolic_zeros=True)
+
+
+def counted_linear_solve(matvec, rhs, solve, transpose_solve, counter, seed_dot=None, *,
+                         symmetric: bool = False):
+    """``jax.lax.custom_linear_solve(matvec, rhs, ...)`` whose two solves count as adjoint
+    solves: ``solve(right)`` and ``transpose_solve(right)`` return ``(x, iterations)``.
+
+    A host counter (``counter``, or ``None``) is tapped by both. ``seed_dot`` -- the tangent of a
+    :class:`ReverseTally`'s seed, where the enclosing derivative rule has one -- makes the
+    transpose solve (the backward pass's adjoint solve) add its count to the seed's
+    cotangent: the system is solved over ``(x, seed)``, the seed's part passed through
+    forward and replaced by the count in the transpose. A forward (tangent) solve counts
+    nothing then, as a reverse tally counts only what a reverse pass runs. ``symmetric``
+    (``transpose_solve`` is ``solve``) is passed on where no seed is.
+    """
+    if seed_dot is None:
+        def counted(fn):
+            def run(_, right):
+                x, iterations = fn(right)
+                return tap(counter, "adjoint", iterations, x)
+            return run
+
+        if symmetric:
+            return jax.lax.custom_linear_solve(matvec, rhs, counted(solve), symmetric=True)
+        return jax.lax.custom_linear_solve(matvec, rhs, counted(solve), counted(transpose_solve))
+
+    def forward(_, right):
+        return solve(right[0])[0], right[1]
+
+    def transpose(_, right):
+        x, iterations = transpose_solve(right[0])
+        return x, _count_vector("adjoint", iterations, right[1].dtype)
+
+    x, _ = jax.lax.custom_linear_solve(lambda v: (matvec(v[0]), v[1]), (rhs, seed_dot),
+                                       forward, transpose)
+    return x
+
+
+def live_tangent(tangent):
+    """``tangent``, or ``None`` where it is absent or symbolically zero (a derivative rule
+    declared with ``symbolic_zeros=True`` is handed :class:`jax.custom_derivatives.SymbolicZero`
+    for an input that is not differentiated)."""
+    return None if tangent is None or _is_zero(tangent) else tangent
 
 
 @jax.custom_batching.custom_vmap

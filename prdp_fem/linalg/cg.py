@@ -131,12 +131,21 @@ from ..errors import (
     SolverConfigError,
 )
 from ._products import symmetric_product
-from ._tally import IterationCounter, tap
+from ._tally import (
+    COUNTS,
+    IterationCounter,
+    ReverseTally,
+    counted_linear_solve,
+    live_tangent,
+    read_counts,
+    tap,
+    zero_counts,
+)
 from .operator import SparseMatrix, prepare
 from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
 
-__all__ = ["ConvergedCG", "IterationCounter", "Solution", "Status", "TruncatedCG", "solve",
-           "unrolled_length"]
+__all__ = ["COUNTS", "ConvergedCG", "IterationCounter", "ReverseTally", "Solution", "Status",
+           "TruncatedCG", "read_counts", "solve", "unrolled_length", "zero_counts"]
 
 GRADIENT_MODES = ("unrolled", "implicit")
 
@@ -491,7 +500,9 @@ def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:
     if isinstance(solver, TruncatedCG) and solver.gradient == "unrolled":
         sol = _unrolled(matrix, precond, b, start, solver.iterations, solver.checkpoint,
                         solver.scan_length)
-        if counter is not None:
+        if isinstance(counter, ReverseTally):  # counts when the reverse pass runs it
+            sol = sol._replace(x=tap(counter, "adjoint", sol.iterations, sol.x))
+        elif counter is not None:
             sol = sol._replace(x=adjoint_tap(sol.x, sol.iterations, counter))
     elif isinstance(solver, TruncatedCG):
         k_adj = solver.iterations if solver.adjoint_iterations is None \
@@ -505,8 +516,7 @@ def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:
                               solver.rtol, solver.atol, solver.history_size, True, counter)
     inputs = (matrix.values, b) if x0 is None else (matrix.values, b, x0)
     sol = sol._replace(status=_final_status(sol, incompatible, _all_finite(*inputs)))
-    tap(counter, "primal", sol.iterations, sol.x)
-    return sol
+    return sol._replace(x=tap(counter, "primal", sol.iterations, sol.x))
 
 
 # --------------------------------------------------------------------------------------
@@ -1228,9 +1238,13 @@ def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond, rtol
     precond = jax.tree_util.tree_map(jax.lax.stop_gradient, precond)
     tolerances = jnp.asarray([rtol, atol], dtype=b.dtype)
     pattern, form = _pattern_and_form(matrix)
+    # a reverse tally's seed is an input to differentiate (its tangent carries the adjoint
+    # count back); a host counter is not
+    seed = counter.seed if isinstance(counter, ReverseTally) else None
+    host = None if isinstance(counter, ReverseTally) else counter
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
                          jnp.asarray(adjoint_iterations, jnp.int32), pattern, precond,
-                         tolerances, form, history_size, track_norm, counter)
+                         tolerances, seed, form, history_size, track_norm, host)
     diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
     return Solution(sol.x, *diagnostics)
 
@@ -1246,16 +1260,15 @@ def _pattern_matrix(values, pattern, form) -> SparseMatrix:
     return SparseMatrix(rows, cols, values, shape, layout, kernel)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(8, 9, 10, 11))
+@partial(jax.custom_jvp, nondiff_argnums=(9, 10, 11, 12))
 def _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
-                   form, history_size, track_norm, counter):
+                   seed, form, history_size, track_norm, counter):
     """The truncated solve; derivatives by :func:`_implicit_jvp` (any order, both modes)."""
     krylov = _krylov(_pattern_matrix(values, pattern, form), precond)
     return _while_solve(krylov, b, x0, iterations, tolerances, history_size,
                         track_norm=track_norm)
 
 
-@_implicit_core.defjvp
 def _implicit_jvp(form, history_size, track_norm, counter, primals, tangents):
     """``dx = A^{-1} (db - dA x)`` by ``lax.custom_linear_solve`` with ``K_adj`` iterations.
 
@@ -1268,48 +1281,63 @@ def _implicit_jvp(form, history_size, track_norm, counter, primals, tangents):
     differentiate the tangent and adjoint solves in turn. ``x0`` gets no derivative: at
     convergence ``x`` does not depend on it. The primal is this function called again, so a
     derivative of a derivative (``jax.jvp(jax.grad(f))``) sees the tangent of ``x`` too.
+
+    ``seed`` is a :class:`~prdp_fem.linalg._tally.ReverseTally`'s (or ``None``): where it is
+    differentiated, the adjoint solve adds its count to the seed's cotangent.
     """
-    values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances = primals
-    values_dot, b_dot = tangents[0], tangents[1]
+    values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances, seed = primals
+    values_dot, b_dot = live_tangent(tangents[0]), live_tangent(tangents[1])
     sol = _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond,
-                         tolerances, form, history_size, track_norm, counter)
+                         tolerances, seed, form, history_size, track_norm, counter)
+    zeros = tuple(_zero_tangent(leaf) for leaf in sol[1:])
+    if values_dot is None and b_dot is None:  # only the seed (or x0) is differentiated
+        return sol, Solution(jnp.zeros_like(sol.x), *zeros)
     x_dot = _implicit_tangent(values, values_dot, b_dot, sol.x, adjoint_iterations, pattern,
-                              precond, tolerances, form, track_norm, counter)
-    return sol, Solution(x_dot, *(_zero_tangent(leaf) for leaf in sol[1:]))
+                              precond, tolerances, form, track_norm, counter,
+                              live_tangent(tangents[8]))
+    return sol, Solution(x_dot, *zeros)
+
+
+_implicit_core.defjvp(_implicit_jvp, symbolic_zeros=True)
 
 
 def _implicit_tangent(values, values_dot, b_dot, x, iterations, pattern, precond, tolerances,
-                      form, track_norm, counter) -> jax.Array:
-    """``A^+ (db - dA x)``, the tangent of ``A x = b``, by :func:`_linear_solve`."""
+                      form, track_norm, counter, seed_dot=None) -> jax.Array:
+    """``A^+ (db - dA x)``, the tangent of ``A x = b``, by :func:`_linear_solve` (``None``:
+    a zero ``values_dot`` or ``b_dot``, not both)."""
     rows, cols, _ = pattern
-    # -dA x: the tangent of the product with x held fixed (values enter linearly)
-    minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0],
-                                      indices_are_sorted=True)
-    return _linear_solve(values, b_dot + minus_dA_x, iterations, pattern, precond, tolerances,
-                         form, track_norm, counter)
+    rhs = b_dot
+    if values_dot is not None:
+        # -dA x: the tangent of the product with x held fixed (values enter linearly)
+        minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0],
+                                          indices_are_sorted=True)
+        rhs = minus_dA_x if rhs is None else rhs + minus_dA_x
+    return _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form,
+                         track_norm, counter, seed_dot)
 
 
 def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, track_norm,
-                  counter) -> jax.Array:
+                  counter, seed_dot=None) -> jax.Array:
     """``A^{-1} rhs`` by ``iterations`` PCG sweeps, with exact linear-solve derivatives.
 
     ``lax.custom_linear_solve`` with ``symmetric=True``: the transpose solve is the same sweep,
     every sweep taps ``counter`` as an adjoint solve (tangent and adjoint solves alike), and
     ``A``'s dependence on ``values`` is differentiated through its product, so this map can be
-    differentiated again.
+    differentiated again. With ``seed_dot`` (a reverse tally's seed tangent) the adjoint solve
+    counts into the seed instead (:func:`~prdp_fem.linalg._tally.counted_linear_solve`).
     """
     matrix = _pattern_matrix(values, pattern, form)
     # the solver is a fixed linear map: its arrays get no derivative (custom_linear_solve
     # ignores them anyway; stopping them keeps the solve's inputs out of the tangent trace)
     krylov = _krylov(jax.lax.stop_gradient(matrix), precond)
 
-    def sweep(_, right):
+    def sweep(right):
         sol = _while_solve(krylov, right, None, iterations, tolerances, 0,
                            track_norm=track_norm)
-        tap(counter, "adjoint", sol.iterations, sol.x)
-        return sol.x
+        return sol.x, sol.iterations
 
-    return jax.lax.custom_linear_solve(prepare(matrix), rhs, sweep, symmetric=True)
+    return counted_linear_solve(prepare(matrix), rhs, sweep, sweep, counter, seed_dot,
+                                symmetric=True)
 
 
 def _zero_tangent(leaf: jax.Array) -> jax.Array:

@@ -76,7 +76,7 @@ import numpy as np
 
 from .._checks import is_traced
 from ..errors import DataError, ShapeError, SolverBreakdownError, SolverConfigError
-from ._tally import IterationCounter, tap
+from ._tally import IterationCounter, ReverseTally, counted_linear_solve, live_tangent, tap
 from .cg import Solution, Status, adjoint_tap, check_finite_inputs, check_truncation
 from .operator import SparseMatrix, diagonal, prepare, rmatvec
 
@@ -299,7 +299,9 @@ def _solve_traced(matrix, b, x0, solver: TruncatedJacobi, counter) -> Solution:
                                                     solver.iterations, length)
         d_x = jax.lax.stop_gradient(diagonal(matrix) * x)
         diverged = _diverged(weight, norm0, norm, b, d_x)
-        if counter is not None:
+        if isinstance(counter, ReverseTally):  # counts when the reverse pass runs it
+            x = tap(counter, "adjoint", moved, x)
+        elif counter is not None:
             x = adjoint_tap(x, moved, counter)
         sol = Solution(x, moved, jnp.linalg.norm(jax.lax.stop_gradient(r)),
                        history[0], history, jnp.int32(0))
@@ -308,16 +310,19 @@ def _solve_traced(matrix, b, x0, solver: TruncatedJacobi, counter) -> Solution:
             else solver.adjoint_iterations
         pattern = (matrix.rows, matrix.cols, matrix.layout)
         form = (matrix.shape, matrix.kernel)
+        # a reverse tally's seed is an input to differentiate (see linalg.cg)
+        seed = counter.seed if isinstance(counter, ReverseTally) else None
+        host = None if isinstance(counter, ReverseTally) else counter
         x, moved, residual, initial, history, diverged = _implicit_core(
             matrix.values, b, x0, jnp.asarray(solver.iterations, jnp.int32),
-            jnp.asarray(k_adj, jnp.int32), omega, pattern, form, solver.history_size, counter)
+            jnp.asarray(k_adj, jnp.int32), omega, pattern, seed, form, solver.history_size,
+            host)
         diagnostics = jax.lax.stop_gradient((moved, residual, initial, history, diverged))
         moved, residual, initial, history, diverged = diagnostics
         usable = jax.lax.stop_gradient(_scalings(matrix, omega)[2])
         sol = Solution(x, moved, residual, initial, history, jnp.int32(0))
     sol = sol._replace(status=_status(sol.x, usable, diverged, inputs_finite))
-    tap(counter, "primal", sol.iterations, sol.x)
-    return sol
+    return sol._replace(x=tap(counter, "primal", sol.iterations, sol.x))
 
 
 # --------------------------------------------------------------------------------------
@@ -330,8 +335,8 @@ def _pattern_matrix(values, pattern, form) -> SparseMatrix:
     return SparseMatrix(rows, cols, values, shape, layout, kernel)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(7, 8, 9))
-def _implicit_core(values, b, x0, iterations, adjoint_iterations, omega, pattern, form,
+@partial(jax.custom_jvp, nondiff_argnums=(8, 9, 10))
+def _implicit_core(values, b, x0, iterations, adjoint_iterations, omega, pattern, seed, form,
                    history_size, counter):
     """The forward sweeps; derivatives by :func:`_implicit_jvp`."""
     matrix = _pattern_matrix(values, pattern, form)
@@ -343,23 +348,32 @@ def _implicit_core(values, b, x0, iterations, adjoint_iterations, omega, pattern
     return x, moved, jnp.linalg.norm(r), initial, history, diverged
 
 
-@_implicit_core.defjvp
 def _implicit_jvp(form, history_size, counter, primals, tangents):
-    """``dx = A^{-1} (db - dA x)``, solved by ``K_adj`` sweeps (:func:`_linear_solve`)."""
-    values, b, x0, iterations, adjoint_iterations, omega, pattern = primals
-    values_dot, b_dot = tangents[0], tangents[1]
-    out = _implicit_core(values, b, x0, iterations, adjoint_iterations, omega, pattern, form,
-                         history_size, counter)
+    """``dx = A^{-1} (db - dA x)``, solved by ``K_adj`` sweeps (:func:`_linear_solve`); a
+    differentiated reverse-tally ``seed`` takes the adjoint count (see linalg.cg)."""
+    values, b, x0, iterations, adjoint_iterations, omega, pattern, seed = primals
+    values_dot, b_dot = live_tangent(tangents[0]), live_tangent(tangents[1])
+    out = _implicit_core(values, b, x0, iterations, adjoint_iterations, omega, pattern, seed,
+                         form, history_size, counter)
     x = out[0]
-    rows, cols, _ = pattern
-    minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0])
-    x_dot = _linear_solve(values, b_dot + minus_dA_x, adjoint_iterations, omega, pattern, form,
-                          counter)
     zeros = tuple(_zero_tangent(leaf) for leaf in out[1:])
+    if values_dot is None and b_dot is None:  # only the seed (or x0) is differentiated
+        return out, (jnp.zeros_like(x), *zeros)
+    rhs = b_dot
+    if values_dot is not None:
+        rows, cols, _ = pattern
+        minus_dA_x = -jax.ops.segment_sum(values_dot * x[cols], rows, num_segments=x.shape[0])
+        rhs = minus_dA_x if rhs is None else rhs + minus_dA_x
+    x_dot = _linear_solve(values, rhs, adjoint_iterations, omega, pattern, form, counter,
+                          live_tangent(tangents[7]))
     return out, (x_dot, *zeros)
 
 
-def _linear_solve(values, rhs, iterations, omega, pattern, form, counter) -> jax.Array:
+_implicit_core.defjvp(_implicit_jvp, symbolic_zeros=True)
+
+
+def _linear_solve(values, rhs, iterations, omega, pattern, form, counter,
+                  seed_dot=None) -> jax.Array:
     """``A^{-1} rhs`` by ``iterations`` sweeps from zero; its transpose sweeps ``A^T``."""
     matrix = jax.lax.stop_gradient(_pattern_matrix(values, pattern, form))
     omega = jax.lax.stop_gradient(omega)
@@ -367,12 +381,10 @@ def _linear_solve(values, rhs, iterations, omega, pattern, form, counter) -> jax
 
     def sweeps(product, right):
         x = _while_sweeps(product, right, None, step, weight, usable, iterations, 0)
-        tap(counter, "adjoint", x[2], x[0])
-        return x[0]
+        return x[0], x[2]
 
-    return jax.lax.custom_linear_solve(
-        prepare(matrix), rhs, lambda _, right: sweeps(prepare(matrix), right),
-        lambda _, right: sweeps(partial(rmatvec, matrix), right))
+    return counted_linear_solve(prepare(matrix), rhs, partial(sweeps, prepare(matrix)),
+                                partial(sweeps, partial(rmatvec, matrix)), counter, seed_dot)
 
 
 def _zero_tangent(leaf: jax.Array) -> jax.Array:

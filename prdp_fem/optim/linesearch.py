@@ -103,23 +103,34 @@ import optax
 
 # the search's init/step/stop functions: optax's transform hides them in its loop, so they
 # are a vendored copy of optax's (see prdp_fem.optim._zoom)
+from ..linalg.cg import zero_counts
 from ._zoom import zoom_linesearch as _optax_zoom
 
 __all__ = ["FIRST_STEPS", "Contradiction", "ZoomSearchState", "lbfgs",
-           "scale_by_zoom_linesearch"]
+           "scale_by_zoom_linesearch", "value_grad_and_counts"]
 
 #: The first line search's initial trial: optax's unit step, or ``J(z_0) / |s_0|``.
 FIRST_STEPS = ("unit", "polyak")
 
 
-class ZoomSearchState(optax.ScaleByZoomLinesearchState):
-    """optax's zoom-search state as :func:`scale_by_zoom_linesearch` keeps it: the same
-    fields, read the same way (:func:`optax.value_and_grad_from_state`, ``tree_get``). Its
-    type says that the search refreshes a non-finite ``value``: it evaluates ``J`` and its
+class ZoomSearchState(NamedTuple):
+    """optax's zoom-search state (:class:`optax.ScaleByZoomLinesearchState`'s fields, read the
+    same way: :func:`optax.value_and_grad_from_state`, ``tree_get``) and ``counts``. Its type
+    says that the search refreshes a non-finite ``value``: it evaluates ``J`` and its
     gradient at ``params``, stores them here and returns a zero update (see the module's
-    docstring)."""
+    docstring).
 
-    __slots__ = ()
+    ``counts``: the solver iterations the last update's evaluations ran, where ``value_fn``
+    reports them (a ``value_grad_and_counts`` method, as
+    :class:`prdp_fem.inverse.driver.Objective` has: ``[primal, adjoint, primal_solves,
+    adjoint_solves]``, see :class:`prdp_fem.linalg.ReverseTally`); zeros otherwise.
+    """
+
+    learning_rate: jax.Array
+    value: jax.Array
+    grad: Any
+    info: optax.ZoomLinesearchInfo
+    counts: jax.Array
 
 
 class Contradiction(NamedTuple):
@@ -198,9 +209,10 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
     after the objective changed, restarts a far overshoot (see the module's docstring).
 
     The arguments are optax's (the defaults are those :func:`optax.lbfgs` uses; extra update
-    arguments go on to ``value_fn`` as keywords); the state is a :class:`ZoomSearchState`, an
-    :class:`optax.ScaleByZoomLinesearchState`, so :func:`optax.value_and_grad_from_state`
-    and the failure test of :func:`prdp_fem.inverse.driver.invert` read it as they read optax's. A
+    arguments go on to ``value_fn`` as keywords); the state is a :class:`ZoomSearchState`,
+    with the fields of :class:`optax.ScaleByZoomLinesearchState`, so
+    :func:`optax.value_and_grad_from_state` and the failure test of
+    :func:`prdp_fem.inverse.driver.invert` read it as they read optax's. A
     non-finite ``value`` asks for ``J`` and its gradient at ``params`` instead of a search
     (see the module's docstring).
 
@@ -239,11 +251,11 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
         interval_threshold=stepsize_precision, verbose=False)
 
     def init(params):
-        return ZoomSearchState(*optax_search.init(params))
+        return ZoomSearchState(*optax_search.init(params), counts=zero_counts())
 
     def update(updates, state, params, *, value, grad,
                value_fn: Callable[..., Any], **value_fn_kwargs):
-        evaluate = _evaluation(_value_and_grad(value_fn, value_fn_kwargs), value_fn_kwargs)
+        evaluate = _evaluation(value_fn, value_fn_kwargs)
         # no value to search from: evaluate at params, through the trial below (one copy of
         # the objective in the program), and return it (see the module's docstring)
         value = jnp.asarray(value)
@@ -261,15 +273,16 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
             (state.info.num_linesearch_steps > 0)
 
         def going_on(carry):
-            search, seen, spent, _ = carry
+            search, seen, spent, _, _ = carry
             searches_on = searching(search) & ~seen.found & \
                 (spent + search.count < max_linesearch_steps)
             return jnp.where(refresh, search.count < 1, searches_on)
 
         def trial(carry):
-            search, seen, spent, _ = carry
+            search, seen, spent, _, counts = carry
             search, evaluated = _step_with_one_evaluation(step_search, search, evaluate,
                                                           value_fn_kwargs, at_start=refresh)
+            counts = counts + evaluated[2]
             seen = _watch(seen, search, approx_dec_rtol)
             overshot, restart_at = _overshoot(search)
             restart = objective_changed & overshot & ~seen.found & ~refresh & \
@@ -278,13 +291,13 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
             search = jax.lax.cond(
                 restart, lambda s: optax.tree.cast_like(start_at(restart_at), other_tree=s),
                 lambda s: s, search)
-            return search, seen, spent, evaluated
+            return search, seen, spent, evaluated, counts
 
         dtype = jnp.result_type(start.value_init)
         not_yet = _filled_evaluation(evaluate, params, jnp.nan)
-        final, seen, spent, (value_there, grad_there) = jax.lax.while_loop(
+        final, seen, spent, (value_there, grad_there, _), counts = jax.lax.while_loop(
             going_on, trial, (start, _nothing_seen(dtype), jnp.zeros_like(start.count),
-                              not_yet))
+                              not_yet, zero_counts()))
         final = jax.lax.cond(seen.found & ~refresh,
                              functools.partial(_give_up, curv_rtol=curv_rtol),
                              lambda s: s, final)
@@ -295,8 +308,8 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
                                         decrease_error=final.decrease_error,
                                         curvature_error=final.curvature_error)
         searched = ZoomSearchState(learning_rate=final.stepsize, value=final.value,
-                                   grad=final.grad, info=info)
-        refreshed = state._replace(value=value_there, grad=grad_there)
+                                   grad=final.grad, info=info, counts=counts)
+        refreshed = state._replace(value=value_there, grad=grad_there, counts=counts)
         new_state = optax.tree.where(refresh, optax.tree.cast_like(refreshed, other_tree=state),
                                      optax.tree.cast_like(searched, other_tree=state))
         step = optax.tree.where(refresh, optax.tree.zeros_like(updates),
@@ -316,27 +329,42 @@ _LEAST_RESTART = 1e-3
 _OUTSIDE_SHRINK = 0.1
 
 
-def _value_and_grad(value_fn, value_fn_kwargs) -> Callable:
-    """``jax.value_and_grad(value_fn)``, or the one ``value_fn`` carries as its
-    ``value_and_grad`` (:class:`prdp_fem.inverse.driver.Objective`: one nested program for both of
-    the search's branches and the step's own evaluation, traced once)."""
-    own = getattr(value_fn, "value_and_grad", None)
-    return own if callable(own) and not value_fn_kwargs else jax.value_and_grad(value_fn)
+def value_grad_and_counts(value_fn, value_fn_kwargs=None) -> Callable:
+    """``point -> (J, g, counts)``: the one ``value_fn`` carries as its
+    ``value_grad_and_counts`` (:class:`prdp_fem.inverse.driver.Objective`: the counts of its
+    solves as outputs, and one nested program for every place that evaluates, traced once),
+    else its ``value_and_grad`` or ``jax.value_and_grad(value_fn)``, with zero counts (the
+    solves count wherever ``value_fn`` counts them, such as an
+    :class:`~prdp_fem.linalg.IterationCounter`)."""
+    value_fn_kwargs = value_fn_kwargs or {}
+    own = getattr(value_fn, "value_grad_and_counts", None)
+    if callable(own) and not value_fn_kwargs:
+        return own
+    value_and_grad = getattr(value_fn, "value_and_grad", None)
+    if not callable(value_and_grad) or value_fn_kwargs:
+        value_and_grad = jax.value_and_grad(value_fn)
+
+    def uncounted(point, **kwargs):
+        return (*value_and_grad(point, **kwargs), zero_counts())
+
+    return uncounted
 
 
-def _evaluation(value_and_grad, fn_kwargs) -> Callable:
-    """``point -> value_and_grad(point, **fn_kwargs)``, jitted once per search so that its
-    trace for the placeholders' types (:func:`_filled_evaluation`: the value and gradient
-    exactly as the evaluation returns them, no cast) is the one the search's loop calls."""
-    return jax.jit(lambda point: value_and_grad(point, **fn_kwargs))
+def _evaluation(value_fn, fn_kwargs) -> Callable:
+    """``point -> (J, g, counts)`` (:func:`value_grad_and_counts`), jitted once per search so
+    that its trace for the placeholders' types (:func:`_filled_evaluation`: exactly as the
+    evaluation returns them, no cast) is the one the search's loop calls."""
+    evaluate = value_grad_and_counts(value_fn, fn_kwargs)
+    return jax.jit(lambda point: evaluate(point, **fn_kwargs))
 
 
 def _filled_evaluation(evaluate: Callable, params, value: float):
-    """An evaluation's ``(J, g)`` types at ``params``, filled with ``J = value`` and ``g = 0``
-    (nothing is computed)."""
-    value_shape, grad_shapes = jax.eval_shape(evaluate, params)
+    """An evaluation's ``(J, g, counts)`` types at ``params``, filled with ``J = value``,
+    ``g = 0`` and no counts (nothing is computed)."""
+    value_shape, grad_shapes, count_shape = jax.eval_shape(evaluate, params)
     return (jnp.full(value_shape.shape, value, value_shape.dtype),
-            jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), grad_shapes))
+            jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), grad_shapes),
+            jnp.zeros(count_shape.shape, count_shape.dtype))
 
 
 def _step_with_one_evaluation(step_search, search, evaluate, fn_kwargs,
@@ -360,7 +388,7 @@ def _step_with_one_evaluation(step_search, search, evaluate, fn_kwargs,
     step, so the evaluation may land there instead of at ``t``. Such a search is lost anyway
     (and :func:`prdp_fem.inverse.driver.invert` stops on a non-finite value or gradient).
 
-    Returns the stepped state and the evaluation ``(J, g)``. ``at_start`` (traced): evaluate
+    Returns the stepped state and the evaluation ``(J, g, counts)``. ``at_start`` (traced): evaluate
     at the search's ``params`` instead of the trial point (a refresh; the state's step is then
     meaningless).
 
@@ -374,7 +402,7 @@ def _step_with_one_evaluation(step_search, search, evaluate, fn_kwargs,
 
     def run(carry):
         trip, values, _ = carry
-        stepped = step_search(search, value_and_grad_fn=lambda *_, **__: values,
+        stepped = step_search(search, value_and_grad_fn=lambda *_, **__: values[:2],
                               fn_kwargs=fn_kwargs)
         trial = optax.tree.where(
             at_start, search.params,
