@@ -33,6 +33,7 @@ from .fem import (
     Discretization,
     Observation,
     amg_solve,
+    bilaplacian_prior,
     boundary_values,
     direct_solve,
     discretize,
@@ -54,6 +55,7 @@ from .inverse import (
     fixed,
     inverse_problem,
     invert,
+    laplace_posterior,
     prdp,
     taylor_test,
 )
@@ -90,14 +92,14 @@ __all__ = [  # noqa: RUF022 (grouped by concept, as the guide presents them)
     "rectangle_with_hole", "disk", "l_shape",
     # discretisation, data, references
     "discretize", "Discretization", "Observation", "point_sensors", "full_field",
-    "boundary_values", "with_noise", "regularizer", "amg_solve", "direct_solve",
-    "relative_l2_error", "relative_h1_error",
+    "boundary_values", "with_noise", "regularizer", "bilaplacian_prior", "amg_solve",
+    "direct_solve", "relative_l2_error", "relative_h1_error",
     # solves
     "solve", "TruncatedCG", "ConvergedCG", "TruncatedJacobi", "Solution", "Status",
     "SparseMatrix", "IterationCounter", "amg_preconditioner", "RebuiltAMG", "rebuild_policy",
     # inversion and refinement
     "inverse_problem", "InverseProblem", "invert", "Inversion", "History", "Refinement", "prdp",
-    "fixed", "converged", "adaptive_tolerance", "compare", "taylor_test",
+    "fixed", "converged", "adaptive_tolerance", "compare", "taylor_test", "laplace_posterior",
     # optimisers
     "lbfgs", "newton_cg", "gauss_newton", "hig",
     # errors (all of them: prdp_fem.errors)

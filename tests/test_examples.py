@@ -115,3 +115,17 @@ def test_heat_hybrid_example_correction_nog_beats_prediction_wig_and_prdp_saves(
     equal = results["saving"]["nog"]["equal_epochs"]
     assert equal["iterations"] < 0.5  # measured 0.23
     assert equal["test_error"] < 1.1  # measured 1.01
+
+
+@pytest.mark.slow  # 16 s; the prior and the posterior are checked in test_posterior.py
+def test_bayesian_coefficient_posterior_is_pinned(load_example, tmp_path):
+    bayesian = load_example("bayesian_coefficient")
+    result = bayesian.run(10, 20, tmp_path, steps=100)
+    assert result["n_parameters"] == 121 and result["eigenvalues_above_1"] == 11
+    assert result["map_error"] == pytest.approx(0.10520, rel=1e-3)
+    assert result["variance_ratio"] == pytest.approx(0.032074, rel=1e-3)
+    assert result["truth_within_2_std"] >= 0.95
+    # PRDP's MAP point: a small fraction of a posterior standard deviation from converged
+    assert result["prdp_shift_in_std"] < 0.05
+    assert result["cg_prdp"] < result["cg_converged"]
+    assert (tmp_path / "posterior.vtu").exists()

@@ -1,5 +1,5 @@
 """Discretisation: P1/P2/Q1/Q2 systems from scikit-fem, parameters, observations, regularisers,
-and pyamg-converged reference solves with their norms.
+Gaussian priors, and pyamg-converged reference solves with their norms.
 """
 
 from .discretization import Discretization, discretize
@@ -13,6 +13,7 @@ from .parameters import (
     parameter_mass,
     simp,
 )
+from .priors import GaussianPrior, bilaplacian_prior
 from .reference import (
     ReferenceSolution,
     amg_solve,
@@ -24,7 +25,7 @@ from .reference import (
     relative_h1_error,
     relative_l2_error,
 )
-from .regularizers import REGULARIZERS, Regularizer, gradient_gram, regularizer
+from .regularizers import REGULARIZERS, Regularizer, gradient_gram, regularizer, stiffness_form
 from .residuals import ResidualFactors, residual_factors, square_root_factor
 from .system import LinearSystem
 
@@ -33,6 +34,7 @@ __all__ = [
     "REGULARIZERS",
     "UNKNOWNS",
     "Discretization",
+    "GaussianPrior",
     "LinearSystem",
     "Observation",
     "Parameterization",
@@ -41,6 +43,7 @@ __all__ = [
     "ResidualFactors",
     "Simp",
     "amg_solve",
+    "bilaplacian_prior",
     "boundary_values",
     "direct_solve",
     "discretize",
@@ -59,5 +62,6 @@ __all__ = [
     "residual_factors",
     "simp",
     "square_root_factor",
+    "stiffness_form",
     "with_noise",
 ]

@@ -42,7 +42,7 @@ from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from .discretization import Discretization
 from .parameters import COEFFICIENT_UNKNOWNS, parameter_basis, parameter_mass
 
-__all__ = ["REGULARIZERS", "Regularizer", "gradient_gram", "regularizer"]
+__all__ = ["REGULARIZERS", "Regularizer", "gradient_gram", "regularizer", "stiffness_form"]
 
 REGULARIZERS = ("l2", "h1", "tv")
 
@@ -95,12 +95,8 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
     m0 = finite_vector(reference, f"reference (m_0 of the {unknown} field)", basis.N)
     if kind == "l2":
         matrix, weights, dim = parameter_mass(disc, unknown), np.ones(1), 1
-    elif unknown in COEFFICIENT_UNKNOWNS and disc.kappa_space == "P0":
-        matrix, weights = _facet_jumps(disc.mesh)
-        dim = 1
     else:
-        matrix, weights = _quadrature_gradients(basis)
-        dim = disc.mesh.dim()
+        matrix, weights, dim = _gradient_points(disc, unknown)
     operator = SparseMatrix.from_scipy(matrix)
     # L2: the mass matrix is its own Gram form; laid out once, not in every evaluation
     gram = {"l2": matrix, "h1": None, "tv": None}[kind]
@@ -109,6 +105,23 @@ def regularizer(disc: Discretization, unknown: str, kind: str = "h1", *,
     gram = None if gram is None else FixedMatrix.symmetric(gram)
     return Regularizer(kind, operator, as_jax(weights), as_jax(m0),
                        as_jax(float(epsilon)), dim, gram)
+
+
+def stiffness_form(disc: Discretization, unknown: str) -> sp.csr_matrix:
+    """The H1 seminorm's matrix of ``unknown``'s parameter space, ``1/2 m^T K m = R_H1(m)``:
+    the stiffness matrix for nodal spaces, two-point fluxes for P0 (host, SciPy)."""
+    return gradient_gram(*_gradient_points(disc, unknown))
+
+
+def _gradient_points(disc: Discretization, unknown: str) -> tuple[sp.csr_matrix, np.ndarray,
+                                                                   int]:
+    """``(D, w, dim)``: the gradient (or jump) operator of the parameter space, its point
+    weights and the components per point (see the module)."""
+    if unknown in COEFFICIENT_UNKNOWNS and disc.kappa_space == "P0":
+        matrix, weights = _facet_jumps(disc.mesh)
+        return matrix, weights, 1
+    matrix, weights = _quadrature_gradients(parameter_basis(disc, unknown))
+    return matrix, weights, disc.mesh.dim()
 
 
 def gradient_gram(gradient: sp.spmatrix, weights: np.ndarray, dim: int) -> sp.csr_matrix:

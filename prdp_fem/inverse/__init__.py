@@ -16,6 +16,7 @@ from .driver import (
 )
 from .history import History, StepRecord
 from .parameter_choice import AlphaChoice, l_curve, morozov
+from .posterior import LaplacePosterior, generalized_eigenpairs, laplace_posterior
 from .reduced import ReducedCG, homogeneous, reduced_cg
 from .refinement import (
     Refinement,
@@ -39,6 +40,7 @@ __all__ = [
     "Inversion",
     "InversionError",
     "IterateRecorder",
+    "LaplacePosterior",
     "Objective",
     "ReducedCG",
     "Refinement",
@@ -54,11 +56,13 @@ __all__ = [
     "first_settled",
     "fixed",
     "format_table",
+    "generalized_eigenpairs",
     "homogeneous",
     "initial_params",
     "inverse_problem",
     "invert",
     "l_curve",
+    "laplace_posterior",
     "morozov",
     "prdp",
     "reduced_cg",
