@@ -146,3 +146,50 @@ def test_a_posterior_of_a_problem_without_the_prior_or_with_bad_counts_is_refuse
         laplace_posterior(problem, z, other, rank=4)
     with pytest.raises(SolverConfigError, match="alpha"):
         laplace_posterior(problem.with_alpha(0.0), z, prior, rank=4)
+
+
+# --- scenes ------------------------------------------------------------------------------------
+
+
+_PRIOR_SCENE = {
+    "name": "bayes", "mesh": {"generator": "unit_square", "n": 6},
+    "pde": {"element": "P1", "kappa_space": "P1", "source": 1.0, "dirichlet": 0.0},
+    "inverse": {"unknown": "log_kappa", "truth": "0.5*sin(pi*x)*y", "observations": "full_field",
+                "noise": 0.01, "seed": 3, "alpha": SIGMA2, "regularization": "bilaplacian",
+                "prior_gamma": 0.05, "prior_delta": 0.5, "prior_mean": 0.1,
+                "posterior_rank": 14, "posterior_samples": 2},
+    "refinement": {"kind": "converged", "rtol": 1e-10},
+    "optimizer": {"name": "lbfgs", "steps": 5},
+}
+
+
+def test_a_scene_with_a_gaussian_prior_writes_each_run_s_posterior(setting, tmp_path):
+    """regularization = "bilaplacian": the scene's prior is the fixture's, and the study writes
+    the Laplace posterior at each run's result beside its fields."""
+    from prdp_fem.scene import parse_scene
+    from prdp_fem.scene.build import build_inverse
+    from prdp_fem.studies import run_study
+
+    _, prior, _, _, _ = setting
+    scene = parse_scene(_PRIOR_SCENE)
+    built = build_inverse(scene)
+    assert (built.prior.precision != prior.precision).nnz == 0
+    assert np.array_equal(built.prior.mean, prior.mean)
+    run_study(scene, tmp_path / "out")
+    written = meshio.read(tmp_path / "out" / "fields" / "bayes_posterior.vtu").point_data
+    assert {"map", "variance", "prior_variance", "sample_1", "sample_2"} <= set(written)
+    assert np.all(written["variance"] < written["prior_variance"])
+
+
+@pytest.mark.parametrize("keys, message", [
+    ({"prior_gamma": 0.0}, r"inverse.prior_gamma"),
+    ({"prior_delta": -1.0}, r"inverse.prior_delta"),
+    ({"posterior_rank": -1}, r"inverse.posterior_rank"),
+    ({"regularization": "h1"}, r"unknown key 'inverse.p(rior|osterior)_"),
+])
+def test_a_scene_names_a_bad_prior(keys, message):
+    from prdp_fem.scene import parse_scene
+
+    table = {**_PRIOR_SCENE, "inverse": {**_PRIOR_SCENE["inverse"], **keys}}
+    with pytest.raises(pf.SceneError, match=message):
+        parse_scene(table, source="b.toml")

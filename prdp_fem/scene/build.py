@@ -39,6 +39,7 @@ from ..errors import (
 from ..fem.discretization import Discretization, discretize
 from ..fem.observations import boundary_values, full_field, point_sensors, with_noise
 from ..fem.parameters import Parameterization, Simp
+from ..fem.priors import GaussianPrior, bilaplacian_prior
 from ..fem.reference import amg_solve, direct_solve
 from ..inverse.driver import InverseProblem, Validation, inverse_problem
 from ..inverse.refinement import Refinement, adaptive_tolerance, converged, fixed, prdp
@@ -248,6 +249,7 @@ class InverseSetup(NamedTuple):
     disc: Discretization
     problem: InverseProblem
     truth: np.ndarray | None   # the unknown field (nodal source or log kappa), if known
+    prior: GaussianPrior | None = None  # regularization = "bilaplacian"
 
 
 def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSetup:
@@ -276,12 +278,15 @@ def build_inverse(scene: Scene, disc: Discretization | None = None) -> InverseSe
         observation = _observation(scene, disc, u_true)
         if spec.noise > 0:
             observation = with_noise(observation, spec.noise, spec.seed)
+    prior = None if spec.prior is None else bilaplacian_prior(
+        disc, spec.unknown, gamma=spec.prior[0], delta=spec.prior[1], mean=spec.prior[2])
     problem = inverse_problem(disc, observation, unknown=spec.unknown, alpha=spec.alpha,
-                              regularization=spec.regularization, known=known, truth=truth,
+                              regularization=spec.regularization if prior is None
+                              else prior.regularizer(), known=known, truth=truth,
                               bounds=spec.bounds,
                               coefficient_map=parameterization.coefficient_map,
                               residual=scene.optimizer.name == "hig")
-    return InverseSetup(disc, problem, truth)
+    return InverseSetup(disc, problem, truth, prior)
 
 
 def parameterization_of(scene: Scene) -> Parameterization:

@@ -373,7 +373,11 @@ class InverseSpec:
     Gaussian noise ``noise * max|d|`` seeded with ``seed``. ``sensors``: a count of random
     interior mesh vertices, or a list of coordinates. ``unknown = "density"`` recovers a SIMP
     density (``kappa = k_min + (k_max - k_min) rho ** penalty``, ``simp = (k_min, k_max,
-    penalty)``; bounds default to ``[0, 1]``).
+    penalty)``; bounds default to ``[0, 1]``). ``regularization = "bilaplacian"`` is a
+    Gaussian prior (``prior = (gamma, delta, mean)``,
+    :func:`~prdp_fem.fem.priors.bilaplacian_prior`; ``alpha`` is then the noise variance)
+    and ``posterior = (rank, samples)`` the Laplace posterior each run writes
+    (:func:`~prdp_fem.inverse.posterior.laplace_posterior`).
     """
 
     unknown: str = "source"
@@ -390,6 +394,10 @@ class InverseSpec:
     bounds: tuple[float, float] | None = None
     init: Field | None = None
     simp: tuple[float, float, float] | None = None   # density: (k_min, k_max, penalty)
+    # regularization = "bilaplacian": the Gaussian prior (gamma, delta, mean) and the Laplace
+    # posterior written after each run (rank, samples; rank 0: none)
+    prior: tuple[float, float, float] | None = None
+    posterior: tuple[int, int] = (0, 0)
 
     @property
     def is_coefficient(self) -> bool:
@@ -745,8 +753,16 @@ def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
     noise = t.number("noise", 0.0, low=0.0, error=SceneDataError)
     seed = t.integer("seed", 0)
     alpha = t.number("alpha", 1e-6, low=0.0, error=SceneSolverConfigError)
-    regularization = t.choice("regularization", "h1", ("l2", "h1", "tv"),
+    regularization = t.choice("regularization", "h1", ("l2", "h1", "tv", "bilaplacian"),
                               SceneSolverConfigError)
+    prior, posterior = None, (0, 0)
+    if regularization == "bilaplacian":  # the prior's keys exist for a Gaussian prior only
+        prior = (t.number("prior_gamma", 0.1, low=0.0, open_low=True,
+                          error=SceneSolverConfigError),
+                 t.number("prior_delta", 0.5, low=0.0, open_low=True,
+                          error=SceneSolverConfigError),
+                 t.number("prior_mean", 0.0, error=SceneSolverConfigError))
+        posterior = (t.integer("posterior_rank", 0), t.integer("posterior_samples", 3))
     bounds = t.get("bounds", None, lambda v: isinstance(v, list) and len(v) == 2 and all(
         _is_number(b) for b in v) and v[0] < v[1], "[lower, upper] with finite lower < upper",
         SceneDataError if unknown == "source" else SceneCoefficientError)
@@ -769,7 +785,7 @@ def _inverse(t: _Table, learned: bool = False) -> InverseSpec:
     spec = InverseSpec(unknown, truth, data, observations, norm, sensors, boundaries, noise,
                        seed, alpha, regularization,
                        None if bounds is None else (float(bounds[0]), float(bounds[1])),
-                       t.field("init", None), law)
+                       t.field("init", None), law, prior, posterior)
     t.finish()
     if learned:
         if unknown != "source":

@@ -59,6 +59,7 @@ from ..fem.reference import amg_solve, l2_error
 from ..inverse.comparison import settled
 from ..inverse.driver import invert
 from ..inverse.history import History, StepRecord
+from ..inverse.posterior import laplace_posterior
 from ..learning import heat
 from ..learning.learned import train
 from ..linalg.cg import ConvergedCG, solve
@@ -299,6 +300,23 @@ def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups
         fields["truth"] = (space, setup.truth)
         fields["error"] = (space, np.asarray(result.field) - setup.truth)
     write_vtu(setup.disc.mesh, _field_file(out, name), fields)
+    rank, samples = variant.inverse.posterior
+    if rank:
+        _write_posterior(setup, result.params, rank, samples,
+                         _field_file(out, f"{name} posterior"))
+
+
+#: the largest parameter count whose prior variance is computed exactly (dense, n^2)
+_EXACT_VARIANCE_LIMIT = 4096
+
+
+def _write_posterior(setup, params, rank: int, samples: int, path: Path) -> None:
+    """The Laplace posterior at a run's final parameters, written beside its fields: mean,
+    pointwise variance (randomised above :data:`_EXACT_VARIANCE_LIMIT` parameters) and
+    ``samples`` draws."""
+    posterior = laplace_posterior(setup.problem, params, setup.prior, rank=rank)
+    method = "exact" if setup.problem.n_parameters <= _EXACT_VARIANCE_LIMIT else "randomized"
+    posterior.write_vtu(path, setup.disc, samples=samples, variance=method)
 
 
 def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
