@@ -163,36 +163,55 @@ def _bench_amg(args) -> None:
 
 
 def _bench_mother(args) -> None:
-    from ..bench.inverse import CACHES, check_mother_options, mother_whole_process
+    from ..bench.inverse import (
+        CACHES,
+        PEER_INSTALL,
+        RACE_INNER_RTOL,
+        check_mother_options,
+        mother_optimum,
+        mother_whole_process,
+    )
 
     caches = CACHES if args.cache == "both" else (args.cache,)  # argparse checked the name
-    check_mother_options(args.sizes, repeats=args.repeats, target=args.target,
-                         K=args.iterations, inner_rtol=args.inner_rtol,
-                         preconditioner=args.preconditioner)
-    inner = f"PRDP K0 = dK = {args.iterations}" if args.inner_rtol is None else \
-        f"rtol {args.inner_rtol:g}"
+    if args.iterations is not None and args.inner_rtol is not None:
+        raise SolverConfigError("--iterations and --inner-rtol: expected one of them (PRDP "
+                                "on the inner solves, or converged inner solves)")
+    K = DEFAULT_INNER_K if args.iterations is None else args.iterations
+    inner_rtol = None if args.iterations is not None else (
+        RACE_INNER_RTOL if args.inner_rtol is None else args.inner_rtol)
+    check_mother_options(args.sizes, repeats=args.repeats, target=args.target, K=K,
+                         inner_rtol=inner_rtol, preconditioner=args.preconditioner)
+    inner = f"PRDP K0 = dK = {K}" if inner_rtol is None else f"rtol {inner_rtol:g}"
     print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
-    print(f"{'n':>5} {'dofs':>7} {'target':>8} {'error':>8} {'outer':>5} {'CG its':>6} "
-          f"{'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} {'exit':>5} "
-          f"{'whole [s]':>9} {'peer [s]':>8} {'ratio':>6} {'cache':>5}  goal")
+    if args.peer_python is None:
+        print(f"no peer given: the project's side alone (to race dolfin-adjoint: {PEER_INSTALL})")
+    print(f"{'n':>5} {'dofs':>7} {'optimum':>8} {'target':>8} {'error':>8} {'outer':>5} "
+          f"{'CG its':>6} {'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} "
+          f"{'exit':>5} {'whole [s]':>9} {'peer [s]':>8} {'peer err':>8} {'ratio':>6} "
+          f"{'cache':>5}  goal")
     for n, cache in itertools.product(args.sizes, caches):
-        b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=args.iterations,
-                                 inner_rtol=args.inner_rtol, preconditioner=args.preconditioner,
-                                 cache=cache)
+        optimum = math.nan if args.target is not None else mother_optimum(n)
+        b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=K,
+                                 inner_rtol=inner_rtol, preconditioner=args.preconditioner,
+                                 cache=cache, peer_python=args.peer_python)
         goal = "-" if b.goal_met is None else (
             f"<= {b.peer.goal_ratio:g} {'met' if b.goal_met else 'NOT met'}")
-        peer = f"{b.peer.seconds:>8.1f}" if b.peer else f"{'-':>8}"
-        print(f"{b.n:>5} {b.dofs:>7} {b.target:>8.1e} {b.error:>8.2e} {b.outer_iterations:>5} "
-              f"{b.cg_iterations:>6} {b.start_s:>6.2f} {b.import_s:>6.2f} {b.assembly_s:>6.2f} "
-              f"{b.compile_s:>7.2f} {b.solve_s:>6.2f} {b.exit_s:>5.2f} {b.whole_s:>9.2f} "
-              f"{peer} {b.ratio:>6.2f} {b.cache:>5}  {goal}", flush=True)
-    print(f"whole: median wall time of {args.repeats} fresh process(es) per size (Python start, "
-          "imports, mesh, assembly, compilation, optimisation, exit); phases: medians inside "
-          "the process; exit: from its last print to its end (the interpreter's shutdown); "
-          "start = whole - phases - exit; CG its: primal + adjoint state-solve iterations "
-          "(Riesz-map mass solves apart); error: relative L2 of f against the analytic optimum; "
-          "cache: cold = the program compiled in the process, warm = loaded from a cache one "
-          "untimed process filled (no goal: the goal's time includes compiling)")
+        peer = f"{b.peer.seconds:>8.1f} {b.peer.error:>8.2e}" if b.peer else f"{'-':>8} {'-':>8}"
+        print(f"{b.n:>5} {b.dofs:>7} {optimum:>8.2e} {b.target:>8.2e} {b.error:>8.2e} "
+              f"{b.outer_iterations:>5} {b.cg_iterations:>6} {b.start_s:>6.2f} "
+              f"{b.import_s:>6.2f} {b.assembly_s:>6.2f} {b.compile_s:>7.2f} {b.solve_s:>6.2f} "
+              f"{b.exit_s:>5.2f} {b.whole_s:>9.2f} {peer} {b.ratio:>6.2f} {b.cache:>5}  {goal}",
+              flush=True)
+    print(f"whole: median wall time of {args.repeats} fresh process(es) per size and side "
+          "(Python start, imports, mesh, assembly, compilation, optimisation, exit), the "
+          "peer's alternated with the project's; phases: medians inside the process; exit: "
+          "from its last print to its end (the interpreter's shutdown); start = whole - "
+          "phases - exit; CG its: primal + adjoint state-solve iterations (Riesz-map mass "
+          "solves apart); optimum: relative L2 error of f at the discrete optimum, target: "
+          "1 % above it, error: where the run stopped (all against the analytic optimum); "
+          "peer err: the peer's own final error (L-BFGS-B, its tutorial's tolerances); cache: "
+          "cold = the program (the peer's forms) compiled in the process, warm = loaded from "
+          "a cache one untimed process filled (no goal: the goal's time includes compiling)")
 
 
 def _bench_prdp(args) -> None:
