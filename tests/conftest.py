@@ -8,6 +8,15 @@ import shutil
 import tempfile
 from pathlib import Path
 
+# OpenBLAS (NumPy's and SciPy's) runs a thread per core, and its threads spin while they wait
+# for each other: wherever the cores are shared -- pytest-xdist's workers, one per core, or
+# any other busy process -- a descheduled thread stalls the rest. The suite's dense matrices
+# are small (AMG radii, condition numbers, direct references: up to a few thousand rows), so
+# each process keeps to one BLAS thread unless the caller chose (test_amg.py's eigen-solves:
+# 1 s on one thread, 28 s on two beside a busy process). OpenBLAS reads it when it loads,
+# so it is set before NumPy's import; the CLI processes the tests start inherit it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import numpy as np
 import pytest
 from hypothesis import settings

@@ -630,13 +630,22 @@ def test_scene_with_a_truncated_mesh_file_names_the_mesh(tmp_path):
 
 
 # --------------------------------------------------------------------------------------
-# the prdp-fem command: one line on stderr, exit status 2
+# the prdp-fem command (its main, in this process): one line on stderr, exit status 2
 # --------------------------------------------------------------------------------------
 
 
-def cli(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", *map(str, args)], cwd=cwd,
-                          capture_output=True, text=True, timeout=300, env=_checkout_env())
+def run_main(args, cwd, monkeypatch, capsys) -> tuple[int, str]:
+    """``main(args)`` in this process, run in ``cwd``: its exit code and stderr (the program
+    only exits with that code; tests/test_cli_commands.py runs a bad input through it)."""
+    from prdp_fem.cli.main import main
+
+    monkeypatch.chdir(cwd)
+    capsys.readouterr()
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exit:  # an option argparse refuses
+        code = exit.code
+    return code, capsys.readouterr().err
 
 
 @pytest.mark.parametrize(("args", "message"), [
@@ -654,7 +663,7 @@ def cli(*args, cwd):
     (["bench", "memory", "--modes", "adjoint"], r"--modes adjoint: expected some of "
      r"\['unrolled', 'checkpointed', 'implicit'\]"),
 ])
-def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys, args, message):
     (tmp_path / "kappa.toml").write_text("[mesh]\nn = 4\n[pde]\nkappa = 'x - 0.5'\n")
     (tmp_path / "iterations.toml").write_text("[mesh]\nn = 4\n[solver]\niterations = [-1]\n")
     (tmp_path / "sensors.toml").write_text(
@@ -664,8 +673,8 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     (tmp_path / "renamed.msh").write_bytes(_saved(tmp_path, "m.vtu").read_bytes())
     names = {"KAPPA": "kappa.toml", "ITERATIONS": "iterations.toml", "HALF": "half.msh",
              "RENAMED": "renamed.msh", "SENSORS": "sensors.toml"}
-    done = cli(*[names.get(a, a) for a in args], cwd=tmp_path)
-    assert done.returncode == 2, done.stderr
-    assert done.stderr.startswith("prdp-fem: error: "), done.stderr
-    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr, done.stderr
-    assert re.search(message, done.stderr), done.stderr
+    code, err = run_main([names.get(a, a) for a in args], tmp_path, monkeypatch, capsys)
+    assert code == 2, err
+    assert err.startswith("prdp-fem: error: "), err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert re.search(message, err), err

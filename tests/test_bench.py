@@ -1,10 +1,6 @@
 """bench cg: the operator it times, the table it prints (numbers' structure, never timings)."""
 
 import math
-import os
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
@@ -18,10 +14,7 @@ from prdp_fem.bench.cg import (
     poisson_operator,
     scaling_slope,
 )
-
-ROOT = Path(__file__).resolve().parent.parent
-ENV = {**os.environ, "PYTHONPATH": os.pathsep.join(
-    [str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+from prdp_fem.cli.main import main
 
 
 def test_poisson_operator_is_the_discretised_laplacian():
@@ -48,10 +41,15 @@ def test_cost_fields_and_slope():
     assert math.isnan(scaling_slope(line[:1]))
 
 
-def test_bench_cg_prints_one_row_per_size_and_the_slope():
-    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", "bench", "cg", "--sides", "8",
-                          "12", "--iterations", "2", "--repeats", "1"], env=ENV,
-                         capture_output=True, text=True, timeout=300, check=True).stdout
+def bench_cg(*args: str, capsys) -> str:
+    """What ``prdp-fem bench cg ARGS`` prints (its main, in this process)."""
+    capsys.readouterr()
+    assert main(["bench", "cg", *args]) == 0
+    return capsys.readouterr().out
+
+
+def test_bench_cg_prints_one_row_per_size_and_the_slope(capsys):
+    out = bench_cg("--sides", "8", "12", "--iterations", "2", "--repeats", "1", capsys=capsys)
     rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]
     assert [int(row[0]) for row in rows] == [49, 121]
     assert all(len(row) == 10 and all(math.isfinite(float(v)) for v in row) for row in rows)
@@ -71,11 +69,9 @@ def test_device_cost_times_every_kernel_against_the_csr_spmv():
     assert all(t >= 0 and math.isfinite(t) for t in (*cost.kernel_s.values(), cost.spmv_s))
 
 
-def test_bench_cg_device_reference_prints_one_column_per_kernel():
-    out = subprocess.run([sys.executable, "-m", "prdp_fem.cli.main", "bench", "cg", "--sides", "8",
-                          "--iterations", "2", "--repeats", "1", "--reference", "device"],
-                         env=ENV, capture_output=True, text=True, timeout=300,
-                         check=True).stdout
+def test_bench_cg_device_reference_prints_one_column_per_kernel(capsys):
+    out = bench_cg("--sides", "8", "--iterations", "2", "--repeats", "1", "--reference",
+                   "device", capsys=capsys)
     header = next(line for line in out.splitlines() if line.split()[:1] == ["dofs"])
     assert [f"{k}" for k in linalg.KERNELS] == [w for w in header.split() if w in linalg.KERNELS]
     rows = [line.split() for line in out.splitlines() if line.strip()[:1].isdigit()]

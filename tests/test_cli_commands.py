@@ -167,7 +167,7 @@ def test_first_ctrl_c_stops_between_steps_and_a_second_at_once():
     bars.close()
 
 
-@pytest.mark.parametrize(("args", "message"), [
+BAD_INPUT = [
     (["study", "nope.toml"], "nope.toml: scene file does not exist"),
     (["study", "torus"], "expected a .toml file or a built-in scene"),
     (["invert", "BAD"], "unknown key 'colour'"),
@@ -176,17 +176,41 @@ def test_first_ctrl_c_stops_between_steps_and_a_second_at_once():
     (["mesh-info", "BROKEN"], "could not be read as a mesh"),
     (["study", "mother", "--steps", "-1"], "--steps -1: expected an integer >= 0"),
     (["solve", "poisson_h", "--out", "BAD/u.vtu"], "expected a writable path"),
-])
-def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
+]
+
+
+def _bad_input_args(tmp_path, args) -> list[str]:
     bad = tmp_path / "bad.toml"
     bad.write_text("colour = 'red'\n")
     broken = tmp_path / "broken.msh"
     broken.write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2")
-    args = [a.replace("BAD", str(bad)).replace("BROKEN", str(broken)) for a in args]
-    done = cli(*args, cwd=tmp_path)
-    assert done.returncode == 2, done.stderr
-    assert done.stderr.startswith("prdp-fem: error: ") and message in done.stderr
-    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
+    return [a.replace("BAD", str(bad)).replace("BROKEN", str(broken)) for a in args]
+
+
+def _assert_one_line_exit_2(code, err, message):
+    assert code == 2, err
+    assert err.startswith("prdp-fem: error: ") and message in err
+    assert err.count("\n") == 1 and "Traceback" not in err
+
+
+@pytest.mark.parametrize(("args", "message"), BAD_INPUT)
+def test_bad_input_is_one_line_and_exit_2(tmp_path, monkeypatch, capsys, args, message):
+    # main() in this process (the program exits with its code: test_cli.py, and the
+    # subprocess case below); relative paths are the working directory's
+    args = _bad_input_args(tmp_path, args)
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    try:
+        code = main(args)
+    except SystemExit as exit:  # an option argparse refuses
+        code = exit.code
+    _assert_one_line_exit_2(code, capsys.readouterr().err, message)
+
+
+def test_bad_input_through_the_program_is_one_line_and_exit_2(tmp_path):
+    args, message = BAD_INPUT[2]
+    done = cli(*_bad_input_args(tmp_path, args), cwd=tmp_path)
+    _assert_one_line_exit_2(done.returncode, done.stderr, message)
 
 
 def test_solve_a_bare_mesh_file_writes_the_solution(tmp_path):
