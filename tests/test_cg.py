@@ -303,7 +303,7 @@ def exact_gradients(disc, kappa, f, w):
     return kappa_bar, f_bar
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def p1_kappa_problem():
     disc = pf.discretize(pf.unit_square(10), element="P1", kappa_space="P1",
                          dirichlet={"left": 1.0, "right": 0.0})
@@ -311,6 +311,23 @@ def p1_kappa_problem():
     f = jnp.asarray(disc.interpolate(lambda x: np.sin(2 * x[1])))
     w = np.asarray(jax.random.normal(jax.random.PRNGKey(WEIGHTS_SEED), (disc.n_free,)))
     return disc, kappa, f, w
+
+
+@pytest.fixture(scope="module")
+def implicit_kappa_gradient(p1_kappa_problem):
+    """``gradient(kappa, K, K_adj)``: dJ/dkappa of J = w . x_K in implicit mode, K and K_adj
+    traced, so one program serves every count of the tests below (loss_fn closes over its
+    solver: a program per solver)."""
+    disc, _, f, w = p1_kappa_problem
+    system = disc.system
+
+    @jax.jit
+    def gradient(kappa, k, k_adj):
+        solver = TruncatedCG(k, gradient="implicit", adjoint_iterations=k_adj)
+        return jax.grad(lambda c: jnp.asarray(w) @ solve(system.operator(c), system.rhs(c, f),
+                                                         solver).x)(kappa)
+
+    return gradient
 
 
 def gradients(disc, kappa, f, solver):
@@ -331,19 +348,23 @@ def test_implicit_gradient_at_large_k_equals_exact_adjoint(p1_kappa_problem):
     g_kappa, g_f = gradients(disc, kappa, f, solver)
     assert relative(g_kappa, kappa_bar) < 1e-8
     assert relative(g_f, f_bar) < 1e-8
-    converged = gradients(disc, kappa, f, ConvergedCG(rtol=1e-13))
-    assert relative(converged[0], kappa_bar) < 1e-8
+    converged = jax.grad(loss_fn(disc, ConvergedCG(rtol=1e-13), "kappa")[0])(
+        kappa, (kappa, f, jnp.zeros(disc.n_free)))
+    assert relative(converged, kappa_bar) < 1e-8
 
 
-def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem):
+def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem,
+                                                          implicit_kappa_gradient):
     disc, kappa, f, w = p1_kappa_problem
     kappa_bar, _ = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
     errors = {"unrolled": [], "implicit": []}
     args = (kappa, f, jnp.zeros(disc.n_free))
     for k in (3, 10, 30):
         for mode in errors:  # the kappa gradient alone, jitted (gradients() also takes f's)
-            g = jax.jit(jax.grad(loss_fn(disc, TruncatedCG(k, gradient=mode), "kappa")[0]))(
-                kappa, args)
+            if mode == "implicit":  # K traced: one program for the three counts
+                g = implicit_kappa_gradient(kappa, k, k)
+            else:  # a scan of K steps: a program per K
+                g = jax.jit(jax.grad(loss_fn(disc, TruncatedCG(k), "kappa")[0]))(kappa, args)
             assert np.all(np.isfinite(g))
             errors[mode].append(relative(g, kappa_bar))
     for mode, errs in errors.items():
@@ -351,14 +372,12 @@ def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem):
         assert errs[0] > errs[1] > errs[2], (mode, errs)
 
 
-def test_implicit_adjoint_iterations_are_separate(p1_kappa_problem):
+def test_implicit_adjoint_iterations_are_separate(p1_kappa_problem, implicit_kappa_gradient):
     disc, kappa, f, w = p1_kappa_problem
     kappa_bar, _ = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
     big = 10 * disc.n_free
-    coarse_adjoint = gradients(disc, kappa, f, TruncatedCG(big, gradient="implicit",
-                                                           adjoint_iterations=3))[0]
-    fine_adjoint = gradients(disc, kappa, f, TruncatedCG(big, gradient="implicit",
-                                                         adjoint_iterations=big))[0]
+    coarse_adjoint = implicit_kappa_gradient(kappa, big, 3)
+    fine_adjoint = implicit_kappa_gradient(kappa, big, big)
     assert relative(fine_adjoint, kappa_bar) < 1e-8
     assert relative(coarse_adjoint, kappa_bar) > 1e-3
 
@@ -378,7 +397,7 @@ def test_gradients_finite_far_past_convergence_and_at_zero_rhs(small_problem, mo
         return jnp.sum(solve(op.with_values(values), jnp.zeros(disc.n_free),
                              TruncatedCG(k, gradient=mode)).x ** 2)
 
-    assert np.all(np.isfinite(jax.grad(zero_rhs_loss)(op.values)))
+    assert np.all(np.isfinite(jax.jit(jax.grad(zero_rhs_loss))(op.values)))
 
 
 def test_unrolled_checkpoint_gives_the_same_gradient(small_problem):
@@ -538,27 +557,29 @@ def _scan_length_loss(disc, f, w, k, scan_length, checkpoint=False):
     return loss
 
 
-@pytest.mark.parametrize("k", [0, 1, 9, 16])
-def test_scan_length_gives_the_k_iteration_map_and_its_gradient(small_problem, k):
+def test_scan_length_gives_the_k_iteration_map_and_its_gradient(small_problem):
     disc, kappa, f = small_problem
     kappa = jnp.asarray(kappa)
     w = jnp.cos(jnp.arange(disc.n_free))
-    static = jax.value_and_grad(_scan_length_loss(disc, f, w, k, None), has_aux=True)
+    # one bounded program (K traced) serves every K; each static K is a program of its own
     bounded = jax.jit(lambda kappa, k: jax.value_and_grad(
         _scan_length_loss(disc, f, w, k, 16), has_aux=True)(kappa))
-    (value, sol), grad = static(kappa)
-    (value_b, sol_b), grad_b = bounded(kappa, k)
-    np.testing.assert_allclose(sol_b.x, sol.x, rtol=1e-13, atol=1e-15)
-    np.testing.assert_allclose(grad_b, grad, rtol=1e-11, atol=1e-14 * np.abs(grad).max())
-    assert float(value_b) == pytest.approx(float(value), rel=1e-13)
-    assert int(sol_b.iterations) == int(sol.iterations) == k
-    assert float(sol_b.residual_norm) == pytest.approx(float(sol.residual_norm), rel=1e-13)
-    # the history: k + 1 norms, then the final one repeated to scan_length + 1 entries
-    assert sol_b.residual_history.shape == (17,)
-    np.testing.assert_allclose(sol_b.residual_history[:k + 1], sol.residual_history,
-                               rtol=1e-13)
-    np.testing.assert_array_equal(sol_b.residual_history[k:],
-                                  sol_b.residual_history[k] * np.ones(17 - k))
+    for k in (0, 1, 9, 16):
+        static = jax.jit(jax.value_and_grad(_scan_length_loss(disc, f, w, k, None),
+                                            has_aux=True))
+        (value, sol), grad = static(kappa)
+        (value_b, sol_b), grad_b = bounded(kappa, k)
+        np.testing.assert_allclose(sol_b.x, sol.x, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(grad_b, grad, rtol=1e-11, atol=1e-14 * np.abs(grad).max())
+        assert float(value_b) == pytest.approx(float(value), rel=1e-13)
+        assert int(sol_b.iterations) == int(sol.iterations) == k
+        assert float(sol_b.residual_norm) == pytest.approx(float(sol.residual_norm), rel=1e-13)
+        # the history: k + 1 norms, then the final one repeated to scan_length + 1 entries
+        assert sol_b.residual_history.shape == (17,)
+        np.testing.assert_allclose(sol_b.residual_history[:k + 1], sol.residual_history,
+                                   rtol=1e-13)
+        np.testing.assert_array_equal(sol_b.residual_history[k:],
+                                      sol_b.residual_history[k] * np.ones(17 - k))
 
 
 def test_scan_length_traces_once_for_every_k_below_it(small_problem):

@@ -220,7 +220,9 @@ def test_gradient_with_respect_to_tensor_components_passes_taylor_test(mode):
     kappa = jnp.asarray(disc.interpolate_kappa(lambda x: np.array([[1.0, 0.3], [0.3, 0.5]])))
     f = jnp.ones(disc.n_dofs)
     solver = TruncatedCG(10 * disc.n_free, gradient=mode)
-    result = pf.taylor_test(lambda k: jnp.sum(disc.system.solve(k, f, solver).x ** 2), kappa)
+    # jitted: the gradient and the seven values compile once each, not op by op
+    result = pf.taylor_test(jax.jit(lambda k: jnp.sum(disc.system.solve(k, f, solver).x ** 2)),
+                            kappa)
     assert result.passed(), result.rates
 
 
@@ -327,17 +329,20 @@ def test_unrolled_gradient_far_past_convergence_is_the_exact_one(preconditioner)
         return jnp.vdot(weights, disc.system.solve(jnp.exp(log_kappa), f, solver).x)
 
     zero = jnp.zeros(disc.n_kappa)
-    exact = jax.grad(loss)(zero, ConvergedCG(rtol=1e-14, preconditioner=preconditioner))
+    # each derivative jitted (one program each; op by op they compiled some 150 small ones)
+    grad = jax.jit(jax.grad(loss), static_argnums=1)
+    exact = grad(zero, ConvergedCG(rtol=1e-14, preconditioner=preconditioner))
     unrolled = TruncatedCG(10 * disc.n_free, preconditioner)
-    gradient = jax.grad(loss)(zero, unrolled)
+    gradient = grad(zero, unrolled)
     np.testing.assert_allclose(gradient, exact, rtol=1e-8, atol=1e-10 * abs(exact).max())
     direction = jnp.asarray(np.random.default_rng(1).standard_normal(disc.n_kappa))
-    _, tangent = jax.jvp(lambda z: loss(z, unrolled), (zero,), (direction,))
+    _, tangent = jax.jit(lambda d: jax.jvp(lambda z: loss(z, unrolled), (zero,), (d,)))(
+        direction)
     assert float(tangent) == pytest.approx(float(jnp.vdot(exact, direction)), rel=1e-8)
     # second order: the derivative of the implicit tangent sees the implicit tangent of x
     def hessian_vector(solver):
         squared = lambda z: loss(z, solver) ** 2  # noqa: E731 (a loss with curvature in x)
-        return jax.jvp(jax.grad(squared), (zero,), (direction,))[1]
+        return jax.jit(lambda d: jax.jvp(jax.grad(squared), (zero,), (d,))[1])(direction)
     reference = hessian_vector(ConvergedCG(rtol=1e-14, preconditioner=preconditioner))
     np.testing.assert_allclose(hessian_vector(unrolled), reference, rtol=1e-7,
                                atol=1e-9 * abs(reference).max())
@@ -384,8 +389,10 @@ def test_float32_solves_run_in_float32_to_its_stated_accuracy(mode):
                   TruncatedCG(10 * disc.n_free, gradient=mode)).x
         return jnp.sum(x.astype(jnp.float64) ** 2)
 
-    gradient = jax.grad(loss)(kappa)
-    exact = jax.grad(lambda k: jnp.sum(disc.system.solve(k, f, ConvergedCG()).x ** 2))(kappa)
+    # the gradients jitted (the solve above is the eager one)
+    gradient = jax.jit(jax.grad(loss))(kappa)
+    exact = jax.jit(jax.grad(lambda k: jnp.sum(disc.system.solve(k, f, ConvergedCG()).x ** 2)))(
+        kappa)
     assert np.isfinite(gradient).all()
     np.testing.assert_allclose(gradient, exact, rtol=1e-3, atol=1e-4 * abs(exact).max())
 

@@ -108,8 +108,9 @@ def test_unrolled_derivative_is_that_of_the_k_sweep_map():
     x0 = np.cos(np.arange(N))
     S, T = sweep_map(M, 9, omega=0.7)
     solver = TruncatedJacobi(9, omega=0.7)
-    jac_b = jax.jacrev(lambda b: solve(A, b, solver, x0=x0).x)(jnp.asarray(rhs()))
-    jac_x0 = jax.jacfwd(lambda x: solve(A, rhs(), solver, x0=x).x)(jnp.asarray(x0))
+    # the derivatives jitted: one program each (op by op, some 90 small ones)
+    jac_b = jax.jit(jax.jacrev(lambda b: solve(A, b, solver, x0=x0).x))(jnp.asarray(rhs()))
+    jac_x0 = jax.jit(jax.jacfwd(lambda x: solve(A, rhs(), solver, x0=x).x))(jnp.asarray(x0))
     np.testing.assert_allclose(jac_b, S, rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(jac_x0, T, rtol=1e-12, atol=1e-15)
 
@@ -124,8 +125,9 @@ def test_unrolled_derivative_is_that_of_the_k_sweep_map():
     h = 1e-6
     expected = (numpy_map(np.asarray(A.values) + h * direction)
                 - numpy_map(np.asarray(A.values) - h * direction)) / (2 * h)
-    _, got = jax.jvp(lambda v: solve(with_values(A, v), rhs(), solver, x0=x0).x,
-                     (A.values,), (jnp.asarray(direction),))
+    _, got = jax.jit(lambda d: jax.jvp(lambda v: solve(with_values(A, v), rhs(), solver,
+                                                       x0=x0).x, (A.values,), (d,)))(
+        jnp.asarray(direction))
     np.testing.assert_allclose(got, expected, rtol=1e-7, atol=1e-9)
 
 
@@ -141,7 +143,8 @@ def test_implicit_gradient_is_the_truncated_adjoint_formula():
     def loss(values, b):
         return jnp.vdot(c, solve(with_values(A, values), b, solver, x0=x0).x)
 
-    g_values, g_b = jax.grad(loss, argnums=(0, 1))(A.values, jnp.asarray(rhs()))
+    # the derivatives jitted: one program each (op by op, some 80 small ones)
+    g_values, g_b = jax.jit(jax.grad(loss, argnums=(0, 1)))(A.values, jnp.asarray(rhs()))
     S, T = sweep_map(M, 6, omega=0.9)
     x = S @ rhs() + T @ x0
     S_adj, _ = sweep_map(M.T.tocsr(), 4, omega=0.9)
@@ -151,13 +154,15 @@ def test_implicit_gradient_is_the_truncated_adjoint_formula():
                                rtol=1e-12, atol=1e-15)
     # forward mode: the tangent system db - dA x by K_adj sweeps on A
     db, dv = np.sin(np.arange(N)), np.cos(np.arange(A.values.shape[0]))
-    _, tangent = jax.jvp(lambda v, b: solve(with_values(A, v), b, solver, x0=x0).x,
-                         (A.values, jnp.asarray(rhs())), (jnp.asarray(dv), jnp.asarray(db)))
+    _, tangent = jax.jit(lambda dv, db: jax.jvp(
+        lambda v, b: solve(with_values(A, v), b, solver, x0=x0).x,
+        (A.values, jnp.asarray(rhs())), (dv, db)))(jnp.asarray(dv), jnp.asarray(db))
     dA = sp.csr_matrix((dv, (np.asarray(A.rows), np.asarray(A.cols))), M.shape)
     S4, _ = sweep_map(M, 4, omega=0.9)
     np.testing.assert_allclose(tangent, S4 @ (db - dA @ x), rtol=1e-12, atol=1e-14)
     # x0 gets no derivative in implicit mode
-    g_x0 = jax.grad(lambda x: jnp.vdot(c, solve(A, rhs(), solver, x0=x).x))(jnp.asarray(x0))
+    g_x0 = jax.jit(jax.grad(lambda x: jnp.vdot(c, solve(A, rhs(), solver, x0=x).x)))(
+        jnp.asarray(x0))
     np.testing.assert_array_equal(g_x0, 0.0)
 
 
