@@ -29,6 +29,7 @@ from prdp_fem.inverse import (
 )
 from prdp_fem.inverse.steps import step_failed
 from prdp_fem.linalg import ConvergedCG, IterationCounter, TruncatedCG, solve, zero_counts
+from prdp_fem.optim import Evaluation
 
 
 def _coefficient_problem(n=10, kappa_space="P1", noise=0.0, alpha=1e-6, reg="h1",
@@ -356,7 +357,7 @@ def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once
     first = invert(problem, refinement=fixed(3), steps=3)
     second = invert(problem, refinement=fixed(3), steps=3)
     other_alpha = invert(dataclasses.replace(problem, alpha=1e-3), refinement=fixed(3), steps=3)
-    steps = [c for c in made if c._static_argnum == 4]
+    steps = [c for c in made if c._static_argnum == 5]
     assert len(steps) == 1
     # no run counts another's compilation: together they are at most what was compiled
     runs = (first, second, other_alpha)
@@ -370,7 +371,7 @@ def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once
     adam = optax.adam(1e-2)
     invert(problem, optimizer=adam, refinement=fixed(3), steps=1)
     invert(problem, optimizer=adam, refinement=fixed(3), steps=1)
-    assert len([c for c in made if c._static_argnum == 4]) == 3
+    assert len([c for c in made if c._static_argnum == 5]) == 3
 
 
 def test_an_unrolled_run_compiles_one_step_per_scan_length(monkeypatch):
@@ -382,7 +383,7 @@ def test_an_unrolled_run_compiles_one_step_per_scan_length(monkeypatch):
     runs = {K: invert(problem, optimizer=sgd, refinement=fixed(K), gradient="unrolled",
                       steps=2)
             for K in (10, 16, 20)}
-    [step] = [c for c in made if c._static_argnum == 4]
+    [step] = [c for c in made if c._static_argnum == 5]
     assert sorted(key[0] for key in step._cache) == [16, 32]
     z0 = jnp.zeros(problem.n_parameters)
     for K, run in runs.items():
@@ -414,7 +415,7 @@ def test_a_step_traces_its_objective_once(monkeypatch):
 
 
 def _compiled_text(fn, *args) -> str:
-    return jax.jit(fn, static_argnums=4 if len(args) > 4 else None).lower(*args).compile() \
+    return jax.jit(fn, static_argnums=5 if len(args) > 5 else None).lower(*args).compile() \
         .as_text()
 
 
@@ -427,7 +428,7 @@ def _compiled_step(problem, optimizer) -> tuple[int, int]:
     optimizer = optax.with_extra_args_support(optimizer)
     z = jnp.zeros(problem.n_parameters)
     step = inverse._make_step(optimizer, "implicit", False, "jacobi")
-    text = _compiled_text(step, problem, IterationCounter(), z, optimizer.init(z), 0,
+    text = _compiled_text(step, problem, IterationCounter(), z, optimizer.init(z), None, 0,
                           *steps.device_settings((8, 8, 0.0)))
     return text.count("custom-call("), text.count(" while(")
 
@@ -439,14 +440,14 @@ def test_an_l_bfgs_step_holds_its_objective_once_and_no_host_call(monkeypatch):
     a non-finite value), so the compiled step holds the objective -- a CG solve and its
     adjoint, each compiled anew where it appears -- once, where the evaluation before the
     update held it twice. Its evaluations return their iteration counts
-    (``Objective.value_grad_and_counts``): the step holds no host call, where optax's own
+    (``Objective.evaluate``): the step holds no host call, where optax's own
     search evaluates the plain objective (host-counted) in both of its branches."""
     from prdp_fem.inverse import driver as inverse
     from prdp_fem.inverse import steps
 
     _, problem = _coefficient_problem(n=6, alpha=1e-5)
     solver = TruncatedCG(8, "jacobi", gradient="implicit", adjoint_iterations=8)
-    counted = _compiled_text(inverse.Objective(problem, solver, None).value_grad_and_counts,
+    counted = _compiled_text(inverse.Objective(problem, solver, None).evaluate,
                              jnp.zeros(problem.n_parameters))
     loops_per_objective = counted.count(" while(")
     assert counted.count("custom-call(") == 0 and loops_per_objective >= 2
@@ -490,7 +491,7 @@ def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(mon
 def test_a_step_returns_the_counts_the_host_counter_would_hear(monkeypatch, gradient,
                                                                refinement):
     """``pf.lbfgs``'s evaluations return their iteration counts as outputs
-    (``Objective.value_grad_and_counts``); forced through the host counter instead, a run has
+    (``Objective.evaluate``); forced through the host counter instead, a run has
     the same losses and the same counts at every step."""
     from prdp_fem.inverse import driver as inverse
 
@@ -499,9 +500,9 @@ def test_a_step_returns_the_counts_the_host_counter_would_hear(monkeypatch, grad
 
     def host_counted(objective):
         value_and_grad = objective.value_and_grad  # counts into the objective's counter
-        return lambda z: (*value_and_grad(z), zero_counts())
+        return lambda z: Evaluation(*value_and_grad(z), zero_counts())
 
-    monkeypatch.setattr(inverse.Objective, "value_grad_and_counts", property(host_counted))
+    monkeypatch.setattr(inverse.Objective, "evaluate", property(host_counted))
     inverse._step_program.cache_clear()
     heard = invert(problem, refinement=refinement, gradient=gradient, steps=12).history
     inverse._step_program.cache_clear()  # no step with the patched objective kept
@@ -539,7 +540,7 @@ def test_amg_cycles_of_equal_shapes_share_one_step_and_a_callback_cycle_gets_its
     sgd = optax.sgd(1e-3)  # a small step program: the test is about how many compile
     runs = [invert(problem, optimizer=sgd, refinement=fixed(3), steps=2, preconditioner=cycle)
             for cycle in cycles]
-    steps = [c for c in made if c._static_argnum == 4]
+    steps = [c for c in made if c._static_argnum == 5]
     assert len(steps) == 1 and len(steps[0]._cache) == 1  # the cycle is an argument
     # M / 2 takes the same PCG iterates as M: the second run is not the first one's replay
     losses = [run.history.column("loss") for run in runs]
@@ -549,7 +550,7 @@ def test_amg_cycles_of_equal_shapes_share_one_step_and_a_callback_cycle_gets_its
     callback = pf.amg_preconditioner(operator, implementation="callback")
     for _ in range(2):
         invert(problem, optimizer=sgd, refinement=fixed(3), steps=2, preconditioner=callback)
-    assert len([c for c in made if c._static_argnum == 4]) == 3
+    assert len([c for c in made if c._static_argnum == 5]) == 3
 
 
 def test_a_failed_line_search_is_read_from_the_optimizer_state():

@@ -57,7 +57,7 @@ from ..linalg.cg import (
     zero_counts,
 )
 from ..linalg.operator import SparseMatrix, matvec
-from ..optim.linesearch import lbfgs
+from ..optim.linesearch import Evaluation, has_search_state, lbfgs, with_warm_start_slot
 from .history import History, StepRecord
 from .refinement import Refinement, RefinementState, prdp
 from .steps import (
@@ -79,6 +79,7 @@ __all__ = [
     "InversionError",
     "Objective",
     "Validation",
+    "WarmStart",
     "initial_params",
     "inverse_problem",
     "invert",
@@ -326,6 +327,26 @@ class Validation:
             raise SolverConfigError(f"{self!r}: expected every >= 1 and 0 < rtol < 1")
 
 
+class WarmStart(NamedTuple):
+    """Where an evaluation's solves start: the state solve from ``state``, the adjoint solve
+    from ``adjoint`` (free dofs; zeros: a cold start).
+
+    An optimiser moves the parameters a little per step, so the previous evaluation's
+    solutions are close to the next one's: a truncated solve from them is more accurate than
+    one from zero, and the truncation error left by earlier steps is not paid again. The
+    adjoint starts warm only in implicit mode (:class:`~prdp_fem.linalg.TruncatedCG` with
+    ``gradient="implicit"``, :class:`~prdp_fem.linalg.ConvergedCG`).
+    """
+
+    state: jax.Array
+    adjoint: jax.Array
+
+    @classmethod
+    def cold(cls, n: int, dtype=jnp.float64) -> WarmStart:
+        """Zeros of ``n`` free dofs: the first evaluation's start."""
+        return cls(jnp.zeros(n, dtype), jnp.zeros(n, dtype))
+
+
 class Inversion(NamedTuple):
     """What :func:`invert` returns."""
 
@@ -346,14 +367,23 @@ class Objective:
     that :func:`prdp_fem.optim.hig.hig` differentiates. An object rather than an extra update
     argument: optax's zoom line search passes every extra argument on to ``value_fn`` and
     refuses one it does not take.
+
+    ``warm_start`` (a :class:`WarmStart`, or ``None`` for zero starts): the state solve of
+    every evaluation starts from ``warm_start.state``, and :meth:`evaluate` 's adjoint solve
+    from ``warm_start.adjoint``; :meth:`evaluate` returns both solutions as the next start.
     """
 
     problem: InverseProblem
     solver: Any
     counter: IterationCounter | None = None
+    warm_start: WarmStart | None = None
 
     def __call__(self, params: jax.Array) -> jax.Array:
-        return self.problem.loss(params, self.solver, counter=self.counter)[0]
+        return self.problem.loss(params, self.solver, self._state_start(),
+                                 counter=self.counter)[0]
+
+    def _state_start(self) -> jax.Array | None:
+        return None if self.warm_start is None else self.warm_start.state
 
     @cached_property
     def value_and_grad(self) -> Callable[[jax.Array], tuple[jax.Array, jax.Array]]:
@@ -364,22 +394,32 @@ class Objective:
         return jax.jit(jax.value_and_grad(self))
 
     @cached_property
-    def value_grad_and_counts(self) -> Callable[[jax.Array], tuple[jax.Array, ...]]:
-        """``params -> (J, grad J, counts)``: the value, the gradient and the iterations its
-        solves ran (``[primal, adjoint, primal_solves, adjoint_solves]``) as ordinary outputs
-        -- the gradient with respect to a :class:`~prdp_fem.linalg.ReverseTally`'s seed, no
-        host call. Line searches and :func:`~prdp_fem.inverse.steps.value_grad_and_update`
-        evaluate through it, so that a step whose every evaluation is one of these holds no
-        host callback: JAX then dispatches it on its fast path, and its persistent cache can
-        keep it."""
-        def J(params, seed):
-            return self.problem.loss(params, self.solver, counter=ReverseTally(seed))[0]
+    def evaluate(self) -> Callable[[jax.Array], Evaluation]:
+        """``params -> Evaluation``: the value, the gradient and the iterations its solves
+        ran (``[primal, adjoint, primal_solves, adjoint_solves]``) as ordinary outputs -- the
+        gradient with respect to a :class:`~prdp_fem.linalg.ReverseTally`'s seed, no host
+        call -- and, with a :attr:`warm_start`, the state and adjoint solutions as the next
+        one (the adjoint's as the gradient with respect to the tally's ``adjoint_start``).
+        Line searches and :func:`~prdp_fem.inverse.steps.value_grad_and_update` evaluate
+        through it, so that a step whose every evaluation is one of these holds no host
+        callback: JAX then dispatches it on its fast path, and its persistent cache can keep
+        it."""
+        warm = self.warm_start
 
-        value_and_grads = jax.value_and_grad(J, argnums=(0, 1))
+        def J(params, seed, adjoint_start):
+            loss, parts = self.problem.loss(params, self.solver, self._state_start(),
+                                            counter=ReverseTally(seed, adjoint_start))
+            return loss, parts.solution.x
+
+        value_and_grads = jax.value_and_grad(J, argnums=(0, 1) if warm is None else (0, 1, 2),
+                                             has_aux=True)
 
         def evaluate(params):
-            value, (grad, counts) = value_and_grads(params, zero_counts())
-            return value, grad, counts
+            (value, state), grads = value_and_grads(params, zero_counts(),
+                                                    None if warm is None else warm.adjoint)
+            following = None if warm is None else \
+                WarmStart(jax.lax.stop_gradient(state), grads[2])
+            return Evaluation(value, grads[0], grads[1], following)
 
         return jax.jit(evaluate)
 
@@ -403,17 +443,18 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
     ``preconditioner`` is closed over, except :class:`~prdp_fem.linalg.AMGCycle` (pass the class):
     the cycle is then the step's last argument (see :func:`preconditioner_key`)."""
 
-    def step(problem, counter, z, opt_state, scan_length, K, K_adj, rtol, cycle=None):
+    def step(problem, counter, z, opt_state, warm_start, scan_length, K, K_adj, rtol,
+             cycle=None):
         solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
 
-        value_fn = Objective(problem, solver, counter)
+        value_fn = Objective(problem, solver, counter, warm_start)
 
-        value, grad, updates, opt_state, counts = value_grad_and_update(optimizer, opt_state, z,
-                                                                         value_fn)
+        value, grad, updates, opt_state, counts, following = value_grad_and_update(
+            optimizer, opt_state, z, value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
-        return z_next, opt_state, _StepScalars(
+        return z_next, opt_state, following, _StepScalars(
             value, misfit, problem.parameter_error(z_next), optax.tree.norm(grad),
             step_failed(opt_state), jnp.all(jnp.isfinite(z_next)), *counts).packed()
 
@@ -431,7 +472,7 @@ class _StepScalars(NamedTuple):
     grad_norm: float
     failed: float       # 1.0: the optimiser reports the step as failed
     finite_params: float  # 1.0: every new parameter is finite
-    # the iterations of the evaluations that returned them (Objective.value_grad_and_counts);
+    # the iterations of the evaluations that returned them (Objective.evaluate);
     # the rest (an optimiser's own products and searches) are in the host counter
     primal: float
     adjoint: float
@@ -470,7 +511,7 @@ def _default_optimizer() -> optax.GradientTransformationExtraArgs:
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
     return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
-                         static_argnum=4)
+                         static_argnum=5)
 
 
 #: The compiled step per settings (the optimizer object as given, gradient, tolerance mode,
@@ -495,7 +536,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
            refinement: Refinement | None = None, gradient: str = "implicit", steps: int = 100,
            init: np.ndarray | None = None, preconditioner: Any = "jacobi",
            monitor: str | Validation | None = None, reference_every: int = 0,
-           callback: Callable[[StepRecord, jax.Array], bool | None] | None = None) -> Inversion:
+           callback: Callable[[StepRecord, jax.Array], bool | None] | None = None,
+           warm_start: bool = False) -> Inversion:
     """Minimise ``J`` for ``steps`` optimiser steps while ``refinement`` picks the CG work.
 
     Parameters
@@ -534,6 +576,19 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         Every that many steps record ``state_error`` against a pyamg solve (not timed).
     callback
         ``callback(record, params)`` after every step; returning ``True`` stops the run.
+    warm_start
+        Start every evaluation's state and adjoint solves from the previous evaluation's
+        solutions (:class:`WarmStart`) instead of zero. A truncated solve then carries its
+        accuracy from step to step: as the steps shrink, ``K`` iterations from a close guess
+        approach the converged solve, and so the truncated gradient the exact one. A
+        converged solve needs fewer iterations to its tolerance (relative to the right-hand
+        side). Needs an optimiser that evaluates through the :class:`Objective` itself:
+        :func:`prdp_fem.lbfgs` (its search keeps the last trial's solutions) or one with no
+        stored value (a plain optax transformation, evaluated once per step); the adjoint
+        starts warm in implicit mode only. With a truncated solver the objective changes
+        with its start, so every step evaluates afresh at its point before its search (one
+        evaluation more per step with :func:`prdp_fem.lbfgs`); with a converged one it does
+        not, to its tolerance.
 
     Raises
     ------
@@ -567,8 +622,20 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     given = _default_optimizer() if optimizer is None else optimizer
     optimizer = optax.with_extra_args_support(given)  # a new wrapper for a plain transform
 
+    if not isinstance(warm_start, bool):
+        raise SolverConfigError(f"warm_start={warm_start!r}: expected True or False")
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
+    solves_from = None  # the next step's WarmStart, with warm_start
+    if warm_start:
+        solves_from = WarmStart.cold(problem.system.n_free)
+        if has_search_state(opt_state):
+            opt_state = with_warm_start_slot(opt_state, solves_from)
+        elif uses_stored_value(opt_state):
+            raise SolverConfigError(
+                "warm_start=True with an optimiser whose own line search evaluates the "
+                "objective (it does not hand the solutions back): use prdp_fem.lbfgs() or a "
+                "transformation without a line search")
     control = refinement.init()  # host arrays: an update is NumPy work, no dispatch
     # the host counter hears the solves of evaluations that do not return their counts
     # (an optimiser's own products and searches, the validation); `returned` sums the rest
@@ -604,9 +671,10 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             if uses_stored_value(opt_state) and not refinement.tolerance_mode:
                 opt_state = with_stale_value(opt_state)
         compile_before = compiled.seconds()
-        z_next, opt_state, packed = step(problem, counter, z, opt_state,
-                                         step_scan_length(gradient, settings[0]), *arguments,
-                                         *cycle_argument(preconditioner))
+        z_next, opt_state, following, packed = step(
+            problem, counter, z, opt_state, solves_from,
+            step_scan_length(gradient, settings[0]),
+            *arguments, *cycle_argument(preconditioner))
         result = _StepScalars.read(packed)
         returned = returned.add(result)
         monitored = result.grad_norm if monitor == "gradient" else result.value
@@ -635,6 +703,14 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
         z = z_next
+        if solves_from is not None:
+            solves_from = following
+            if not refinement.tolerance_mode and uses_stored_value(opt_state):
+                # a truncated J depends on where its solves start: the stored value is the
+                # previous start's, and a search comparing it with trials from the new one
+                # stalls (the values of two objectives); a converged J does not, to its
+                # tolerance
+                opt_state = with_stale_value(opt_state)
         if settings != previous_K and uses_stored_value(opt_state):
             # the stored value/gradient belong to the old solver: recompute them next step
             opt_state = with_stale_value(opt_state)

@@ -19,7 +19,7 @@ import optax.tree_utils as otu
 from ..errors import SolverConfigError
 from ..linalg.amg import AMGCycle
 from ..linalg.cg import ConvergedCG, TruncatedCG, unrolled_length
-from ..optim.linesearch import ZoomSearchState, value_grad_and_counts
+from ..optim.linesearch import ZoomSearchState, evaluation, search_warm_start
 
 __all__ = [
     "check_training_refinement",
@@ -62,12 +62,12 @@ def uses_stored_value(opt_state) -> bool:
 def _stored_or_evaluated(evaluate, z, opt_state):
     """:func:`optax.value_and_grad_from_state`: the value and gradient the line search stored
     (no counts), unless that value is not finite (none yet, or :func:`invert` marked it
-    stale), through ``evaluate`` (:func:`~prdp_fem.optim.linesearch.value_grad_and_counts`)."""
+    stale), through ``evaluate`` (:func:`~prdp_fem.optim.linesearch.evaluation`)."""
     value, grad = otu.tree_get(opt_state, "value"), otu.tree_get(opt_state, "grad")
-    counts = jax.eval_shape(evaluate, z)[2]
+    counts = jax.eval_shape(evaluate, z).counts
     return jax.lax.cond(jnp.isfinite(value),
                         lambda: (value, grad, jnp.zeros(counts.shape, counts.dtype)),
-                        lambda: evaluate(z))
+                        lambda: evaluate(z)[:3])
 
 
 def _search_counts(opt_state, like: jax.Array) -> jax.Array:
@@ -86,15 +86,18 @@ def _refreshes(opt_state) -> bool:
 
 
 def value_grad_and_update(optimizer, opt_state, z, value_fn):
-    """``(J(z), grad J(z), updates, new_state, counts)``: one optimiser update at ``z``, from
-    the value and gradient its line search stored where it stores them (evaluated first where
-    they are stale), else from a fresh evaluation.
+    """``(J(z), grad J(z), updates, new_state, counts, warm_start)``: one optimiser update at
+    ``z``, from the value and gradient its line search stored where it stores them (evaluated
+    first where they are stale), else from a fresh evaluation.
 
     ``counts``: the iterations the update's evaluations ran where ``value_fn`` returns them
-    (``value_grad_and_counts``, :func:`~prdp_fem.optim.linesearch.value_grad_and_counts`;
+    (its ``evaluate``, :func:`~prdp_fem.optim.linesearch.evaluation`;
     ``[primal, adjoint, primal_solves, adjoint_solves]``), zeros where it counts them
     otherwise. Evaluations inside other optimisers' own searches (optax's) and their
-    products (Newton-CG's) count only in ``value_fn``'s own counter.
+    products (Newton-CG's) count only in ``value_fn``'s own counter. ``warm_start``: the
+    last evaluation's (:class:`~prdp_fem.optim.linesearch.Evaluation`), what the next step's
+    solves start from; ``None`` where the objective keeps none or the evaluation is inside
+    another optimiser's search.
 
     With :func:`prdp_fem.lbfgs`'s search, the update runs in a loop of one trip, or two where
     the stored value is stale: the first trip hands the search the stale value, and the search
@@ -105,16 +108,18 @@ def value_grad_and_update(optimizer, opt_state, z, value_fn):
     optimisers with a stored value: :func:`optax.value_and_grad_from_state`'s evaluation,
     then the update.
     """
-    evaluate = value_grad_and_counts(value_fn)
+    evaluate = evaluation(value_fn)
+    warm_start = None
     if not uses_stored_value(opt_state):
-        value, grad, counts = evaluate(z)
+        value, grad, counts, warm_start = evaluate(z)
     elif not _refreshes(opt_state):
         value, grad, counts = _stored_or_evaluated(evaluate, z, opt_state)
     else:
         return _refreshed_update(optimizer, opt_state, z, value_fn)
     updates, new_state = optimizer.update(grad, opt_state, z, value=value, grad=grad,
                                           value_fn=value_fn)
-    return value, grad, updates, new_state, counts + _search_counts(new_state, counts)
+    return value, grad, updates, new_state, counts + _search_counts(new_state, counts), \
+        warm_start
 
 
 def _refreshed_update(optimizer, opt_state, z, value_fn):
@@ -137,7 +142,7 @@ def _refreshed_update(optimizer, opt_state, z, value_fn):
         lambda carry: (carry[0] == 0) | ((carry[0] == 1) & stale), trip,
         (jnp.zeros((), jnp.int32), stored_value, stored_grad, optax.tree.zeros_like(z),
          opt_state, jnp.zeros_like(otu.tree_get(opt_state, "counts"))))
-    return value, grad, updates, new_state, counts
+    return value, grad, updates, new_state, counts, search_warm_start(new_state)
 
 
 def step_failed(opt_state) -> jax.Array:

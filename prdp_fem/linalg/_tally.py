@@ -152,9 +152,19 @@ class ReverseTally(NamedTuple):
     First order only: a gradient that is differentiated again with the seed differentiated
     inside (forward over reverse) is refused by ``jax.lax.custom_linear_solve``; with the seed
     held constant it differentiates as the plain gradient (and counts nothing).
+
+    ``adjoint_start`` (optional, a vector of the system's size): the initial guess of an
+    implicit-mode adjoint solve (:class:`~prdp_fem.linalg.TruncatedCG` with
+    ``gradient="implicit"``, :class:`~prdp_fem.linalg.ConvergedCG`), and the way its
+    solution leaves: the gradient with respect to ``adjoint_start`` is the adjoint solve's
+    result -- the warm start of the next evaluation's adjoint solve. Meant for an evaluation
+    with one such solve (the gradients of several would add up); solvers without an adjoint
+    solve of their own (unrolled mode, the stationary solver) ignore it, and its gradient is
+    then zero, a cold start.
     """
 
     seed: jax.Array
+    adjoint_start: jax.Array | None = None
 
 
 #: The order of the counts in a :class:`ReverseTally`'s seed.
@@ -236,7 +246,7 @@ _count_on_reverse.defjvp(_count_on_reverse_jvp, symbolic_zeros=True)
 
 
 def counted_linear_solve(matvec, rhs, solve, transpose_solve, counter, seed_dot=None, *,
-                         symmetric: bool = False):
+                         symmetric: bool = False, start_dot=None):
     """``jax.lax.custom_linear_solve(matvec, rhs, ...)`` whose two solves count as adjoint
     solves: ``solve(right)`` and ``transpose_solve(right)`` return ``(x, iterations)``.
 
@@ -245,10 +255,12 @@ def counted_linear_solve(matvec, rhs, solve, transpose_solve, counter, seed_dot=
     transpose solve (the backward pass's adjoint solve) add its count to the seed's
     cotangent: the system is solved over ``(x, seed)``, the seed's part passed through
     forward and replaced by the count in the transpose. A forward (tangent) solve counts
-    nothing then, as a reverse tally counts only what a reverse pass runs. ``symmetric``
-    (``transpose_solve`` is ``solve``) is passed on where no seed is.
+    nothing then, as a reverse tally counts only what a reverse pass runs. ``start_dot`` --
+    the tangent of a tally's ``adjoint_start`` -- is a further part of the same kind, replaced
+    by the transpose solve's result: the adjoint solution leaves as the start's cotangent.
+    ``symmetric`` (``transpose_solve`` is ``solve``) is passed on where neither is.
     """
-    if seed_dot is None:
+    if seed_dot is None and start_dot is None:
         def counted(fn):
             def run(_, right):
                 x, iterations = fn(right)
@@ -259,16 +271,22 @@ def counted_linear_solve(matvec, rhs, solve, transpose_solve, counter, seed_dot=
             return jax.lax.custom_linear_solve(matvec, rhs, counted(solve), symmetric=True)
         return jax.lax.custom_linear_solve(matvec, rhs, counted(solve), counted(transpose_solve))
 
+    parts = tuple(part for part in (seed_dot, start_dot) if part is not None)
+
     def forward(_, right):
-        return solve(right[0])[0], right[1]
+        return (solve(right[0])[0], *right[1:])
 
     def transpose(_, right):
         x, iterations = transpose_solve(right[0])
-        return x, _count_vector("adjoint", iterations, right[1].dtype)
+        reports = []
+        if seed_dot is not None:
+            reports.append(_count_vector("adjoint", iterations, right[1].dtype))
+        if start_dot is not None:
+            reports.append(x)
+        return (x, *reports)
 
-    x, _ = jax.lax.custom_linear_solve(lambda v: (matvec(v[0]), v[1]), (rhs, seed_dot),
-                                       forward, transpose)
-    return x
+    return jax.lax.custom_linear_solve(lambda v: (matvec(v[0]), *v[1:]), (rhs, *parts),
+                                       forward, transpose)[0]
 
 
 def live_tangent(tangent):

@@ -1240,11 +1240,13 @@ def _implicit_solve(matrix, b, x0, iterations, adjoint_iterations, precond, rtol
     pattern, form = _pattern_and_form(matrix)
     # a reverse tally's seed is an input to differentiate (its tangent carries the adjoint
     # count back); a host counter is not
+    # (and its adjoint start, whose cotangent carries the adjoint solution back)
     seed = counter.seed if isinstance(counter, ReverseTally) else None
+    adjoint_start = counter.adjoint_start if isinstance(counter, ReverseTally) else None
     host = None if isinstance(counter, ReverseTally) else counter
     sol = _implicit_core(matrix.values, b, x0, jnp.asarray(iterations, jnp.int32),
                          jnp.asarray(adjoint_iterations, jnp.int32), pattern, precond,
-                         tolerances, seed, form, history_size, track_norm, host)
+                         tolerances, seed, adjoint_start, form, history_size, track_norm, host)
     diagnostics = jax.lax.stop_gradient(sol[1:])  # as in unrolled mode: not differentiated
     return Solution(sol.x, *diagnostics)
 
@@ -1260,9 +1262,9 @@ def _pattern_matrix(values, pattern, form) -> SparseMatrix:
     return SparseMatrix(rows, cols, values, shape, layout, kernel)
 
 
-@partial(jax.custom_jvp, nondiff_argnums=(9, 10, 11, 12))
+@partial(jax.custom_jvp, nondiff_argnums=(10, 11, 12, 13))
 def _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances,
-                   seed, form, history_size, track_norm, counter):
+                   seed, adjoint_start, form, history_size, track_norm, counter):
     """The truncated solve; derivatives by :func:`_implicit_jvp` (any order, both modes)."""
     krylov = _krylov(_pattern_matrix(values, pattern, form), precond)
     return _while_solve(krylov, b, x0, iterations, tolerances, history_size,
@@ -1282,19 +1284,24 @@ def _implicit_jvp(form, history_size, track_norm, counter, primals, tangents):
     convergence ``x`` does not depend on it. The primal is this function called again, so a
     derivative of a derivative (``jax.jvp(jax.grad(f))``) sees the tangent of ``x`` too.
 
-    ``seed`` is a :class:`~prdp_fem.linalg._tally.ReverseTally`'s (or ``None``): where it is
-    differentiated, the adjoint solve adds its count to the seed's cotangent.
+    ``seed`` and ``adjoint_start`` are a :class:`~prdp_fem.linalg.ReverseTally`'s (or
+    ``None``): where the seed is differentiated, the adjoint solve adds its count to the
+    seed's cotangent; it starts from ``adjoint_start``, and where that is differentiated its
+    solution is the start's cotangent (the next evaluation's warm start).
     """
-    values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances, seed = primals
+    (values, b, x0, iterations, adjoint_iterations, pattern, precond, tolerances, seed,
+     adjoint_start) = primals
     values_dot, b_dot = live_tangent(tangents[0]), live_tangent(tangents[1])
     sol = _implicit_core(values, b, x0, iterations, adjoint_iterations, pattern, precond,
-                         tolerances, seed, form, history_size, track_norm, counter)
+                         tolerances, seed, adjoint_start, form, history_size, track_norm,
+                         counter)
     zeros = tuple(_zero_tangent(leaf) for leaf in sol[1:])
     if values_dot is None and b_dot is None:  # only the seed (or x0) is differentiated
         return sol, Solution(jnp.zeros_like(sol.x), *zeros)
     x_dot = _implicit_tangent(values, values_dot, b_dot, sol.x, adjoint_iterations, pattern,
                               precond, tolerances, form, track_norm, counter,
-                              live_tangent(tangents[8]))
+                              live_tangent(tangents[8]), adjoint_start,
+                              live_tangent(tangents[9]))
     return sol, Solution(x_dot, *zeros)
 
 
@@ -1302,7 +1309,8 @@ _implicit_core.defjvp(_implicit_jvp, symbolic_zeros=True)
 
 
 def _implicit_tangent(values, values_dot, b_dot, x, iterations, pattern, precond, tolerances,
-                      form, track_norm, counter, seed_dot=None) -> jax.Array:
+                      form, track_norm, counter, seed_dot=None, adjoint_start=None,
+                      start_dot=None) -> jax.Array:
     """``A^+ (db - dA x)``, the tangent of ``A x = b``, by :func:`_linear_solve` (``None``:
     a zero ``values_dot`` or ``b_dot``, not both)."""
     rows, cols, _ = pattern
@@ -1313,11 +1321,11 @@ def _implicit_tangent(values, values_dot, b_dot, x, iterations, pattern, precond
                                           indices_are_sorted=True)
         rhs = minus_dA_x if rhs is None else rhs + minus_dA_x
     return _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form,
-                         track_norm, counter, seed_dot)
+                         track_norm, counter, seed_dot, adjoint_start, start_dot)
 
 
 def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, track_norm,
-                  counter, seed_dot=None) -> jax.Array:
+                  counter, seed_dot=None, adjoint_start=None, start_dot=None) -> jax.Array:
     """``A^{-1} rhs`` by ``iterations`` PCG sweeps, with exact linear-solve derivatives.
 
     ``lax.custom_linear_solve`` with ``symmetric=True``: the transpose solve is the same sweep,
@@ -1325,19 +1333,26 @@ def _linear_solve(values, rhs, iterations, pattern, precond, tolerances, form, t
     ``A``'s dependence on ``values`` is differentiated through its product, so this map can be
     differentiated again. With ``seed_dot`` (a reverse tally's seed tangent) the adjoint solve
     counts into the seed instead (:func:`~prdp_fem.linalg._tally.counted_linear_solve`).
+    The transpose solve starts from ``adjoint_start`` (zero where ``None``); with
+    ``start_dot`` its solution leaves as the start's cotangent.
     """
     matrix = _pattern_matrix(values, pattern, form)
     # the solver is a fixed linear map: its arrays get no derivative (custom_linear_solve
     # ignores them anyway; stopping them keeps the solve's inputs out of the tangent trace)
     krylov = _krylov(jax.lax.stop_gradient(matrix), precond)
 
-    def sweep(right):
-        sol = _while_solve(krylov, right, None, iterations, tolerances, 0,
+    def sweep(right, start=None):
+        sol = _while_solve(krylov, right, start, iterations, tolerances, 0,
                            track_norm=track_norm)
         return sol.x, sol.iterations
 
-    return counted_linear_solve(prepare(matrix), rhs, sweep, sweep, counter, seed_dot,
-                                symmetric=True)
+    if adjoint_start is None:
+        return counted_linear_solve(prepare(matrix), rhs, sweep, sweep, counter, seed_dot,
+                                    symmetric=True, start_dot=start_dot)
+    # the guess of the adjoint solve only: a tangent solve (forward mode) starts from zero
+    start = jax.lax.stop_gradient(adjoint_start)
+    return counted_linear_solve(prepare(matrix), rhs, sweep, partial(sweep, start=start),
+                                counter, seed_dot, start_dot=start_dot)
 
 
 def _zero_tangent(leaf: jax.Array) -> jax.Array:

@@ -12,7 +12,14 @@ from .hig import (
     randomized_svd,
     residual_jacobian,
 )
-from .linesearch import FIRST_STEPS, Contradiction, ZoomSearchState, lbfgs, scale_by_zoom_linesearch
+from .linesearch import (
+    FIRST_STEPS,
+    Contradiction,
+    Evaluation,
+    ZoomSearchState,
+    lbfgs,
+    scale_by_zoom_linesearch,
+)
 from .newton import (
     FORCING_TERMS,
     HESSIANS,
@@ -30,6 +37,7 @@ __all__ = [
     "JACOBIAN_MODES",
     "Contradiction",
     "CycledPreconditioner",
+    "Evaluation",
     "HigInfo",
     "HigState",
     "NewtonCGState",

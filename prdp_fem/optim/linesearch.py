@@ -47,6 +47,11 @@ the best trial that met the sufficient decrease if there is one, else a zero ste
 value and gradient at the start), and a positive decrease or curvature error, so that
 :func:`prdp_fem.inverse.driver.invert` counts the step as failed.
 
+Each evaluation is an :class:`Evaluation`: the value, the gradient, the solver iterations it
+ran and, where the objective keeps one, its *warm start* -- what the next evaluation's solves
+start from (:class:`prdp_fem.inverse.WarmStart`: the state and adjoint solutions). The search
+keeps the last trial's in its state (``ZoomSearchState.warm_start``), for the next step.
+
 One more departure, only in the first search after the objective changed (the stored value
 is ``inf`` although a search has run: :func:`prdp_fem.inverse.driver.invert` does that when PRDP
 refines ``K``): L-BFGS's direction then comes from another objective's curvature pairs and
@@ -106,8 +111,9 @@ import optax
 from ..linalg.cg import zero_counts
 from ._zoom import zoom_linesearch as _optax_zoom
 
-__all__ = ["FIRST_STEPS", "Contradiction", "ZoomSearchState", "lbfgs",
-           "scale_by_zoom_linesearch", "value_grad_and_counts"]
+__all__ = ["FIRST_STEPS", "Contradiction", "Evaluation", "ZoomSearchState", "evaluation",
+           "has_search_state", "lbfgs", "scale_by_zoom_linesearch", "search_warm_start",
+           "with_warm_start_slot"]
 
 #: The first line search's initial trial: optax's unit step, or ``J(z_0) / |s_0|``.
 FIRST_STEPS = ("unit", "polyak")
@@ -121,9 +127,13 @@ class ZoomSearchState(NamedTuple):
     docstring).
 
     ``counts``: the solver iterations the last update's evaluations ran, where ``value_fn``
-    reports them (a ``value_grad_and_counts`` method, as
-    :class:`prdp_fem.inverse.driver.Objective` has: ``[primal, adjoint, primal_solves,
-    adjoint_solves]``, see :class:`prdp_fem.linalg.ReverseTally`); zeros otherwise.
+    reports them (an ``evaluate`` method, as :class:`prdp_fem.inverse.driver.Objective` has:
+    ``[primal, adjoint, primal_solves, adjoint_solves]``, see
+    :class:`prdp_fem.linalg.ReverseTally`); zeros otherwise.
+
+    ``warm_start``: the last evaluation's warm start (:class:`Evaluation`), ``None`` where the
+    objective keeps none. Its slot must have the evaluations' type before the first update
+    (:func:`with_warm_start_slot`): a loop carries the state, and a compiled step takes it.
     """
 
     learning_rate: jax.Array
@@ -131,6 +141,21 @@ class ZoomSearchState(NamedTuple):
     grad: Any
     info: optax.ZoomLinesearchInfo
     counts: jax.Array
+    warm_start: Any = None
+
+
+class Evaluation(NamedTuple):
+    """One evaluation of the objective: what a line search's trial computes.
+
+    ``counts``: the solver iterations it ran (zeros where the objective counts them
+    elsewhere); ``warm_start``: where the objective's next evaluation should start its solves
+    from (``None`` for an objective that keeps none).
+    """
+
+    value: jax.Array
+    grad: Any
+    counts: jax.Array
+    warm_start: Any = None
 
 
 class Contradiction(NamedTuple):
@@ -251,7 +276,7 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
         interval_threshold=stepsize_precision, verbose=False)
 
     def init(params):
-        return ZoomSearchState(*optax_search.init(params), counts=zero_counts())
+        return ZoomSearchState(*optax_search.init(params), counts=zero_counts(), warm_start=None)
 
     def update(updates, state, params, *, value, grad,
                value_fn: Callable[..., Any], **value_fn_kwargs):
@@ -295,7 +320,7 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
 
         dtype = jnp.result_type(start.value_init)
         not_yet = _filled_evaluation(evaluate, params, jnp.nan)
-        final, seen, spent, (value_there, grad_there, _), counts = jax.lax.while_loop(
+        final, seen, spent, (value_there, grad_there, _, warm_there), counts = jax.lax.while_loop(
             going_on, trial, (start, _nothing_seen(dtype), jnp.zeros_like(start.count),
                               not_yet, zero_counts()))
         final = jax.lax.cond(seen.found & ~refresh,
@@ -307,9 +332,13 @@ def scale_by_zoom_linesearch(max_linesearch_steps: int = 20, *,
         info = optax.ZoomLinesearchInfo(num_linesearch_steps=spent + final.count,
                                         decrease_error=final.decrease_error,
                                         curvature_error=final.curvature_error)
+        # the last trial's warm start: the accepted step's, or close to it (a search that
+        # gives up returns an earlier trial)
         searched = ZoomSearchState(learning_rate=final.stepsize, value=final.value,
-                                   grad=final.grad, info=info, counts=counts)
-        refreshed = state._replace(value=value_there, grad=grad_there, counts=counts)
+                                   grad=final.grad, info=info, counts=counts,
+                                   warm_start=warm_there)
+        refreshed = state._replace(value=value_there, grad=grad_there, counts=counts,
+                                   warm_start=warm_there)
         new_state = optax.tree.where(refresh, optax.tree.cast_like(refreshed, other_tree=state),
                                      optax.tree.cast_like(searched, other_tree=state))
         step = optax.tree.where(refresh, optax.tree.zeros_like(updates),
@@ -329,15 +358,15 @@ _LEAST_RESTART = 1e-3
 _OUTSIDE_SHRINK = 0.1
 
 
-def value_grad_and_counts(value_fn, value_fn_kwargs=None) -> Callable:
-    """``point -> (J, g, counts)``: the one ``value_fn`` carries as its
-    ``value_grad_and_counts`` (:class:`prdp_fem.inverse.driver.Objective`: the counts of its
-    solves as outputs, and one nested program for every place that evaluates, traced once),
-    else its ``value_and_grad`` or ``jax.value_and_grad(value_fn)``, with zero counts (the
-    solves count wherever ``value_fn`` counts them, such as an
-    :class:`~prdp_fem.linalg.IterationCounter`)."""
+def evaluation(value_fn, value_fn_kwargs=None) -> Callable:
+    """``point -> Evaluation``: the one ``value_fn`` carries as its ``evaluate``
+    (:class:`prdp_fem.inverse.driver.Objective`: the counts of its solves as outputs, its warm
+    start, and one nested program for every place that evaluates, traced once), else its
+    ``value_and_grad`` or ``jax.value_and_grad(value_fn)``, with zero counts (the solves
+    count wherever ``value_fn`` counts them, such as an
+    :class:`~prdp_fem.linalg.IterationCounter`) and no warm start."""
     value_fn_kwargs = value_fn_kwargs or {}
-    own = getattr(value_fn, "value_grad_and_counts", None)
+    own = getattr(value_fn, "evaluate", None)
     if callable(own) and not value_fn_kwargs:
         return own
     value_and_grad = getattr(value_fn, "value_and_grad", None)
@@ -345,26 +374,60 @@ def value_grad_and_counts(value_fn, value_fn_kwargs=None) -> Callable:
         value_and_grad = jax.value_and_grad(value_fn)
 
     def uncounted(point, **kwargs):
-        return (*value_and_grad(point, **kwargs), zero_counts())
+        return Evaluation(*value_and_grad(point, **kwargs), zero_counts())
 
     return uncounted
 
 
+def search_warm_start(opt_state) -> Any:
+    """The warm start of the last evaluation a :class:`ZoomSearchState` in ``opt_state`` holds
+    (``None`` without one)."""
+    for node in _search_states(opt_state):
+        return node.warm_start
+    return None
+
+
+def with_warm_start_slot(opt_state, warm_start):
+    """``opt_state`` with the :class:`ZoomSearchState` 's ``warm_start`` set to ``warm_start``
+    (an initial guess with the evaluations' type: zeros are a cold start)."""
+    def replace(node):
+        return node._replace(warm_start=warm_start) if isinstance(node, ZoomSearchState) \
+            else node
+    return jax.tree_util.tree_map(replace, opt_state, is_leaf=_is_search_state)
+
+
+def has_search_state(opt_state) -> bool:
+    """Whether ``opt_state`` holds a :class:`ZoomSearchState` (:func:`lbfgs` 's search)."""
+    return bool(_search_states(opt_state))
+
+
+def _is_search_state(node) -> bool:
+    return isinstance(node, ZoomSearchState)
+
+
+def _search_states(opt_state) -> list:
+    return [node for node in jax.tree_util.tree_leaves(opt_state, is_leaf=_is_search_state)
+            if isinstance(node, ZoomSearchState)]
+
+
 def _evaluation(value_fn, fn_kwargs) -> Callable:
-    """``point -> (J, g, counts)`` (:func:`value_grad_and_counts`), jitted once per search so
-    that its trace for the placeholders' types (:func:`_filled_evaluation`: exactly as the
-    evaluation returns them, no cast) is the one the search's loop calls."""
-    evaluate = value_grad_and_counts(value_fn, fn_kwargs)
+    """``point -> Evaluation`` (:func:`evaluation`), jitted once per search so that its
+    trace for the placeholders' types (:func:`_filled_evaluation`: exactly as the evaluation
+    returns them, no cast) is the one the search's loop calls."""
+    evaluate = evaluation(value_fn, fn_kwargs)
     return jax.jit(lambda point: evaluate(point, **fn_kwargs))
 
 
-def _filled_evaluation(evaluate: Callable, params, value: float):
-    """An evaluation's ``(J, g, counts)`` types at ``params``, filled with ``J = value``,
-    ``g = 0`` and no counts (nothing is computed)."""
-    value_shape, grad_shapes, count_shape = jax.eval_shape(evaluate, params)
-    return (jnp.full(value_shape.shape, value, value_shape.dtype),
-            jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), grad_shapes),
-            jnp.zeros(count_shape.shape, count_shape.dtype))
+def _filled_evaluation(evaluate: Callable, params, value: float) -> Evaluation:
+    """An :class:`Evaluation` 's types at ``params``, filled with ``J = value``, ``g = 0``,
+    no counts and a zero warm start (nothing is computed)."""
+    shapes = jax.eval_shape(evaluate, params)
+
+    def zeros(tree):
+        return jax.tree_util.tree_map(lambda leaf: jnp.zeros(leaf.shape, leaf.dtype), tree)
+
+    return Evaluation(jnp.full(shapes.value.shape, value, shapes.value.dtype),
+                      zeros(shapes.grad), zeros(shapes.counts), zeros(shapes.warm_start))
 
 
 def _step_with_one_evaluation(step_search, search, evaluate, fn_kwargs,
@@ -388,7 +451,7 @@ def _step_with_one_evaluation(step_search, search, evaluate, fn_kwargs,
     step, so the evaluation may land there instead of at ``t``. Such a search is lost anyway
     (and :func:`prdp_fem.inverse.driver.invert` stops on a non-finite value or gradient).
 
-    Returns the stepped state and the evaluation ``(J, g, counts)``. ``at_start`` (traced): evaluate
+    Returns the stepped state and the :class:`Evaluation`. ``at_start`` (traced): evaluate
     at the search's ``params`` instead of the trial point (a refresh; the state's step is then
     meaningless).
 

@@ -412,7 +412,9 @@ class SolverSpec:
     pyamg hierarchy (``amg_kind``, ``amg_implementation``) built from the run's operator; an
     inversion builds it at its initial coefficient and rebuilds it every ``rebuild_every``
     steps or once kappa moved by more than ``rebuild_factor`` (:class:`prdp_fem.RebuiltAMG`;
-    0: never, the default, so that a run can switch off what its scene sets)."""
+    0: never, the default, so that a run can switch off what its scene sets).
+    ``warm_start``: an inversion's solves start from the previous evaluation's solutions
+    (:func:`prdp_fem.invert`'s ``warm_start``)."""
 
     preconditioner: str = "jacobi"
     gradient: str = "implicit"
@@ -422,6 +424,7 @@ class SolverSpec:
     amg_implementation: str = "jax"
     rebuild_every: int = 0
     rebuild_factor: float = 0.0
+    warm_start: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -817,7 +820,8 @@ def _solver(t: _Table) -> SolverSpec:
         t.choice("amg_implementation", "jax", ("jax", "callback")),
         t.integer("rebuild_every", 0),
         float(t.get("rebuild_factor", 0.0, lambda v: _is_number(v) and (v == 0 or v > 1),
-                    "0 (never) or a finite number > 1")))
+                    "0 (never) or a finite number > 1")),
+        t.boolean("warm_start", False))
     t.finish()
     if spec.preconditioner != "amg":
         for key in _AMG_KEYS:
@@ -1151,6 +1155,10 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: solver.preconditioner = 'amg' with study.kind = {kind!r}: expected "
             "'jacobi' or 'identity' (an AMG hierarchy is built for one operator: forward "
             "solves and inversions)")
+    if kind != "inverse" and scene.solver.warm_start:
+        raise SceneSolverConfigError(
+            f"{source}: solver.warm_start = true with study.kind = {kind!r}: expected false "
+            "or no value (warm starts carry an inversion's solves from step to step)")
     rebuilds = scene.solver.rebuild_every or scene.solver.rebuild_factor
     if kind in ("forward", "h") and rebuilds:
         raise SceneSolverConfigError(
