@@ -7,6 +7,7 @@ import io
 import json
 import math
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -78,6 +79,8 @@ def _assert_one_line_or_success(code: int, err: str) -> None:
     assert "Traceback" not in err
 
 
+# slow: the bad-input corpus (tests/test_bad_input_corpus.py) holds the cases this found
+@pytest.mark.slow
 @settings(max_examples=40)
 @given(mutations=st.lists(mutation, min_size=1, max_size=3))
 def test_a_malformed_scene_is_one_line_and_exit_2(tmp_path_factory, mutations):

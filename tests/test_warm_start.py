@@ -27,6 +27,7 @@ from prdp_fem.linalg import (
     solve,
     zero_counts,
 )
+from prdp_fem.scene import SceneError, parse_scene
 
 N = 40
 _A = sp.diags([-1.0, 2.2, -1.0], [-1, 0, 1], shape=(N, N)).tocsr()
@@ -102,23 +103,26 @@ def test_the_evaluation_returns_the_state_and_adjoint_solutions(coefficient_prob
     n = problem.system.n_free
     z = jnp.full(problem.n_parameters, 0.2)
     solver = ConvergedCG(rtol=1e-12)
-    evaluation = Objective(problem, solver, warm_start=WarmStart.cold(n)).evaluate(z)
+    evaluate_from = jax.jit(
+        lambda params, start: Objective(problem, solver, warm_start=start).evaluate(params))
+    evaluation = evaluate_from(z, WarmStart.cold(n))
     plain = Objective(problem, solver).evaluate(z)
     assert plain.warm_start is None
     np.testing.assert_allclose(evaluation.value, plain.value, rtol=1e-12)
     np.testing.assert_allclose(evaluation.grad, plain.grad, rtol=1e-8, atol=1e-14)
-    state = problem.state(z, solver).x
-    np.testing.assert_allclose(evaluation.warm_start.state, state, rtol=1e-12)
-    # the adjoint of J = 1/2 |u - d|^2_W + alpha R: A lambda = -dJ/du on the free dofs
-    kappa, _ = problem.parameterization.coefficients(z, problem.known)
-    A = problem.system.operator(kappa).to_scipy()
+    # the state: A(kappa) u = b; the adjoint of J = misfit(u) + alpha R: A lambda = dJ/du
+    # up to its sign, on the free dofs
+    kappa, f = problem.parameterization.coefficients(z, problem.known)
+    A = problem.system.operator(kappa).to_scipy().tocsc()
+    state = sp.linalg.spsolve(A, np.asarray(problem.system.rhs(kappa, f)))
+    np.testing.assert_allclose(evaluation.warm_start.state, state, rtol=1e-9)
     misfit_gradient = jax.grad(lambda x: problem.observation.misfit(problem.system.expand(x)))
-    rhs = np.asarray(misfit_gradient(state))
-    adjoint = np.asarray(evaluation.warm_start.adjoint)
-    np.testing.assert_allclose(np.abs(adjoint), np.abs(sp.linalg.spsolve(A.tocsc(), rhs)),
-                               rtol=1e-7, atol=1e-12 * np.abs(adjoint).max())
+    adjoint = sp.linalg.spsolve(A, np.asarray(misfit_gradient(jnp.asarray(state))))
+    returned = np.asarray(evaluation.warm_start.adjoint)
+    np.testing.assert_allclose(np.abs(returned), np.abs(adjoint), rtol=1e-7,
+                               atol=1e-12 * np.abs(returned).max())
     # started where it ended, a converged evaluation runs fewer iterations
-    again = Objective(problem, solver, warm_start=evaluation.warm_start).evaluate(z)
+    again = evaluate_from(z, evaluation.warm_start)
     assert read_counts(again.counts)["primal"] < read_counts(evaluation.counts)["primal"] // 2
     assert read_counts(again.counts)["adjoint"] < read_counts(evaluation.counts)["adjoint"] // 2
 
@@ -127,7 +131,8 @@ def test_a_warm_truncated_run_reaches_the_converged_error_where_a_cold_one_stall
         coefficient_problem):
     problem = coefficient_problem
     steps = 40
-    reference = invert(problem, refinement=converged(1e-10), steps=steps, warm_start=True)
+    # K = 400 from zero is a converged solve here (225 unknowns), in the same program as K = 5
+    reference = invert(problem, refinement=fixed(400), steps=steps)
     cold = invert(problem, refinement=fixed(5), steps=steps)
     warm = invert(problem, refinement=fixed(5), steps=steps, warm_start=True)
     target = reference.history[-1].parameter_error
@@ -154,11 +159,17 @@ def test_a_transformation_without_a_search_carries_the_start(coefficient_problem
     still = optax.sgd(0.0)
     losses = {name: [r.loss for r in invert(problem, optimizer=still, refinement=refinement,
                                             steps=8, warm_start=warm).history]
-              for name, refinement, warm in (("converged", converged(1e-12), False),
+              for name, refinement, warm in (("converged", fixed(400), False),
                                              ("cold", fixed(5), False),
                                              ("warm", fixed(5), True))}
     exact = losses["converged"][-1]
     assert np.allclose(losses["cold"], losses["cold"][0])  # the same truncated solve each time
+    # moved every third step: three steps from one start, then the next start
+    every_third = [r.loss for r in invert(problem, optimizer=still, refinement=fixed(5),
+                                          steps=6, warm_start=True,
+                                          warm_start_every=3).history]
+    assert every_third[0] == every_third[1] == every_third[2] == losses["cold"][0]
+    assert every_third[3] == every_third[4] == every_third[5] == losses["warm"][1]
     assert abs(losses["warm"][0] - losses["cold"][0]) < 1e-12 * abs(exact)
     # eight restarts of five Jacobi-PCG iterations: the gap to the converged loss 15x smaller
     assert abs(losses["warm"][-1] - exact) < 0.1 * abs(losses["cold"][-1] - exact)
@@ -170,3 +181,20 @@ def test_warm_start_is_refused_where_a_search_keeps_the_solutions_to_itself(
         invert(coefficient_problem, optimizer=optax.lbfgs(), steps=1, warm_start=True)
     with pytest.raises(SolverConfigError, match="warm_start="):
         invert(coefficient_problem, steps=1, warm_start="yes")
+    with pytest.raises(SolverConfigError, match="warm_start_every"):
+        invert(coefficient_problem, steps=1, warm_start=True, warm_start_every=0)
+
+
+def test_the_scene_keys_reach_the_inversion():
+    scene = parse_scene({"mesh": {"n": 4},
+                         "inverse": {"unknown": "source", "truth": "x*y"},
+                         "solver": {"warm_start": True, "warm_start_every": 2}}, source="s")
+    assert (scene.solver.warm_start, scene.solver.warm_start_every) == (True, 2)
+    with pytest.raises(SceneError, match=r"solver\.warm_start_every"):
+        parse_scene({"mesh": {"n": 4},
+                     "inverse": {"unknown": "source", "truth": "x*y"},
+                     "solver": {"warm_start_every": 2}}, source="s")
+    with pytest.raises(SceneError, match=r"solver\.warm_start"):
+        parse_scene({"mesh": {"n": 4},
+                     "inverse": {"unknown": "source", "truth": "x*y"},
+                     "solver": {"warm_start": "yes"}}, source="s")

@@ -537,7 +537,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
            init: np.ndarray | None = None, preconditioner: Any = "jacobi",
            monitor: str | Validation | None = None, reference_every: int = 0,
            callback: Callable[[StepRecord, jax.Array], bool | None] | None = None,
-           warm_start: bool = False) -> Inversion:
+           warm_start: bool = False, warm_start_every: int = 1) -> Inversion:
     """Minimise ``J`` for ``steps`` optimiser steps while ``refinement`` picks the CG work.
 
     Parameters
@@ -589,6 +589,11 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
         with its start, so every step evaluates afresh at its point before its search (one
         evaluation more per step with :func:`prdp_fem.lbfgs`); with a converged one it does
         not, to its tolerance.
+    warm_start_every
+        With ``warm_start``: move the start to the latest solutions every that many steps
+        (1: every step), and whenever the controller changes ``K``. In between, the steps'
+        solves start from the same solutions, the objective stays one function, and no step
+        evaluates afresh: fewer evaluations for a start a few steps old.
 
     Raises
     ------
@@ -624,6 +629,9 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
 
     if not isinstance(warm_start, bool):
         raise SolverConfigError(f"warm_start={warm_start!r}: expected True or False")
+    if not (_is_count(warm_start_every) and warm_start_every >= 1):
+        raise SolverConfigError(
+            f"warm_start_every={warm_start_every!r}: expected an integer >= 1")
     z = _initial_params(problem, init)
     opt_state = optimizer.init(z)
     solves_from = None  # the next step's WarmStart, with warm_start
@@ -703,7 +711,8 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
         z = z_next
-        if solves_from is not None:
+        # a refinement refreshes the stored value anyway: the start moves with it
+        if solves_from is not None and (k % warm_start_every == 0 or settings != previous_K):
             solves_from = following
             if not refinement.tolerance_mode and uses_stored_value(opt_state):
                 # a truncated J depends on where its solves start: the stored value is the

@@ -510,4 +510,5 @@ def invert_options(scene: Scene, disc: Discretization,
     return dict(optimizer=built, refinement=controller(scene),
                 gradient=scene.solver.gradient, steps=scene.optimizer.steps,
                 init=initial_field(scene, disc), preconditioner=inversion_preconditioner(scene),
-                monitor=monitor, warm_start=scene.solver.warm_start)
+                monitor=monitor, warm_start=scene.solver.warm_start,
+                warm_start_every=scene.solver.warm_start_every)

@@ -414,7 +414,7 @@ class SolverSpec:
     steps or once kappa moved by more than ``rebuild_factor`` (:class:`prdp_fem.RebuiltAMG`;
     0: never, the default, so that a run can switch off what its scene sets).
     ``warm_start``: an inversion's solves start from the previous evaluation's solutions
-    (:func:`prdp_fem.invert`'s ``warm_start``)."""
+    (:func:`prdp_fem.invert`'s ``warm_start``), moved every ``warm_start_every`` steps."""
 
     preconditioner: str = "jacobi"
     gradient: str = "implicit"
@@ -425,6 +425,7 @@ class SolverSpec:
     rebuild_every: int = 0
     rebuild_factor: float = 0.0
     warm_start: bool = False
+    warm_start_every: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -821,8 +822,11 @@ def _solver(t: _Table) -> SolverSpec:
         t.integer("rebuild_every", 0),
         float(t.get("rebuild_factor", 0.0, lambda v: _is_number(v) and (v == 0 or v > 1),
                     "0 (never) or a finite number > 1")),
-        t.boolean("warm_start", False))
+        t.boolean("warm_start", False),
+        t.integer("warm_start_every", 1, 1))
     t.finish()
+    if "warm_start_every" in t.data and not spec.warm_start:
+        raise t.fail("warm_start_every", "no value unless solver.warm_start = true")
     if spec.preconditioner != "amg":
         for key in _AMG_KEYS:
             if key in t.data:
