@@ -79,7 +79,7 @@ def _assert_one_line_or_success(code: int, err: str) -> None:
     assert "Traceback" not in err
 
 
-# slow: the bad-input corpus (tests/test_bad_input_corpus.py) holds the cases this found
+# slow: tests/test_bad_input.py checks malformed scenes key by key in the default suite
 @pytest.mark.slow
 @settings(max_examples=40)
 @given(mutations=st.lists(mutation, min_size=1, max_size=3))
