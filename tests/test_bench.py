@@ -39,6 +39,10 @@ def test_cost_fields_and_slope():
             for n in (100, 1000, 10000)]
     assert abs(scaling_slope(line) - 1.5) < 1e-12
     assert math.isnan(scaling_slope(line[:1]))
+    # a time differenced to zero is left out, not a log of zero
+    unmeasured = line[0]._replace(iteration_s=0.0)
+    assert abs(scaling_slope([unmeasured, *line[1:]]) - 1.5) < 1e-12
+    assert math.isnan(scaling_slope([unmeasured, line[1]]))
 
 
 def bench_cg(*args: str, capsys) -> str:

@@ -196,7 +196,10 @@ def device_iteration_cost(n_side: int, *, dim: int = 2, iterations: int = 100,
 
 
 def scaling_slope(costs: list[CGIterationCost]) -> float:
-    """Least-squares slope of ``log(iteration time)`` against ``log(dofs)``."""
+    """Least-squares slope of ``log(iteration time)`` against ``log(dofs)``, over the sizes
+    whose time was measurable: a time differenced to zero (a few iterations of a tiny problem
+    vanish in the timer's noise) has no logarithm."""
+    costs = [c for c in costs if c.iteration_s > 0]
     if len({c.n_dofs for c in costs}) < 2:
         return float("nan")  # no slope from one size
     n = np.log([c.n_dofs for c in costs])
