@@ -654,6 +654,7 @@ def test_an_interrupted_bench_prdp_says_how_to_resume_it(monkeypatch, capsys, tm
         f"{out} --resume)\n")
 
 
+@pytest.mark.slow  # a killed study resuming is in test_cli_commands by default
 def test_a_resumed_saving_reads_its_finished_runs_back(tmp_path):
     """A benchmark stopped after the converged run keeps it: resumed, only the PRDP run runs,
     and once both are done a resumed call runs nothing and returns the same row, times

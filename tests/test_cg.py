@@ -153,9 +153,10 @@ def test_a_while_loop_stacks_only_for_the_row_reduction(solver, n_side, stacked)
     assert _loop_states(jaxpr, b.size) == [stacked]
 
 
-@pytest.mark.parametrize("solver", [ConvergedCG(rtol=1e-10),
-                                    ConvergedCG(rtol=1e-10, preconditioner="identity"),
-                                    TruncatedCG(200, gradient="implicit")])
+@pytest.mark.parametrize("solver", [
+    pytest.param(ConvergedCG(rtol=1e-10), marks=pytest.mark.slow),
+    ConvergedCG(rtol=1e-10, preconditioner="identity"),
+    TruncatedCG(200, gradient="implicit")])
 def test_a_while_loop_takes_the_same_iterates_paired_or_stacked(monkeypatch, solver):
     from prdp_fem.bench.cg import poisson_operator
     from prdp_fem.linalg import cg
@@ -353,6 +354,7 @@ def test_implicit_gradient_at_large_k_equals_exact_adjoint(p1_kappa_problem):
     assert relative(converged, kappa_bar) < 1e-8
 
 
+@pytest.mark.slow  # test_properties covers the same, over drawn cases
 def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem,
                                                           implicit_kappa_gradient):
     disc, kappa, f, w = p1_kappa_problem
@@ -400,6 +402,7 @@ def test_gradients_finite_far_past_convergence_and_at_zero_rhs(small_problem, mo
     assert np.all(np.isfinite(jax.jit(jax.grad(zero_rhs_loss))(op.values)))
 
 
+@pytest.mark.slow  # test_scan_length_with_checkpoints_jvp_and_vmap checkpoints by default
 def test_unrolled_checkpoint_gives_the_same_gradient(small_problem):
     disc, kappa, f = small_problem
     args = (jnp.asarray(kappa), jnp.asarray(f), jnp.zeros(disc.n_free))

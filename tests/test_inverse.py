@@ -374,6 +374,7 @@ def test_inversions_with_equal_settings_share_one_step_and_time_its_compile_once
     assert len([c for c in made if c._static_argnum == 5]) == 3
 
 
+@pytest.mark.slow  # the programs compiled, not a number a user sees
 def test_an_unrolled_run_compiles_one_step_per_scan_length(monkeypatch):
     """Unrolled K = 10 and 16 share one program (scan length 16), K = 20 takes another
     (32); every run's losses are those of the static K-iteration objective."""
@@ -462,6 +463,7 @@ def test_an_l_bfgs_step_holds_its_objective_once_and_no_host_call(monkeypatch):
     assert _compiled_step(problem, pf.lbfgs()) == (0, loops + loops_per_objective)
 
 
+@pytest.mark.slow  # two implementations of one step agree
 def test_a_refreshed_step_takes_the_steps_of_an_evaluation_before_the_update(monkeypatch):
     """A PRDP run that refines K (the stored value goes stale) gives the same losses, to
     round-off (the objective is compiled in another place), evaluations and iterations with

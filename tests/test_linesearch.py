@@ -51,8 +51,8 @@ def _run(optimizer, fn, z, steps):
 
 @pytest.mark.parametrize("fn, start, longest_search", [
     (_rosenbrock, np.array([-3.0, 4.0, -2.0, 3.0]), 2),
-    (_narrow_valley, np.array([0.05, -0.02, 0.01]), 6),
-    (_badly_scaled, np.zeros(3), 20),
+    pytest.param(_narrow_valley, np.array([0.05, -0.02, 0.01]), 6, marks=pytest.mark.slow),
+    pytest.param(_badly_scaled, np.zeros(3), 20, marks=pytest.mark.slow),
 ])
 def test_a_right_gradient_gets_optax_steps_exactly(fn, start, longest_search):
     z = jnp.asarray(start)

@@ -123,9 +123,12 @@ def test_the_reported_case():
     assert check_derivative(65, 2, "smooth", 100) == Status.SUCCESS
 
 
-@pytest.mark.parametrize("n_side,dim", [(33, 2), (9, 3)])
-@pytest.mark.parametrize("iterations", [1, pytest.param(10, marks=pytest.mark.slow),
-                                        pytest.param(30, marks=pytest.mark.slow), 400])
+# the default suite: K = 1 in 3-D, K = 400 in 2-D; the rest with the slow cases
+@pytest.mark.parametrize("n_side,dim,iterations", [
+    pytest.param(33, 2, 1, marks=pytest.mark.slow), (9, 3, 1),
+    pytest.param(33, 2, 10, marks=pytest.mark.slow), pytest.param(9, 3, 10, marks=pytest.mark.slow),
+    pytest.param(33, 2, 30, marks=pytest.mark.slow), pytest.param(9, 3, 30, marks=pytest.mark.slow),
+    (33, 2, 400), pytest.param(9, 3, 400, marks=pytest.mark.slow)])
 def test_family_of_right_hand_sides(n_side, dim, iterations):
     kinds = ("smooth", "constant", "rough", "random", "smooth+noise")
     flags = {kind: check_derivative(n_side, dim, kind, iterations) for kind in kinds}
