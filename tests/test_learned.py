@@ -158,6 +158,7 @@ def test_training_lowers_the_validation_misfit_and_prdp_refines(small):
     assert times == sorted(times)
 
 
+@pytest.mark.slow  # two runs agree; training through the solver stays in the default suite
 def test_converged_and_fixed_training_agree_when_K_is_enough(small):
     """K = 60 > the ~25 iterations CG needs here: fixed-K training is converged training."""
     _, problem, samples, network = small

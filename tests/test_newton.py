@@ -54,7 +54,8 @@ def source():
     return disc, problem, H, minimiser
 
 
-@pytest.mark.parametrize("optimizer", ["gauss_newton", "exact"])
+@pytest.mark.parametrize("optimizer", [pytest.param("gauss_newton", marks=pytest.mark.slow),
+                                       "exact"])
 def test_one_newton_step_reaches_the_least_squares_minimiser(source, optimizer):
     disc, problem, _, minimiser = source
     opt = gauss_newton(max_cg=200, forcing=1e-12) if optimizer == "gauss_newton" \

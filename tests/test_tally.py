@@ -184,7 +184,7 @@ def test_a_reverse_tally_counts_every_member_under_vmap(system):
     _SOLVERS[0],
     # 5 s (a second-order scan); the primal tap's identity is the same in every mode
     pytest.param(_SOLVERS[1], marks=pytest.mark.slow),
-    _SOLVERS[2]], ids=["implicit", "unrolled", "converged"])
+    pytest.param(_SOLVERS[2], marks=pytest.mark.slow)], ids=["implicit", "unrolled", "converged"])
 def test_a_reverse_tally_whose_seed_is_held_constant_differentiates_as_none(system, solver):
     """Differentiated in theta alone (the seed a constant), first and second order (forward
     over reverse) give the derivatives without a tally."""
