@@ -332,9 +332,9 @@ def test_full_batch_optimisers_lower_the_validation_misfit(tiny, name):
 @pytest.mark.slow  # the refresh is checked on inversions (test_inverse) in the default suite
 def test_an_l_bfgs_training_refreshes_its_stale_value_in_the_search(tiny, monkeypatch):
     """``pf.lbfgs`` trains through the step that holds the objective once (its search
-    refreshes the value at a step's start, see ``prdp_fem.inverse.driver``): the same losses to
+    refreshes the value at a step's start, see ``prdp_fem.inverse.steps``): the same losses to
     round-off and the same tally as with an evaluation before the update."""
-    from prdp_fem.inverse import driver as inverse
+    from prdp_fem.inverse import steps
 
     problem, train_set, validation_set, network = tiny
 
@@ -345,7 +345,7 @@ def test_an_l_bfgs_training_refreshes_its_stale_value_in_the_search(tiny, monkey
                              batch_size=12).records
 
     refreshed = training()
-    monkeypatch.setattr(inverse, "_refreshes", lambda opt_state: False)
+    monkeypatch.setattr(steps, "_refreshes", lambda opt_state: False)
     evaluated_first = training()
     learned._step_program.cache_clear()  # no step with the patched test kept for later tests
     for mine, theirs in zip(refreshed, evaluated_first, strict=True):
