@@ -711,17 +711,16 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
                 f"K={previous_K[0]}, K_adj={previous_K[1]}, rtol={previous_K[2]!r}); try a "
                 "smaller step, more CG iterations or another gradient mode")
         z = z_next
+        refined = settings != previous_K
         # a refinement refreshes the stored value anyway: the start moves with it
-        if solves_from is not None and (k % warm_start_every == 0 or settings != previous_K):
+        moved = solves_from is not None and (k % warm_start_every == 0 or refined)
+        if moved:
             solves_from = following
-            if not refinement.tolerance_mode and uses_stored_value(opt_state):
-                # a truncated J depends on where its solves start: the stored value is the
-                # previous start's, and a search comparing it with trials from the new one
-                # stalls (the values of two objectives); a converged J does not, to its
-                # tolerance
-                opt_state = with_stale_value(opt_state)
-        if settings != previous_K and uses_stored_value(opt_state):
-            # the stored value/gradient belong to the old solver: recompute them next step
+        # the stored value/gradient belong to the old solver, or (truncated) to the old
+        # start: a search comparing them with trials from the new one compares two objectives
+        # and stalls; a converged J does not move with its start, to its tolerance
+        if (refined or (moved and not refinement.tolerance_mode)) and \
+                uses_stored_value(opt_state):
             opt_state = with_stale_value(opt_state)
         evaluations = counter.primal_solves + returned.primal_solves
         state_error = _state_error(problem, z, gradient, refinement.tolerance_mode,

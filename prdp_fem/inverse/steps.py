@@ -19,7 +19,7 @@ import optax.tree_utils as otu
 from ..errors import SolverConfigError
 from ..linalg.amg import AMGCycle
 from ..linalg.cg import ConvergedCG, TruncatedCG, unrolled_length
-from ..optim.linesearch import ZoomSearchState, evaluation, search_warm_start
+from ..optim.linesearch import evaluation, has_search_state, search_warm_start
 
 __all__ = [
     "check_training_refinement",
@@ -80,9 +80,7 @@ def _search_counts(opt_state, like: jax.Array) -> jax.Array:
 def _refreshes(opt_state) -> bool:
     """Whether the optimiser's line search evaluates a stale stored value itself
     (:class:`~prdp_fem.optim.linesearch.ZoomSearchState`, :func:`prdp_fem.lbfgs`'s search)."""
-    nodes = jax.tree_util.tree_leaves(
-        opt_state, is_leaf=lambda node: isinstance(node, ZoomSearchState))
-    return any(isinstance(node, ZoomSearchState) for node in nodes)
+    return has_search_state(opt_state)
 
 
 def value_grad_and_update(optimizer, opt_state, z, value_fn):

@@ -453,8 +453,8 @@ def _make_step(optimizer, gradient: str, tolerance_mode: bool, preconditioner):
         solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
         value_fn = BatchObjective(problem, network, batch, solver, counter)
-        value, grad, updates, opt_state, _, _ = value_grad_and_update(optimizer, opt_state, layers,
-                                                                 value_fn)
+        value, grad, updates, opt_state, _, _ = value_grad_and_update(
+            optimizer, opt_state, layers, value_fn)
         return _StepResult(optax.apply_updates(layers, updates), opt_state, value,
                            optax.tree.norm(grad))
 
