@@ -2,7 +2,7 @@
 
 Its size is part of what it shows (solves must dominate: at least 100k state dofs); the
 scene at one refinement less keeps its point -- PRDP reaches the converged run's error band
-with a fraction of the CG iterations -- at a size a test can run.
+with a tenth or so of the CG iterations -- at a size a test can run.
 """
 
 from pathlib import Path
@@ -51,6 +51,16 @@ def test_the_main_job_has_at_least_100k_free_dofs():
     assert scene.inverse.unknown == "log_kappa" and scene.optimizer.steps >= 100
 
 
+def test_the_main_job_compares_runs_with_the_same_preconditioner():
+    """The saving is against the converged run of the same preconditioner (AMG-PCG here);
+    the other converged solvers are the references example's."""
+    runs = dict(load_scene("cube_kappa").runs())
+    assert set(runs) == {"converged", "prdp"}
+    assert {variant.solver.preconditioner for variant in runs.values()} == {"amg"}
+    assert runs["converged"].refinement.kind == "converged"
+    assert runs["prdp"].refinement.kind == "prdp"
+
+
 @pytest.mark.slow(reason="refines the mesh three times: 5 s")
 def test_the_counted_free_dofs_match_the_refined_mesh():
     scene = load_scene("cube_kappa")
@@ -60,18 +70,20 @@ def test_the_counted_free_dofs_match_the_refined_mesh():
     assert free == _free_dofs_after_refinement(build_mesh(scene, level=0), scene.mesh.refine)
 
 
-def test_the_references_example_is_the_main_job_problem_with_converged_solvers_only():
-    """``examples/scenes/cube_kappa_references.toml`` (the fastest converged solver for the
-    main job, in docs/benchmarks.md) must stay the main job's problem, fewer steps apart."""
+def test_the_references_example_is_the_main_job_against_every_converged_solver():
+    """``examples/scenes/cube_kappa_references.toml`` (docs/benchmarks.md) must stay the main
+    job's problem and PRDP run, beside the converged solvers a user would otherwise pick."""
     example = Path(__file__).resolve().parent.parent / "examples" / "scenes" / \
         "cube_kappa_references.toml"
     references, main = load_scene(example), load_scene("cube_kappa")
-    steps = references.optimizer.steps
-    main = with_overrides(main, {"optimizer": {"steps": steps}})
-    runs = dict(references.runs())
-    assert len(runs) == 4 and all(v.refinement.kind == "converged" for v in runs.values())
+    runs, main_runs = dict(references.runs()), dict(main.runs())
     assert all(main.same_problem(v) for v in runs.values())
-    assert {v.solver.preconditioner for v in runs.values()} == {"jacobi", "amg"}
+    converged = {name: v for name, v in runs.items() if v.refinement.kind == "converged"}
+    assert len(converged) == 3
+    assert {v.solver.preconditioner for v in converged.values()} == {"jacobi", "amg"}
+    assert runs["prdp"].refinement == main_runs["prdp"].refinement
+    assert runs["prdp"].solver == main_runs["prdp"].solver
+    assert runs[references.study.reference].solver == main_runs["converged"].solver
 
 
 @pytest.mark.slow(reason="two 150-step inversions on 13k dofs, about a minute on 2 cores")
@@ -82,5 +94,7 @@ def test_main_job_one_level_coarser_prdp_reaches_the_band_with_fewer_iterations(
     prdp, converged = rows["prdp"], rows["converged"]
     assert prdp["reached_step"] != ""  # settles within +-1 % of the converged error
     assert abs(prdp["error_gap"]) <= 0.01
-    assert prdp["iteration_saving"] >= 0.5, prdp
+    # AMG-PCG from K0 = 4 saves 87 % of the iterations at this size (the Jacobi-PCG main job
+    # from K0 = 80 was held to 50 %)
+    assert prdp["iteration_saving"] >= 0.8, prdp
     assert converged["final_K"] == "tol"
