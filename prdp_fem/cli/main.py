@@ -53,7 +53,8 @@ EXAMPLES = {
   prdp-fem study mother                        # dolfin-adjoint's mother problem
   prdp-fem study inclusion --out runs/incl     # a built-in scene
   prdp-fem study my_scene.toml --steps 20      # your scene, fewer optimiser steps
-  prdp-fem study my_scene.toml --out runs/a --resume   # continue a killed study""",
+  prdp-fem study my_scene.toml --out runs/a --resume   # continue a killed study
+  prdp-fem study inclusion --executor dask     # the configurations on a local Dask cluster""",
     "invert": """examples:
   prdp-fem invert plate_hole --out runs/plate
   prdp-fem invert my_scene.toml --steps 50""",
@@ -118,6 +119,11 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("--steps", type=int,
                        help="optimiser steps, or epochs of a learned or heat study (overrides "
                        "the scene)")
+    study.add_argument("--executor", default="serial", metavar="serial|dask[=ADDRESS]",
+                       help="where the configurations run: one after another here (serial, "
+                       "the default), or as tasks on a Dask cluster, a local one (dask) or a "
+                       "running scheduler (dask=tcp://host:8786); needs "
+                       "pip install -e '.[cluster]'")
 
     invert = _command(sub, "invert", "one inversion with the scene's settings")
     invert.add_argument("scene", help="a scene .toml file or a built-in scene name")

@@ -26,8 +26,14 @@ SUMMARY_COLUMNS = {
 }
 
 
-def run_study_command(scene, out: Path | None, resume: bool, prefix: str) -> None:
+def run_study_command(scene, out: Path | None, resume: bool, prefix: str,
+                      executor: str = "serial") -> None:
+    from ..studies.cluster import check_installed, cluster_client, parse_executor
     from ..studies.runner import RESULTS, SUMMARY, configurations, run_study
+
+    kind, address = parse_executor(executor)
+    if kind == "dask":
+        check_installed()  # before the output directory is named or made
 
     if out is None:
         out = Path(f"{prefix}-{scene.name}") if resume else fresh_directory(
@@ -36,10 +42,14 @@ def run_study_command(scene, out: Path | None, resume: bool, prefix: str) -> Non
           f"{len(configurations(scene))} configuration(s) into {out}/", flush=True)
     bars = Bars(len(configurations(scene)))
     continued = shlex.join(["prdp-fem", "study", str(scene.source), "--out", str(out),
-                            "--resume"])
+                            "--resume"] + (["--executor", executor] if kind != "serial" else []))
     with interrupt_kept(bars, f"finished records are kept in {out}/{RESULTS} (continue "
                                f"with: {continued})"):
-        result = run_study(scene, out, resume=resume, progress=bars)
+        if kind == "serial":
+            result = run_study(scene, out, resume=resume, progress=bars)
+        else:
+            with cluster_client(address) as client:
+                result = run_study(scene, out, resume=resume, progress=bars, client=client)
     bars.close()
     # the table opens with its plain reading: the scene's PRDP run against its reference
     line = headline(scene, result.summary) if scene.study.kind == "inverse" else None
@@ -75,7 +85,8 @@ def headline(scene, summary: list[dict]) -> str | None:
 
 
 def study_command(args) -> None:
-    run_study_command(scene_for(args.scene, args.steps), args.out, args.resume, "study")
+    run_study_command(scene_for(args.scene, args.steps), args.out, args.resume, "study",
+                      args.executor)
 
 
 def invert_command(args) -> None:

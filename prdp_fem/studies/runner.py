@@ -404,8 +404,14 @@ class StudyOutput(NamedTuple):
 
 
 def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
-              progress: Progress | None = None) -> StudyOutput:
-    """Run every configuration of ``scene`` not yet done in ``out``; summarise and plot."""
+              progress: Progress | None = None, client=None) -> StudyOutput:
+    """Run every configuration of ``scene`` not yet done in ``out``; summarise and plot.
+
+    ``client``: a ``dask.distributed.Client`` (:func:`prdp_fem.studies.cluster.cluster_client`)
+    to run the configurations as its tasks, one each, at once; this process alone writes
+    ``out``, each configuration's records when its task has finished
+    (:mod:`prdp_fem.studies.cluster`). ``None``: one after another, here.
+    """
     out = Path(out)
     progress = _Silent() if progress is None else progress
     if scene.study.kind == "h" and scene.pde.exact is None:
@@ -417,7 +423,7 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
         _preflight(scene, context)  # a scene its first problem rejects creates no directory
     with directory_lock(out):  # one writer: a second study on ``out`` fails at once
         try:
-            return _run_locked(scene, out, resume, progress, context)
+            return _run_locked(scene, out, resume, progress, context, client)
         except PrdpFemError:
             if not _holds_records(out):  # rejected before its first record: leave nothing
                 for name in (MANIFEST, LOCK_NAME):
@@ -458,25 +464,72 @@ def _preflight(scene: Scene, context) -> None:
     coefficient(scene, disc)
 
 
+def _runner(scene: Scene) -> Callable:
+    return {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level,
+            "learned": _run_learned, "heat": _run_heat}[scene.study.kind]
+
+
 def _run_locked(scene: Scene, out: Path, resume: bool, progress: Progress,
-                context) -> StudyOutput:
+                context, client) -> StudyOutput:
     log = _open(scene, out, resume)
     records = log.records()
     done = completed(records)
-    runner = {"inverse": _run_inverse, "forward": _run_forward, "h": _run_level,
-              "learned": _run_learned, "heat": _run_heat}[scene.study.kind]
-    ran = []
+    ran, remote = [], []
     for name, config in configurations(scene):
         if name in done:
             progress.run_finished(name, skipped=True)
             continue
         attempt = _next_attempt(records, name)
-        runner(name, config, attempt, log, progress, out, context)
+        if client is not None:
+            remote.append((scene, name, config, attempt))
+            continue
+        _runner(scene)(name, config, attempt, log, progress, out, context)
         log.append({"type": "done", "run": name, "attempt": attempt})
         progress.run_finished(name, skipped=False)
         ran.append(name)
+    if remote:
+        from .cluster import run_tasks, write_files
+
+        def finished(item, result) -> None:
+            _, name, _, attempt = item
+            run_records, files = result
+            for record in run_records:
+                log.append(record)
+            write_files(out, files)
+            log.append({"type": "done", "run": name, "attempt": attempt})
+            ran.append(name)
+            progress.run_finished(name, skipped=False)
+
+        run_tasks(client, run_remote, remote, finished)
     summary, figures = summarize(scene, out)
     return StudyOutput(out, summary, figures, ran)
+
+
+class _Collected:
+    """A :class:`ResultsLog` stand-in in a worker: the records stay in memory, to be handed
+    back to the study's process, which alone writes ``results.jsonl``."""
+
+    def __init__(self):
+        self.collected: list[dict] = []
+
+    def append(self, record: dict) -> None:
+        self.collected.append({k: _json_safe(v) for k, v in record.items()})
+
+
+def run_remote(scene: Scene, name: str, config, attempt: int
+               ) -> tuple[list[dict], dict[str, bytes]]:
+    """One configuration of ``scene`` as a cluster task: its records (without ``done``) and
+    the files it wrote, by path relative to the study directory. It builds its own problem
+    and writes nothing outside a scratch directory, so running it again (a worker died)
+    repeats it exactly."""
+    import tempfile
+
+    from .cluster import collected_files
+
+    log = _Collected()
+    with tempfile.TemporaryDirectory(prefix="prdp-fem-task-") as scratch:
+        _runner(scene)(name, config, attempt, log, _Silent(), Path(scratch), _context(scene))
+        return log.collected, collected_files(Path(scratch))
 
 
 def _finished_records(scene: Scene, records: list[dict]) -> dict[str, list[dict]]:
