@@ -150,3 +150,31 @@ def test_an_unreachable_scheduler_is_a_cluster_error():
     with pytest.raises(ClusterError, match="no scheduler reached"), \
             cluster_client("tcp://127.0.0.1:9", timeout="1s"):
         pass
+
+
+def test_bench_prdp_checks_its_executor_first(tmp_path, capsys, monkeypatch):
+    assert main(["bench", "prdp", "--scene", "plate_hole", "--out", str(tmp_path / "b"),
+                 "--executor", "threads"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--executor 'threads'" in err[0]
+    assert not (tmp_path / "b").exists()
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    assert main(["bench", "prdp", "--scene", "plate_hole", "--out", str(tmp_path / "c"),
+                 "--executor", "dask"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "pip install -e '.[cluster]'" in err[0]
+    assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.slow(reason="a local Dask cluster and two benchmark runs: 30 s")
+def test_bench_prdp_on_a_cluster_counts_what_the_serial_run_counts(tmp_path):
+    def saving(out, *executor):
+        assert main(["bench", "prdp", "--scene", "plate_hole", "--steps", "8", "--out",
+                     str(out), *executor]) == 0
+        rows = (out / "saving.csv").read_text().splitlines()
+        header = rows[0].split(",")
+        counted = [header.index(c) for c in ("run", "converged_iterations",
+                                             "prdp_iterations", "reached_step")]
+        return [[row.split(",")[i] for i in counted] for row in rows[1:]]
+
+    assert saving(tmp_path / "cluster", "--executor", "dask") == saving(tmp_path / "serial")

@@ -555,7 +555,7 @@ def _restricted(scene, names: list[str]):
 
 
 def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
-                resume: bool = False, progress=None) -> list[SavingRow]:
+                resume: bool = False, progress=None, client=None) -> list[SavingRow]:
     """The PRDP saving of every comparable PRDP run of ``scene`` (a loaded Scene).
 
     Runs the reference and those runs with :func:`~prdp_fem.studies.runner.run_study` into ``out``
@@ -565,7 +565,9 @@ def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
     and the PRDP runs alternate, and returns each run's :func:`median_row`: on a shared 2-core
     machine one study's time saving moved by 10 points from run to run. ``resume``: the
     studies already in ``out`` keep their finished runs (read back, with the times measured
-    when they ran) and run only the rest.
+    when they ran) and run only the rest. ``client``: a ``dask.distributed.Client`` to run
+    each study's configurations on (:func:`~prdp_fem.studies.runner.run_study`); runs that
+    share a machine's cores slow each other, so their time savings compare contended runs.
     """
     from ..studies.runner import run_study  # here: they import matplotlib
 
@@ -577,7 +579,8 @@ def prdp_saving(scene, *, repeats: int = 1, out: str | Path | None = None,
         root = Path(out) if out is not None else Path(scratch)
         for index in range(repeats):
             directory = root if repeats == 1 else root / f"repeat-{index + 1}"
-            result = run_study(restricted, directory, resume=resume, progress=progress)
+            result = run_study(restricted, directory, resume=resume, progress=progress,
+                               client=client)
             per_study.append(saving_rows(scene.name, scene.study.reference, result.summary))
     seed = scene.inverse.seed if _seeded(scene) else None
     return [median_row([row._replace(seed=seed) for row in rows])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import math
@@ -218,7 +219,11 @@ def _bench_prdp(args) -> None:
     from .._atomic import write_csv_atomic
     from .._lock import directory_lock
     from ..bench.inverse import prdp_saving, saving_configurations
+    from ..studies.cluster import check_installed, cluster_client, parse_executor
 
+    kind, address = parse_executor(args.executor)
+    if kind == "dask":
+        check_installed()
     scenes, instances = _saving_instances(args)
     out = _bench_directory(args)
     runs = sum(len(saving_configurations(scene)) * args.repeats for _, scene in instances)
@@ -228,11 +233,14 @@ def _bench_prdp(args) -> None:
     with directory_lock(out):  # one writer: a second bench on ``out`` fails at once
         with interrupt_kept(bars, f"finished runs are kept in {out}/ (continue with: "
                                    f"{_bench_prdp_command(args, out)})"):
-            for seed, scene in instances:
-                bars.stop_if_requested()  # a Ctrl-C between two studies
-                rows += prdp_saving(scene, repeats=args.repeats,
-                                    out=out / _instance_name(scene.name, seed),
-                                    resume=args.resume, progress=bars)
+            with contextlib.ExitStack() as stack:
+                client = None if kind == "serial" else \
+                    stack.enter_context(cluster_client(address))
+                for seed, scene in instances:
+                    bars.stop_if_requested()  # a Ctrl-C between two studies
+                    rows += prdp_saving(scene, repeats=args.repeats,
+                                        out=out / _instance_name(scene.name, seed),
+                                        resume=args.resume, progress=bars, client=client)
         bars.close()
         tables = _print_saving(rows, seeded=args.seeds is not None, repeats=args.repeats)
         for name, table in tables.items():
@@ -325,6 +333,8 @@ def _bench_prdp_command(args, out: Path) -> str:
         words += ["--repeats", str(args.repeats)]
     if args.seeds is not None:
         words += ["--seeds", *map(str, args.seeds)]
+    if args.executor != "serial":
+        words += ["--executor", args.executor]
     return shlex.join([*words, "--out", str(out), "--resume"])
 
 

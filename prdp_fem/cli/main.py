@@ -255,6 +255,10 @@ def _parser() -> argparse.ArgumentParser:
     saving.add_argument("--resume", action="store_true",
                         help="continue the run in --out (same options): its finished runs are "
                         "read back (times as measured then), the rest run")
+    saving.add_argument("--executor", default="serial", metavar="serial|dask[=ADDRESS]",
+                        help="where each study's configurations run: here, one after another "
+                        "(serial, the default), or as tasks on a Dask cluster (see prdp-fem "
+                        "study --help); runs sharing a machine's cores time each other")
     descent = bench_sub.add_parser(
         "descent", help="how often each refinement rule's steps descend the converged "
         "objective, and its saving",
