@@ -374,6 +374,56 @@ def test_saving_rows_are_the_study_figures():
     assert summary[3]["error_gap"] == pytest.approx(-0.05)
 
 
+def test_each_run_is_compared_with_the_converged_run_of_its_preconditioner():
+    scene = load_scene("inclusion")
+    assert scene.reference_of("prdp") == scene.reference_of("prdp unrolled") == "converged"
+    assert scene.reference_of("prdp identity") == "converged identity"
+    assert scene.reference_of("converged identity") == "converged"  # converged solvers compared
+    assert saving_configurations(scene) == ["converged", "converged identity", "prdp",
+                                            "prdp identity", "prdp unrolled"]
+    # known histories: the unpreconditioned converged run takes 10x the time to the band
+    converged_run = History(record(k, e, 2.0 * k, 100 * k, rtol=1e-10)
+                            for k, e in enumerate([0.5, 0.2, 0.1, 0.1], start=1))
+    identity_run = History(record(k, e, 20.0 * k, 1000 * k, rtol=1e-10)
+                           for k, e in enumerate([0.5, 0.2, 0.1, 0.1], start=1))
+    reaching = History(record(k, e, 0.1 * k, 5 * k)
+                       for k, e in enumerate([0.4, 0.15, 0.1005, 0.0995], start=1))
+    histories = {"converged": converged_run, "converged identity": identity_run,
+                 "prdp": reaching, "prdp identity": reaching}
+    summary = {row["run"]: row for row in
+               study._inverse_summary(scene, histories, "parameter_error")}
+    assert summary["prdp identity"]["reference"] == "converged identity"
+    assert summary["prdp identity"]["converged_time_to_target_s"] == 60.0
+    assert summary["prdp identity"]["time_saving"] == pytest.approx(1 - 0.3 / 60.0)
+    assert summary["prdp"]["reference"] == "converged"
+    assert summary["prdp"]["time_saving"] == pytest.approx(1 - 0.3 / 6.0)
+    rows = {row.run: row for row in saving_rows("inclusion", "converged",
+                                                list(summary.values()))}
+    assert set(rows) == {"prdp", "prdp identity"}  # the references are no PRDP rows
+    assert rows["prdp identity"].converged_iterations == 8000  # primal + adjoint
+    assert rows["prdp identity"].iteration_saving == pytest.approx(1 - 15 / 3000)
+    # no converged run of its preconditioner: the scene's reference
+    plain = load_scene("plate_hole")
+    assert plain.reference_of("plate_hole") == plain.study.reference
+
+
+def test_the_study_command_names_the_runs_with_their_own_reference(monkeypatch, tmp_path,
+                                                                   capsys):
+    """``prdp-fem study`` prints, under its table, which runs compare with another converged
+    run than the scene's reference (the summary of known histories, not a run)."""
+    scene = load_scene("inclusion")
+    runs = History(record(k, e, 2.0 * k, 100 * k, rtol=1e-10)
+                   for k, e in enumerate([0.5, 0.2, 0.1, 0.1], start=1))
+    histories = {name: runs for name, _ in scene.runs()}
+    summary = study._inverse_summary(scene, histories, "parameter_error")
+    monkeypatch.setattr(study, "run_study", lambda *args, **kwargs: study.StudyOutput(
+        tmp_path, summary, [], []))
+    assert main(["study", "inclusion", "--out", str(tmp_path / "s")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "savings of runs with their own preconditioner: prdp identity against converged " \
+        "identity" in lines
+
+
 @pytest.mark.slow  # two inversions compiled and a study's figures (about 15 s)
 def test_saving_rows_are_the_study_summary(tmp_path):
     scene_file = tmp_path / "small.toml"  # no [[study.runs]]: converged + the scene's own PRDP
@@ -508,7 +558,7 @@ def _stand_in_saving(seen, directories=None):
 
     directories = [] if directories is None else directories
 
-    def stand_in(scene, *, repeats=1, out=None, resume=False, progress=None):
+    def stand_in(scene, *, repeats=1, out=None, resume=False, progress=None, client=None):
         seen.append((scene.name, scene.inverse.seed, repeats))
         directories.append((out, resume))
         if resume:  # as a study that finds its run done: read back, not run

@@ -537,13 +537,16 @@ def saving_configurations(scene) -> list[str]:
     if reference is None:
         raise SceneError(f"{scene.source}: study.reference = {scene.study.reference!r} is not "
                          f"one of its runs {list(runs)}; expected the converged baseline")
-    chosen = [name for name, variant in runs.items() if name == scene.study.reference or (
-        variant.refinement.kind in ("prdp", "adaptive") and variant.same_problem(reference))]
-    if len(chosen) < 2:
+    compared = [name for name, variant in runs.items()
+                if variant.refinement.kind in ("prdp", "adaptive")
+                and variant.same_problem(reference)]
+    if not compared:
         raise SceneError(f"{scene.source}: no PRDP run comparable with the reference "
                          f"{scene.study.reference!r}; expected a run with refinement.kind = "
                          "'prdp' on the same mesh, PDE, data and optimiser")
-    return chosen
+    # each run's own reference too: the converged run of its preconditioner
+    references = {scene.study.reference} | {scene.reference_of(name) for name in compared}
+    return [name for name in runs if name in references or name in compared]
 
 
 def _restricted(scene, names: list[str]):
@@ -623,16 +626,21 @@ _MEDIAN_FIELDS = frozenset(SavingRow._fields[2:SavingRow._fields.index("repeats"
 
 
 def saving_rows(scene_name: str, reference: str, summary: list[dict]) -> list[SavingRow]:
-    """:class:`SavingRow` s of every run against ``reference``, from a study's summary rows
-    (as ``run_study`` returns them): the study's own figures, read, not recomputed."""
+    """:class:`SavingRow` s of every run but the converged references, each against its own
+    (the summary's ``reference``: the converged run of its preconditioner, else
+    ``reference``), from a study's summary rows (as ``run_study`` returns them): the
+    study's own figures, read, not recomputed. The error columns compare with ``reference``
+    (the target)."""
     rows = {row["run"]: row for row in summary}
-    base = rows[reference]
+    target = rows[reference]
+    references = {reference} | {row.get("reference", reference) for row in summary}
     return [SavingRow(
         scene_name, name, base["time_s"], base["cg_iterations"], row["time_s"],
         row["cg_iterations"], row["reached_step"] if row["reached_step"] != "" else None,
         row["time_saving"], row["iteration_saving"], bool(row["ends_at_or_below"]),
-        base["final_error"], row["final_error"])
-        for name, row in rows.items() if name != reference]
+        target["final_error"], row["final_error"])
+        for name, row in rows.items() if name not in references
+        for base in (rows[row.get("reference", reference)],)]
 
 
 def _seeded(scene) -> bool:

@@ -56,6 +56,10 @@ def run_study_command(scene, out: Path | None, resume: bool, prefix: str,
     if line:
         print(line)
     print_table(result.summary, SUMMARY_COLUMNS[scene.study.kind])
+    own = [f"{row['run']} against {row['reference']}" for row in result.summary
+           if row.get("reference", scene.study.reference) != scene.study.reference]
+    if own:  # the converged run of the same preconditioner
+        print(f"savings of runs with their own preconditioner: {'; '.join(own)}")
     figures = ", ".join(str(p.relative_to(out)) for p in result.figures)
     print(f"\nwrote {out}/: {RESULTS}, {SUMMARY}, {figures}"
           + (", fields/*.vtu" if scene.study.kind == "inverse" else ""))

@@ -670,6 +670,23 @@ class Scene:
         return all(getattr(self, part) == getattr(other, part)
                    for part in ("mesh", "pde", "inverse", "optimizer"))
 
+    def reference_of(self, name: str) -> str:
+        """The converged run that run ``name``'s saving is measured against: one with the
+        run's preconditioner (``study.reference`` when it has it), so that a saving is the
+        refinement's and not the preconditioner's; ``study.reference`` where no converged
+        run of the same problem shares the preconditioner, and for the converged runs
+        themselves (their saving compares converged solvers)."""
+        variants = dict(self.runs())
+        reference = self.study.reference
+        run = variants.get(name)
+        if run is None or reference not in variants or run.refinement.kind == "converged" or \
+                variants[reference].solver.preconditioner == run.solver.preconditioner:
+            return reference
+        return next((other for other, variant in variants.items()
+                     if variant.refinement.kind == "converged"
+                     and variant.solver.preconditioner == run.solver.preconditioner
+                     and variant.same_problem(run)), reference)
+
     def variant(self, overrides: dict, name: str) -> Scene:
         """This scene with a study run's ``overrides`` (``{"refinement": {...}, "solver":
         {...}}``: ``refinement`` replaces the scene's, other tables update it), named

@@ -711,20 +711,26 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
     else:
         target = min(finals.values(), default=math.nan)
     band, at_or_below = scene.study.band, scene.study.reached == "at_or_below"
-    # same target, both sides: the reference's own time to the target, not its whole run
-    base = _settled(reference, target, band, metric, at_or_below) \
-        if reference is not None and len(reference) else None
+
+    def time_to_target(name: str):
+        # same target, both sides: the reference's own time to the target, not its whole run
+        history = histories.get(name)
+        return _settled(history, target, band, metric, at_or_below) \
+            if history is not None and len(history) else None
+
     rows = []
     for name, history in histories.items():
         if not len(history):
             continue
         last = history[-1]
+        compared_with = scene.reference_of(name)
+        base = time_to_target(compared_with)
         hit = _settled(history, target, band, metric, at_or_below)
         iterations = last.total_iterations
         hit_iterations = hit.total_iterations if hit else math.nan
         final = getattr(last, metric)
         rows.append({
-            "run": name, "steps": last.step, "metric": metric,
+            "run": name, "reference": compared_with, "steps": last.step, "metric": metric,
             "final_error": getattr(last, metric), "final_loss": last.loss,
             "final_K": "tol" if last.rtol > 0 else last.iterations,
             "refinements": last.refinements, "time_s": last.time,
