@@ -49,6 +49,12 @@ def test_the_runs_are_the_reference_the_prdp_run_and_an_added_adaptive_run(scene
         ("converged", "converged"), ("tiny", "prdp"), ("adaptive", "adaptive")]
 
 
+def test_a_run_on_another_preconditioner_brings_its_own_converged_run():
+    runs = [name for name, _ in descent_runs(load_scene("inclusion"))]
+    assert runs[:2] == ["converged", "converged identity"]
+    assert "prdp identity" in runs and runs.count("converged identity") == 1
+
+
 def test_the_converged_and_adaptive_runs_descend_at_every_step(scene_file):
     rows = {row.run: row for row in descent_rows(load_scene(scene_file))}
     converged, adaptive, prdp = rows["converged"], rows["adaptive"], rows["tiny"]

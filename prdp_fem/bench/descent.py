@@ -49,8 +49,9 @@ class DescentRow(NamedTuple):
 
 
 def descent_runs(scene) -> list[tuple[str, Any]]:
-    """The converged reference first, then the comparable PRDP, adaptive and fixed runs, and
-    an ``adaptive`` run where the scene has none."""
+    """The converged reference first, then the converged runs of the other runs'
+    preconditioners (:meth:`~prdp_fem.scene.spec.Scene.reference_of`), the comparable PRDP,
+    adaptive and fixed runs, and an ``adaptive`` run where the scene has none."""
     if scene.study.kind != "inverse":
         raise SceneError(f"{scene.source}: study.kind = {scene.study.kind!r}; expected an "
                          "inverse study (the descent check follows an inversion's steps)")
@@ -59,10 +60,13 @@ def descent_runs(scene) -> list[tuple[str, Any]]:
     if reference is None or reference.refinement.kind != "converged":
         raise SceneError(f"{scene.source}: study.reference = {scene.study.reference!r}: "
                          "expected a run with refinement.kind = 'converged'")
-    chosen = [(scene.study.reference, reference)] + [
-        (name, variant) for name, variant in runs.items()
-        if name != scene.study.reference and variant.same_problem(reference)
-        and variant.refinement.kind in ("prdp", "adaptive", "fixed")]
+    compared = [(name, variant) for name, variant in runs.items()
+                if name != scene.study.reference and variant.same_problem(reference)
+                and variant.refinement.kind in ("prdp", "adaptive", "fixed")]
+    # each compared run's own reference too: the converged run of its preconditioner
+    own = {scene.reference_of(name) for name, _ in compared} - {scene.study.reference}
+    chosen = [(scene.study.reference, reference)] + \
+        [(name, runs[name]) for name in runs if name in own] + compared
     if not any(variant.refinement.kind == "adaptive" for _, variant in chosen):
         chosen.append((ADAPTIVE_RUN, reference.variant({"refinement": {"kind": "adaptive"}},
                                                        ADAPTIVE_RUN)))
@@ -88,18 +92,21 @@ def descent_rows(scene, *, band: float = 0.01, progress=None) -> list[DescentRow
         results.append((name, variant.refinement.kind, history, check))
         if progress is not None:
             progress(name)
-    reference = results[0][2]
-    errors_of = [np.asarray(h.column("parameter_error")) for _, _, h, _ in results]
-    target = float(errors_of[0][-1])
-    base = first_settled(errors_of[0], target, band)
+    errors_of = {name: np.asarray(h.column("parameter_error")) for name, _, h, _ in results}
+    histories = {name: history for name, _, history, _ in results}
+    target = float(errors_of[scene.study.reference][-1])
     rows = []
-    for (name, kind, history, check), errors in zip(results, errors_of, strict=True):
+    for name, kind, history, check in results:
+        errors = errors_of[name]
         settled = first_settled(errors, target, band)
         approach = slice(0, len(errors) if settled is None else settled + 1)
         moved, slopes = check.moved[approach], check.slopes[approach]
+        # same target, both sides: against the converged run of the run's preconditioner
+        compared_with = scene.reference_of(name)
+        base = first_settled(errors_of[compared_with], target, band)
         time_saving = iteration_saving = math.nan
         if settled is not None and base is not None:
-            (t, n), (t0, n0) = _cost(history, settled), _cost(reference, base)
+            (t, n), (t0, n0) = _cost(history, settled), _cost(histories[compared_with], base)
             time_saving, iteration_saving = 1 - t / t0, 1 - n / n0
         rows.append(DescentRow(
             scene=scene.name, run=name, rule=kind, steps=len(history),
