@@ -178,3 +178,18 @@ def test_bench_prdp_on_a_cluster_counts_what_the_serial_run_counts(tmp_path):
         return [[row.split(",")[i] for i in counted] for row in rows[1:]]
 
     assert saving(tmp_path / "cluster", "--executor", "dask") == saving(tmp_path / "serial")
+
+
+@pytest.mark.slow(reason="a one-worker Dask cluster and a study: 20 s")
+def test_the_command_runs_a_study_on_a_running_scheduler(serial, tmp_path, capsys):
+    """``--executor dask=ADDRESS``: the scheduler of a cluster started apart, as a user's."""
+    import distributed
+
+    serial_out, _ = serial
+    out = tmp_path / "study"
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        assert main(["study", "inclusion", "--steps", "6", "--out", str(out), "--executor",
+                     f"dask={cluster.scheduler_address}"]) == 0
+    assert "PRDP (prdp)" in capsys.readouterr().out
+    assert _by_run(_records(out))[0] == _by_run(_records(serial_out))[0]
