@@ -1,6 +1,6 @@
 """Studies on a Dask cluster (``run_study(..., client=...)``, ``prdp-fem study --executor``):
 the same records as a serial study, written by the study's process alone, and a worker
-killed mid-study loses or duplicates nothing."""
+killed mid-study loses no record and writes none twice."""
 
 import json
 import os
@@ -84,7 +84,7 @@ def test_a_cluster_study_writes_the_serial_studys_records_and_resumes(serial, tm
 
 
 @pytest.mark.slow(reason="a 2-worker Dask cluster and two studies: 20 s")
-def test_a_worker_killed_mid_study_loses_and_duplicates_nothing(serial, tmp_path):
+def test_a_worker_killed_mid_study_loses_no_record_and_writes_none_twice(serial, tmp_path):
     serial_out, _ = serial
     out = tmp_path / "study"
     outcome = {}
