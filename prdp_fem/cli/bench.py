@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import json
 import math
@@ -219,11 +218,9 @@ def _bench_prdp(args) -> None:
     from .._atomic import write_csv_atomic
     from .._lock import directory_lock
     from ..bench.inverse import prdp_saving, saving_configurations
-    from ..studies.cluster import check_installed, cluster_client, parse_executor
+    from ..studies.cluster import executor_client
 
-    kind, address = parse_executor(args.executor)
-    if kind == "dask":
-        check_installed()
+    clients = executor_client(args.executor)  # checked before anything is made
     scenes, instances = _saving_instances(args)
     out = _bench_directory(args)
     runs = sum(len(saving_configurations(scene)) * args.repeats for _, scene in instances)
@@ -233,9 +230,7 @@ def _bench_prdp(args) -> None:
     with directory_lock(out):  # one writer: a second bench on ``out`` fails at once
         with interrupt_kept(bars, f"finished runs are kept in {out}/ (continue with: "
                                    f"{_bench_prdp_command(args, out)})"):
-            with contextlib.ExitStack() as stack:
-                client = None if kind == "serial" else \
-                    stack.enter_context(cluster_client(address))
+            with clients as client:
                 for seed, scene in instances:
                     bars.stop_if_requested()  # a Ctrl-C between two studies
                     rows += prdp_saving(scene, repeats=args.repeats,

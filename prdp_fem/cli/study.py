@@ -28,13 +28,10 @@ SUMMARY_COLUMNS = {
 
 def run_study_command(scene, out: Path | None, resume: bool, prefix: str,
                       executor: str = "serial") -> None:
-    from ..studies.cluster import check_installed, cluster_client, parse_executor
+    from ..studies.cluster import executor_client
     from ..studies.runner import RESULTS, SUMMARY, configurations, run_study
 
-    kind, address = parse_executor(executor)
-    if kind == "dask":
-        check_installed()  # before the output directory is named or made
-
+    clients = executor_client(executor)  # checked before the output directory is named
     if out is None:
         out = Path(f"{prefix}-{scene.name}") if resume else fresh_directory(
             f"{prefix}-{scene.name}")
@@ -42,14 +39,12 @@ def run_study_command(scene, out: Path | None, resume: bool, prefix: str,
           f"{len(configurations(scene))} configuration(s) into {out}/", flush=True)
     bars = Bars(len(configurations(scene)))
     continued = shlex.join(["prdp-fem", "study", str(scene.source), "--out", str(out),
-                            "--resume"] + (["--executor", executor] if kind != "serial" else []))
+                            "--resume"] + (["--executor", executor] if executor != "serial"
+                                           else []))
     with interrupt_kept(bars, f"finished records are kept in {out}/{RESULTS} (continue "
                                f"with: {continued})"):
-        if kind == "serial":
-            result = run_study(scene, out, resume=resume, progress=bars)
-        else:
-            with cluster_client(address) as client:
-                result = run_study(scene, out, resume=resume, progress=bars, client=client)
+        with clients as client:
+            result = run_study(scene, out, resume=resume, progress=bars, client=client)
     bars.close()
     # the table opens with its plain reading: the scene's PRDP run against its reference
     line = headline(scene, result.summary) if scene.study.kind == "inverse" else None

@@ -15,17 +15,19 @@ Dask is optional (``pip install -e '.[cluster]'``): nothing here imports it at m
 
 from __future__ import annotations
 
+import contextlib
 import os
-import tempfile
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from .._atomic import atomic_path
 from ..errors import PrdpFemError
 
-__all__ = ["ClusterError", "check_installed", "cluster_client", "parse_executor", "run_tasks"]
+__all__ = ["ClusterError", "check_installed", "cluster_client", "executor_client",
+           "parse_executor", "run_tasks"]
 
 #: how to install the optional dependency, in every message that needs it
 INSTALL_HINT = "pip install -e '.[cluster]' (dask.distributed)"
@@ -65,6 +67,18 @@ def check_installed() -> None:
     """A :class:`ClusterError` with the install command when Dask's distributed scheduler is
     missing."""
     _distributed()
+
+
+def executor_client(spec: str) -> contextlib.AbstractContextManager:
+    """The ``--executor`` option as a context manager to enter around the study: it yields
+    ``None`` (``"serial"``) or a client (:func:`cluster_client`). The option and the Dask
+    install are checked now, before anything is named or made; the cluster starts when the
+    block is entered."""
+    kind, address = parse_executor(spec)
+    if kind == "serial":
+        return contextlib.nullcontext()
+    check_installed()
+    return cluster_client(address)
 
 
 @contextmanager
@@ -122,14 +136,10 @@ def collected_files(directory: Path) -> dict[str, bytes]:
 
 
 def write_files(out: Path, files: dict[str, bytes]) -> None:
-    """Write ``files`` (relative path -> bytes) under ``out``, each atomically: a temporary
-    file beside it, fsynced, renamed over it."""
+    """Write ``files`` (relative path -> bytes) under ``out``, each atomically
+    (:func:`~prdp_fem._atomic.atomic_path`)."""
     for relative, data in files.items():
         path = out / relative
         path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.",
-                                         delete=False) as stream:
-            stream.write(data)
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(stream.name, path)
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(data)
