@@ -10,6 +10,7 @@ square_tri.msh              unit square, triangles, sides tagged            Gmsh
 plate_hole.msh              [0,2]x[0,1] minus a disk, 5 tagged boundaries   Gmsh 2.2 ASCII
 cube_tet.msh                unit cube, tetrahedra, 6 tagged faces           Gmsh 4.1 binary
 square_quad.msh             unit square, recombined quads, sides tagged     Gmsh 2.2 binary
+slab_hex.msh                1 x 0.25 x 1 slab, hexahedra, 6 tagged faces    Gmsh 4.1 ASCII
 ==========================  ==============================================  ================
 """
 
@@ -83,33 +84,55 @@ def plate_hole() -> None:
     _write("plate_hole.msh", 2.2, binary=False)
 
 
+def _tag_box_faces(volume: int, size: tuple[float, float, float], name: str) -> None:
+    names = {}
+    for dim, tag in gmsh.model.getBoundary([(3, volume)], oriented=False):
+        centre = gmsh.model.occ.getCenterOfMass(dim, tag)
+        for value, extent, low, high in zip(centre, size, ("left", "bottom", "front"),
+                                            ("right", "top", "back"), strict=True):
+            if abs(value) < 1e-9:
+                names[tag] = low
+            elif abs(value - extent) < 1e-9:
+                names[tag] = high
+    for tag, face in names.items():
+        gmsh.model.setPhysicalName(2, gmsh.model.addPhysicalGroup(2, [tag]), face)
+    gmsh.model.setPhysicalName(3, gmsh.model.addPhysicalGroup(3, [volume]), name)
+
+
 def cube_tet() -> None:
     gmsh.model.add("cube_tet")
     volume = gmsh.model.occ.addBox(0, 0, 0, 1, 1, 1)
     gmsh.model.occ.synchronize()
-    names = {}
-    for dim, tag in gmsh.model.getBoundary([(3, volume)], oriented=False):
-        x, y, z = gmsh.model.occ.getCenterOfMass(dim, tag)
-        for axis, value, low, high in ((0, x, "left", "right"), (1, y, "bottom", "top"),
-                                       (2, z, "front", "back")):
-            del axis
-            if abs(value) < 1e-9:
-                names[tag] = low
-            elif abs(value - 1) < 1e-9:
-                names[tag] = high
-    for tag, name in names.items():
-        gmsh.model.setPhysicalName(2, gmsh.model.addPhysicalGroup(2, [tag]), name)
-    gmsh.model.setPhysicalName(3, gmsh.model.addPhysicalGroup(3, [volume]), "cube")
+    _tag_box_faces(volume, (1.0, 1.0, 1.0), "cube")
     gmsh.option.setNumber("Mesh.MeshSizeMax", 0.25)
     gmsh.model.mesh.generate(3)
     _write("cube_tet.msh", 4.1, binary=True)
+
+
+def slab_hex() -> None:
+    """A structured hexahedral slab, 16 x 4 x 16 cells, thin in y (bottom, top)."""
+    gmsh.model.add("slab_hex")
+    size = (1.0, 0.25, 1.0)
+    volume = gmsh.model.occ.addBox(0, 0, 0, *size)
+    gmsh.model.occ.synchronize()
+    _tag_box_faces(volume, size, "slab")
+    for _, curve in gmsh.model.getEntities(1):
+        box = gmsh.model.getBoundingBox(1, curve)
+        along_y = box[4] - box[1] > 0.1  # the bounding box is padded by 1e-7
+        gmsh.model.mesh.setTransfiniteCurve(curve, 5 if along_y else 17)
+    for _, surface in gmsh.model.getEntities(2):
+        gmsh.model.mesh.setTransfiniteSurface(surface)
+        gmsh.model.mesh.setRecombine(2, surface)
+    gmsh.model.mesh.setTransfiniteVolume(volume)
+    gmsh.model.mesh.generate(3)
+    _write("slab_hex.msh", 4.1, binary=False)
 
 
 def main() -> None:
     gmsh.initialize()
     gmsh.option.setNumber("General.Terminal", 0)
     try:
-        for make in (square_tri, square_quad, plate_hole, cube_tet):
+        for make in (square_tri, square_quad, plate_hole, cube_tet, slab_hex):
             gmsh.clear()
             make()
     finally:

@@ -128,16 +128,16 @@ def test_reduced_cg_with_an_amg_cycle_reaches_the_same_optimum(mother16):
 
 def test_mother_solve_reaches_the_discretisation_error_in_one_step(mother16):
     _, _, optimum_error = mother16
-    solve = solve_mother(16, target=optimum_error)
+    solve = solve_mother(16, target=optimum_error, solver="reduced")
     assert solve.error <= optimum_error
     assert solve.outer_iterations == 1
     # K0 = 5 primal iterations of the Hessian product (the solve at f = 0 has b = 0), 2 x 5
     # adjoint ones: the data is the lowest mode, which five Jacobi-PCG iterations resolve
-    assert solve.cg_iterations == 15
+    assert solve.inner_iterations == 15
     assert solve.dofs == 17 * 17 and solve.final_K == 5
-    converged_inner = solve_mother(16, target=optimum_error, inner_rtol=1e-10)
+    converged_inner = solve_mother(16, target=optimum_error, inner_rtol=1e-10, solver="reduced")
     assert converged_inner.error == pytest.approx(solve.error, rel=0.05)
-    assert converged_inner.cg_iterations > 5 * solve.cg_iterations
+    assert converged_inner.inner_iterations > 5 * solve.inner_iterations
 
 
 def test_the_hessian_product_is_the_homogeneous_gradient():
@@ -194,7 +194,7 @@ def test_reduced_cg_stops_at_the_callback_and_counts_what_ran(mother16):
 
 @pytest.mark.slow  # a fresh process: the command's test below runs one already
 def test_mother_whole_process_times_a_fresh_process():
-    bench = mother_whole_process(8, repeats=1, target=0.5)
+    bench = mother_whole_process(8, repeats=1, target=0.5, solver="reduced")
     assert bench.error <= 0.5 and bench.outer_iterations == 1 and bench.runs == 1
     phases = bench.import_s + bench.assembly_s + bench.compile_s + bench.solve_s
     assert bench.start_s > 0 and bench.exit_s > 0
@@ -231,7 +231,7 @@ def test_warm_mother_processes_share_a_cache_an_untimed_process_filled(monkeypat
         return run_child(arguments, timeout, environment)
 
     monkeypatch.setattr(bench_inverse, "_run_child", spying)
-    bench = mother_whole_process(8, repeats=1, target=0.5, cache="warm")
+    bench = mother_whole_process(8, repeats=1, target=0.5, cache="warm", solver="reduced")
     assert len(directories) == 2 and directories[0] == directories[1]
     assert bench.cache == "warm" and bench.error <= 0.5 and bench.goal_met is None
     with pytest.raises(SolverConfigError, match="--cache 'hot': expected one of"):
@@ -250,7 +250,7 @@ def test_bench_mother_prints_a_cold_and_a_warm_row_per_size_and_judges_the_cold(
         calls.append((n, cache, peer_python))
         return bench_inverse.MotherBench(
             n=n, dofs=(n + 1) ** 2, target=1e-4, error=0.99e-4,
-            outer_iterations=1, cg_iterations=15, riesz_iterations=9, start_s=0.1,
+            outer_iterations=1, inner_iterations=15, riesz_iterations=9, start_s=0.1,
             import_s=1.0, assembly_s=0.8, compile_s=1.0 if cache == "cold" else 0.4,
             solve_s=0.1, exit_s=0.3, whole_s=3.3 if cache == "cold" else 2.7, runs=1,
             peer=peer[n], cache=cache)
@@ -273,7 +273,7 @@ def test_bench_mother_prints_a_cold_and_a_warm_row_per_size_and_judges_the_cold(
 def test_a_tree_without_bytecode_is_said_once_and_the_benchmark_runs(monkeypatch):
     monkeypatch.setattr(bench_inverse, "compile_package_bytecode", lambda: False)
     monkeypatch.setattr(bench_inverse, "_run_child", lambda arguments, timeout, environment: (
-        {"dofs": 81, "error": 0.1, "outer_iterations": 1, "cg_iterations": 3,
+        {"dofs": 81, "error": 0.1, "outer_iterations": 1, "inner_iterations": 3,
          "riesz_iterations": 2, "import_s": 1.0, "assembly_s": 0.1, "compile_s": 0.5,
          "solve_s": 0.1}, 2.0, 0.25))
     with pytest.warns(RuntimeWarning, match="bytecode of .*prdp_fem could not be written"):
@@ -303,11 +303,16 @@ def test_the_race_s_goals_and_its_target_the_discrete_optimum(mother16):
     field = mother_optimum_field(16)
     assert relative_l2(problem, field) == pytest.approx(optimum_error, rel=1e-8)
     assert mother_optimum(16) == pytest.approx(optimum_error, rel=1e-8)
-    solve = solve_mother(16, inner_rtol=1e-8, preconditioner="amg")
+    solve = solve_mother(16, inner_rtol=1e-8, preconditioner="amg", solver="reduced")
     assert abs(solve.error - optimum_error) <= 0.01 * optimum_error
     assert solve.target == pytest.approx(TARGET_FACTOR * optimum_error, rel=1e-8)
     # the early-stopped iterate (one outer step) passes below the optimum's error: not a race
-    assert solve_mother(16, target=optimum_error).outer_iterations == 1 < solve.outer_iterations
+    early = solve_mother(16, target=optimum_error, solver="reduced")
+    assert early.outer_iterations == 1 < solve.outer_iterations
+    # the race's solver: MINRES on the KKT system, stopped by the same test, compiling nothing
+    kkt = solve_mother(16)
+    assert kkt.solver == "kkt" and abs(kkt.error - optimum_error) <= 0.01 * optimum_error
+    assert kkt.compile_s == 0 and kkt.inner_iterations == 2 * (kkt.outer_iterations + 1)
     check_mother_options([100, 3000])  # any size: the target is computed
 
 
@@ -750,14 +755,19 @@ def test_a_resumed_saving_reads_its_finished_runs_back(tmp_path):
 # --------------------------------------------------------------------------------------
 
 
+REDUCED_MOTHER = ("bench", "mother", "--solver", "reduced")
+
+
 @pytest.mark.parametrize(("argv", "message"), [
     (["bench", "mother", "--sizes", "1"], "--sizes 1: expected integers >= 2"),
     (["bench", "mother", "--repeats", "0"], "--repeats 0: expected an integer >= 1"),
-    (["bench", "mother", "--iterations", "0"], "--iterations 0: expected an integer >= 1"),
-    (["bench", "mother", "--inner-rtol", "2"], "--inner-rtol 2.0: expected a number in (0, 1)"),
-    (["bench", "mother", "--preconditioner", "ilu"], "--preconditioner 'ilu': expected one of"),
-    (["bench", "mother", "--iterations", "5", "--inner-rtol", "1e-8"],
+    ([*REDUCED_MOTHER, "--iterations", "0"], "--iterations 0: expected an integer >= 1"),
+    ([*REDUCED_MOTHER, "--inner-rtol", "2"], "--inner-rtol 2.0: expected a number in (0, 1)"),
+    ([*REDUCED_MOTHER, "--preconditioner", "ilu"], "--preconditioner 'ilu': expected one of"),
+    ([*REDUCED_MOTHER, "--iterations", "5", "--inner-rtol", "1e-8"],
      "--iterations and --inner-rtol: expected one of them"),
+    (["bench", "mother", "--iterations", "5", "--preconditioner", "amg"],
+     "--iterations --preconditioner: options of the inner solves of --solver reduced"),
     (["bench", "mother", "--sizes", "16", "--target", "0"], "--target 0.0: expected"),
     (["bench", "prdp", "--scene", "poisson_h"], "expected an inverse study"),
     (["bench", "prdp", "--scene", "torus"], "scene 'torus': expected"),
@@ -801,14 +811,15 @@ def test_bench_mother_prints_one_row_per_size(capsys, monkeypatch):
     assert main(["bench", "mother", "--sizes", "8", "--target", "0.5", "--repeats", "1"]) == 0
     assert _bytecode_is_current(bench_inverse) and _bytecode_is_current(reduced)
     lines = capsys.readouterr().out.strip().splitlines()
-    assert lines[0] == "reduced-Hessian CG, inner amg-PCG: rtol 1e-08"
+    assert lines[0].startswith("all-at-once MINRES on the KKT system, Pearson-Wathen")
     assert lines[1].startswith("no peer given") and "pip install --no-deps dolfin-adjoint" \
         in lines[1]
     row = lines[3].split()
     assert row[:3] == ["8", "81", "nan"] and float(row[4]) <= 0.5
     assert row[-2:] == ["cold", "-"]
     start, imports, assembly, compile_, solve, shutdown, whole = map(float, row[7:14])
-    assert min(start, imports, compile_, shutdown) > 0  # whole = the phases + the rest
+    assert min(start, imports, shutdown) > 0 and compile_ == 0  # MINRES compiles nothing
+    # whole = the phases + the rest
     assert whole == pytest.approx(start + imports + assembly + compile_ + solve + shutdown,
                                   abs=0.035)  # six figures of 2 decimals
 
@@ -836,7 +847,7 @@ def test_the_peer_runs_alternated_with_the_project_each_in_a_cold_form_cache(
 
     def child(arguments, timeout, environment):
         order.append("project")
-        return ({"dofs": 81, "error": 0.1, "outer_iterations": 1, "cg_iterations": 3,
+        return ({"dofs": 81, "error": 0.1, "outer_iterations": 1, "inner_iterations": 3,
                  "riesz_iterations": 2, "import_s": 1.0, "assembly_s": 0.1, "compile_s": 0.5,
                  "solve_s": 0.1}, 2.0, 0.25)
 

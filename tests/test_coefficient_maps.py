@@ -89,14 +89,15 @@ def test_a_scene_names_a_bad_density_law():
 
 
 def test_the_simp_scene_builds_its_law_and_recovers_the_density():
-    """simp_cube: the density's SIMP law from the scene, P0 on hexahedra; 40 L-BFGS steps
-    with converged solves take the density error from the uniform start's down by a third,
-    and every value stays within [0, 1]."""
-    scene = load_scene("simp_cube")
+    """simp_slab: the density's SIMP law from the scene, P0 on the hexahedra of the slab's
+    mesh file; 40 L-BFGS steps with converged solves take the density error from the uniform
+    start's down by a third, and every value stays within [0, 1]."""
+    scene = load_scene("simp_slab")
     setup = build_inverse(scene)
     law = setup.problem.parameterization
     assert law.unknown == "density" and law.coefficient_map == Simp(0.01, 1.0, 3.0)
-    assert setup.disc.kappa_space == "P0" and setup.disc.mesh.t.shape[0] == 8  # hexahedra
+    assert setup.disc.kappa_space == "P0" and setup.disc.mesh.t.shape == (8, 16 * 4 * 16)
+    assert np.ptp(setup.disc.mesh.p, axis=1).tolist() == [1.0, 0.25, 1.0]  # a slab
     result = pf.invert(setup.problem, refinement=pf.converged(1e-10), steps=40)
     errors = result.history.column("parameter_error")
     assert errors[-1] < 0.67 * errors[0]

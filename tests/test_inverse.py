@@ -428,7 +428,7 @@ def _compiled_step(problem, optimizer) -> tuple[int, int]:
 
     optimizer = optax.with_extra_args_support(optimizer)
     z = jnp.zeros(problem.n_parameters)
-    step = inverse._make_step(optimizer, "implicit", False, "jacobi")
+    step = inverse.make_step(optimizer, "implicit", False, "jacobi")
     text = _compiled_text(step, problem, IterationCounter(), z, optimizer.init(z), None, 0,
                           *steps.device_settings((8, 8, 0.0)))
     return text.count("custom-call("), text.count(" while(")

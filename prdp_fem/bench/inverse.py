@@ -12,13 +12,18 @@ dolfin-adjoint's Poisson "mother problem" on the unit square, P1 state and P1 co
     d = \frac{\sin\pi x \sin\pi y}{2\pi^2}, \quad
     f^* = \frac{\sin\pi x \sin\pi y}{1 + 4\alpha\pi^4}, \quad \alpha = 10^{-6}.
 
-The objective is quadratic in ``f``, so the solver is :func:`~prdp_fem.inverse.reduced.reduced_cg`:
-CG on the reduced Hessian, preconditioned by the L2 Riesz map, whose Hessian products are the
-toolkit's implicit gradients through truncated PCG state and adjoint solves (``K`` from a PRDP
-controller). It stops at the first iterate whose relative L2 error against ``f*``
-(``||f - f*||_M / ||f*||_M`` with the P1 mass matrix and the nodal interpolant of ``f*``, as
-the study and the example measure it) is within 1 % of the *discrete optimum's*
-(:func:`mother_optimum`): the same discrete problem solved to the same accuracy. The peer,
+The objective is quadratic in ``f``. The race's solver (``solver="kkt"``) is
+:func:`~prdp_fem.inverse.kkt.kkt_solve`: MINRES on the KKT system of state, source and
+adjoint, with the Pearson-Wathen block preconditioner (an AMG V-cycle pair per iteration,
+mesh-independent iteration counts). ``solver="reduced"`` is
+:func:`~prdp_fem.inverse.reduced.reduced_cg`: CG on the reduced Hessian, preconditioned by the
+L2 Riesz map, whose Hessian products are the toolkit's implicit gradients through truncated
+PCG state and adjoint solves (``K`` from a PRDP controller, or converged to ``inner_rtol``).
+Either stops at the first iterate whose distance to the *discrete optimum*
+(:func:`mother_optimum_field`) is within 1 % of that optimum's relative L2 error against
+``f*`` (``||f - f*||_M / ||f*||_M`` with the P1 mass matrix and the nodal interpolant of
+``f*``, as the study and the example measure it): the same discrete problem solved to the
+same accuracy. The peer,
 dolfin-adjoint's L-BFGS-B on legacy FEniCS (:mod:`prdp_fem.bench.dolfin_adjoint_mother`),
 runs with its tutorial's settings in its own fresh processes, alternated with the project's,
 where its Python is given (``peer_python``); it is judged on its own final error, reported
@@ -71,6 +76,7 @@ from ..errors import SceneError, SolverConfigError
 from ..fem.discretization import discretize
 from ..fem.observations import full_field
 from ..inverse.driver import InverseProblem, inverse_problem
+from ..inverse.kkt import kkt_solve
 from ..inverse.reduced import reduced_cg
 from ..inverse.refinement import converged, prdp
 from ..mesh.generators import unit_square
@@ -81,6 +87,7 @@ __all__ = [
     "CACHES",
     "GOALS",
     "RACE_INNER_RTOL",
+    "SOLVERS",
     "TARGET_FACTOR",
     "MotherBench",
     "MotherSolve",
@@ -134,6 +141,9 @@ INNER_PRECONDITIONERS: Mapping[str, Callable[[InverseProblem], Any]] = MappingPr
 #: solves with K0 = dK = 5 or 20 did not reach the discrete optimum within 100 outer steps)
 RACE_INNER_RTOL = 1e-8
 DEFAULT_K = 5  # K0 = dK of the inner solves: the mother scene's PRDP settings
+#: the project's solvers of the race: all-at-once MINRES on the KKT system (the race's), or
+#: CG on the reduced Hessian through inner PCG solves
+SOLVERS = ("kkt", "reduced")
 SAVING_GOAL, ERROR_BAND = 0.8, 0.01  # BENCHMARKS.md: >= 80 % saving, final error within 1 %
 
 
@@ -167,19 +177,23 @@ class MotherSolve(NamedTuple):
     dofs: int                 # nodal unknowns of f (the control)
     error: float              # relative L2 error of f against f* where the run stopped
     target: float
-    outer_iterations: int     # reduced-Hessian CG iterations (Hessian products)
-    cg_iterations: int        # primal + adjoint PCG iterations of the state solves
-    riesz_iterations: int     # mass-matrix PCG iterations of the Riesz map
-    final_K: int
+    outer_iterations: int     # MINRES iterations (kkt) or reduced-Hessian CG iterations
+    inner_iterations: int     # AMG V-cycles (kkt) or primal + adjoint state-solve PCG its
+    riesz_iterations: int     # mass-matrix PCG iterations of the Riesz map (reduced)
+    final_K: int              # the inner solves' last K (reduced; 0 for kkt)
     assembly_s: float         # mesh, assembly, data, the inverse problem, the preconditioner
-    compile_s: float
+    compile_s: float          # 0 for kkt: nothing is compiled
     solve_s: float            # the optimisation, compilation excluded
+    solver: str = "kkt"
 
 
 def check_mother_options(sizes, *, repeats: int = 1, target: float | None = None,
                          K: int = DEFAULT_K, inner_rtol: float | None = None,
-                         preconditioner: str = "jacobi", cache: str = "cold") -> None:
+                         preconditioner: str = "jacobi", cache: str = "cold",
+                         solver: str = "kkt") -> None:
     """Refuse bad benchmark settings up front (SolverConfigError naming the option)."""
+    if solver not in SOLVERS:
+        raise SolverConfigError(f"--solver {solver!r}: expected one of {list(SOLVERS)}")
     if any(isinstance(n, bool) or not isinstance(n, int) or n < 2 for n in sizes) or not sizes:
         raise SolverConfigError(f"--sizes {' '.join(map(str, sizes))}: expected integers >= 2")
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
@@ -205,28 +219,45 @@ def _inner_refinement(K: int, inner_rtol: float | None):
 
 def solve_mother(n: int, *, target: float | None = None, K: int = DEFAULT_K,
                  inner_rtol: float | None = None, preconditioner: str = "jacobi",
-                 max_iterations: int = 100, optimum_file: str | None = None) -> MotherSolve:
+                 max_iterations: int = 100, optimum_file: str | None = None,
+                 solver: str = "kkt") -> MotherSolve:
     """Set up and solve the mother problem to within 1 % of the discrete optimum's error.
 
     It stops at the first iterate ``f`` with ``||f - f_opt||_M <= 0.01 ||f_opt - f*||_M``
     (then its error is within 1 % of the optimum's, and it is that optimum, not an iterate
     passing the error on its way), ``f_opt`` the discrete optimum (:func:`mother_optimum`,
     read from ``optimum_file`` where given: a child process is handed the parent's). With
-    ``target``, instead, at the first iterate whose error reaches it. The inner state and
-    adjoint solves run ``K`` PCG iterations under PRDP (``K0 = dK = K``), or to the relative
-    residual ``inner_rtol`` when given; ``preconditioner`` is the inner PCG's.
+    ``target``, instead, at the first iterate whose error reaches it. ``solver="kkt"``:
+    :func:`~prdp_fem.inverse.kkt.kkt_solve` (``K``, ``inner_rtol`` and ``preconditioner`` do
+    not apply). ``solver="reduced"``: :func:`~prdp_fem.inverse.reduced.reduced_cg`, its
+    inner state and adjoint solves ``K`` PCG iterations under PRDP (``K0 = dK = K``), or to
+    the relative residual ``inner_rtol`` when given; ``preconditioner`` is the inner PCG's.
+    At most ``max_iterations`` outer iterations (MINRES: ten times as many).
     """
     check_mother_options([n], target=target, K=K, inner_rtol=inner_rtol,
-                         preconditioner=preconditioner)
+                         preconditioner=preconditioner, solver=solver)
     stop = None
     if target is None:
         f_opt = np.load(optimum_file) if optimum_file else mother_optimum_field(n)
     start = time.perf_counter()
     problem = mother_problem(n)
-    inner_preconditioner = INNER_PRECONDITIONERS[preconditioner](problem)
+    inner_preconditioner = None if solver == "kkt" else \
+        INNER_PRECONDITIONERS[preconditioner](problem)
     if target is None:
         stop, target = _near_optimum(problem, f_opt)
     assembly = time.perf_counter() - start
+    if solver == "kkt":
+        def error(field) -> float:
+            return float(problem.parameter_error(field))
+
+        result = kkt_solve(problem, rtol=0.0, iterations=10 * max_iterations,
+                           callback=(lambda k, field: error(field) <= target)
+                           if stop is None else (lambda k, field: stop(None, field)))
+        return MotherSolve(
+            n=n, dofs=problem.n_parameters, error=error(result.field), target=target,
+            outer_iterations=result.iterations, inner_iterations=result.vcycles,
+            riesz_iterations=0, final_K=0, assembly_s=assembly + result.setup_time,
+            compile_s=0.0, solve_s=result.solve_time, solver=solver)
     result = reduced_cg(problem, refinement=_inner_refinement(K, inner_rtol),
                         iterations=max_iterations, preconditioner=inner_preconditioner,
                         callback=(lambda record, field: record.parameter_error <= target)
@@ -235,16 +266,15 @@ def solve_mother(n: int, *, target: float | None = None, K: int = DEFAULT_K,
     return MotherSolve(
         n=n, dofs=problem.n_parameters, error=last.parameter_error, target=target,
         outer_iterations=last.step,
-        cg_iterations=last.primal_iterations + last.adjoint_iterations_total,
+        inner_iterations=last.primal_iterations + last.adjoint_iterations_total,
         riesz_iterations=result.riesz_iterations, final_K=last.iterations,
-        assembly_s=assembly, compile_s=last.compile_time, solve_s=last.time)
+        assembly_s=assembly, compile_s=last.compile_time, solve_s=last.time, solver=solver)
 
 
 def _near_optimum(problem: InverseProblem, f_opt: np.ndarray):
     """``(stop, error)``: the callback that stops within 1 % of the optimum's error of the
     optimum itself (see :func:`solve_mother`), and the optimum's relative error."""
-    mass = problem.parameter_mass.to_scipy()
-    truth = np.asarray(problem.truth)
+    mass, truth = problem.parameter_mass.to_scipy(), np.asarray(problem.truth)
     scale = float(np.sqrt(truth @ (mass @ truth)))
     gap = f_opt - truth
     error = float(np.sqrt(gap @ (mass @ gap))) / scale
@@ -317,7 +347,7 @@ class MotherBench(NamedTuple):
     target: float
     error: float
     outer_iterations: int
-    cg_iterations: int
+    inner_iterations: int
     riesz_iterations: int
     start_s: float      # interpreter start, and anything else outside the phases and the exit
     import_s: float
@@ -329,6 +359,7 @@ class MotherBench(NamedTuple):
     runs: int
     peer: PeerFigure | None
     cache: str = "cold"  # "cold": compiled in the process; "warm": loaded from a primed cache
+    solver: str = "kkt"
 
     @property
     def ratio(self) -> float:
@@ -392,8 +423,8 @@ def _run_child(arguments: dict, timeout: float, environment: dict[str, str]
 def mother_whole_process(n: int, *, repeats: int = 3, target: float | None = None,
                          K: int = DEFAULT_K, inner_rtol: float | None = None,
                          preconditioner: str = "jacobi", cache: str = "cold",
-                         timeout: float = 600.0, peer_python: str | None = None
-                         ) -> MotherBench:
+                         timeout: float = 600.0, peer_python: str | None = None,
+                         solver: str = "kkt") -> MotherBench:
     """Median whole-process figures over ``repeats`` fresh processes solving at size ``n``.
 
     The settings are those of :func:`solve_mother`. ``cache="warm"``: the processes share a
@@ -404,9 +435,9 @@ def mother_whole_process(n: int, *, repeats: int = 3, target: float | None = Non
     alike.
     """
     check_mother_options([n], repeats=repeats, target=target, K=K, inner_rtol=inner_rtol,
-                         preconditioner=preconditioner, cache=cache)
+                         preconditioner=preconditioner, cache=cache, solver=solver)
     arguments = {"n": n, "target": target, "K": K, "inner_rtol": inner_rtol,
-                 "preconditioner": preconditioner}
+                 "preconditioner": preconditioner, "solver": solver}
     holder = tempfile.TemporaryDirectory(prefix="prdp-fem-optimum-")
     if target is None:  # the children stop near the optimum the parent computes once
         arguments["optimum_file"] = str(Path(holder.name) / "optimum.npy")
@@ -442,7 +473,7 @@ def mother_whole_process(n: int, *, repeats: int = 3, target: float | None = Non
     outside = [whole - shutdown - sum(run[p] for p in phases) for run, whole, shutdown in runs]
     return MotherBench(
         n=n, dofs=last["dofs"], target=target, error=last["error"],
-        outer_iterations=last["outer_iterations"], cg_iterations=last["cg_iterations"],
+        outer_iterations=last["outer_iterations"], inner_iterations=last["inner_iterations"],
         riesz_iterations=last["riesz_iterations"], start_s=median(outside),
         **{p: median([run[p] for run, _, _ in runs]) for p in phases},
         exit_s=median([shutdown for _, _, shutdown in runs]),
@@ -450,7 +481,7 @@ def mother_whole_process(n: int, *, repeats: int = 3, target: float | None = Non
         peer=None if not peer_runs else PeerFigure(
             median([whole for _, whole in peer_runs]), peer_runs[-1][0]["error"],
             GOALS.get(n, math.nan), peer_runs[-1][0]["evaluations"]),
-        cache=cache)
+        cache=cache, solver=solver)
 
 
 #: the peer's script, run by the peer's Python from its path (it imports no prdp_fem)

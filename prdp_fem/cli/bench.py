@@ -1,4 +1,4 @@
-"""``prdp-fem bench ...``: the benchmarks (cg, memory, amg, mother, prdp, descent)."""
+"""``prdp-fem bench ...``: the benchmarks (cg, memory, amg, mother, prdp, descent, batch)."""
 
 from __future__ import annotations
 
@@ -162,6 +162,26 @@ def _bench_amg(args) -> None:
                   f"{c.compile_s:>11.2f}", flush=True)
 
 
+def _bench_batch(args) -> None:
+    from ..bench.batch import batch_throughput
+
+    print(f"batched inversion: {args.steps} L-BFGS steps per problem, PRDP per member, noise "
+          f"seeds of the mother-type source problem on a {args.n} x {args.n} mesh; one "
+          "invert_batch call against a loop of invert calls, alternated, medians of "
+          f"{args.repeats}")
+    print(f"{'members':>7} {'dofs':>6} {'batch [s]':>9} {'loop [s]':>9} {'batch /s':>9} "
+          f"{'loop /s':>8} {'speedup':>7} {'compile [s]':>11} {'max K':>5} {'max diff':>9}")
+    for row in batch_throughput(args.sizes, n=args.n, steps=args.steps, repeats=args.repeats):
+        print(f"{row.members:>7} {row.dofs:>6} {row.batch_s:>9.3f} {row.loop_s:>9.3f} "
+              f"{row.batch_rate:>9.2f} {row.loop_rate:>8.2f} {row.speedup:>7.2f} "
+              f"{row.compile_s:>11.2f} {row.largest_K:>5} {row.max_difference:>9.1e}",
+              flush=True)
+    print("batch /s, loop /s: problems per second; speedup: median of the per-repeat ratios "
+          "loop / batch; compile: the batched program's (the loop's step is compiled once for "
+          "all sizes); max diff: the largest relative difference of a member's result from its "
+          "single run's")
+
+
 def _bench_mother(args) -> None:
     from ..bench.inverse import (
         CACHES,
@@ -176,29 +196,42 @@ def _bench_mother(args) -> None:
     if args.iterations is not None and args.inner_rtol is not None:
         raise SolverConfigError("--iterations and --inner-rtol: expected one of them (PRDP "
                                 "on the inner solves, or converged inner solves)")
+    inner_options = {"--iterations": args.iterations, "--inner-rtol": args.inner_rtol,
+                     "--preconditioner": args.preconditioner}
+    given = [name for name, value in inner_options.items() if value is not None]
+    if args.solver == "kkt" and given:
+        raise SolverConfigError(f"{' '.join(given)}: options of the inner solves of "
+                                "--solver reduced; expected none with --solver kkt")
+    preconditioner = args.preconditioner or "amg"
     K = DEFAULT_INNER_K if args.iterations is None else args.iterations
     inner_rtol = None if args.iterations is not None else (
         RACE_INNER_RTOL if args.inner_rtol is None else args.inner_rtol)
     check_mother_options(args.sizes, repeats=args.repeats, target=args.target, K=K,
-                         inner_rtol=inner_rtol, preconditioner=args.preconditioner)
-    inner = f"PRDP K0 = dK = {K}" if inner_rtol is None else f"rtol {inner_rtol:g}"
-    print(f"reduced-Hessian CG, inner {args.preconditioner}-PCG: {inner}")
+                         inner_rtol=inner_rtol, preconditioner=preconditioner,
+                         solver=args.solver)
+    if args.solver == "kkt":
+        print("all-at-once MINRES on the KKT system, Pearson-Wathen preconditioner (AMG "
+              "V-cycles of A + beta M)")
+    else:
+        inner = f"PRDP K0 = dK = {K}" if inner_rtol is None else f"rtol {inner_rtol:g}"
+        print(f"reduced-Hessian CG, inner {preconditioner}-PCG: {inner}")
     if args.peer_python is None:
         print(f"no peer given: the project's side alone (to race dolfin-adjoint: {PEER_INSTALL})")
     print(f"{'n':>5} {'dofs':>7} {'optimum':>8} {'target':>8} {'error':>8} {'outer':>5} "
-          f"{'CG its':>6} {'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} "
+          f"{'inner':>6} {'start':>6} {'import':>6} {'assem':>6} {'compile':>7} {'solve':>6} "
           f"{'exit':>5} {'whole [s]':>9} {'peer [s]':>8} {'peer err':>8} {'ratio':>6} "
           f"{'cache':>5}  goal")
     for n, cache in itertools.product(args.sizes, caches):
         optimum = math.nan if args.target is not None else mother_optimum(n)
         b = mother_whole_process(n, repeats=args.repeats, target=args.target, K=K,
-                                 inner_rtol=inner_rtol, preconditioner=args.preconditioner,
-                                 cache=cache, peer_python=args.peer_python)
+                                 inner_rtol=inner_rtol, preconditioner=preconditioner,
+                                 cache=cache, peer_python=args.peer_python,
+                                 solver=args.solver)
         goal = "-" if b.goal_met is None else (
             f"<= {b.peer.goal_ratio:g} {'met' if b.goal_met else 'NOT met'}")
         peer = f"{b.peer.seconds:>8.1f} {b.peer.error:>8.2e}" if b.peer else f"{'-':>8} {'-':>8}"
         print(f"{b.n:>5} {b.dofs:>7} {optimum:>8.2e} {b.target:>8.2e} {b.error:>8.2e} "
-              f"{b.outer_iterations:>5} {b.cg_iterations:>6} {b.start_s:>6.2f} "
+              f"{b.outer_iterations:>5} {b.inner_iterations:>6} {b.start_s:>6.2f} "
               f"{b.import_s:>6.2f} {b.assembly_s:>6.2f} {b.compile_s:>7.2f} {b.solve_s:>6.2f} "
               f"{b.exit_s:>5.2f} {b.whole_s:>9.2f} {peer} {b.ratio:>6.2f} {b.cache:>5}  {goal}",
               flush=True)
@@ -206,7 +239,8 @@ def _bench_mother(args) -> None:
           "(Python start, imports, mesh, assembly, compilation, optimisation, exit), the "
           "peer's alternated with the project's; phases: medians inside the process; exit: "
           "from its last print to its end (the interpreter's shutdown); start = whole - "
-          "phases - exit; CG its: primal + adjoint state-solve iterations (Riesz-map mass "
+          "phases - exit; outer: MINRES (kkt) or reduced-Hessian CG iterations; inner: AMG "
+          "V-cycles (kkt) or primal + adjoint state-solve PCG iterations (Riesz-map mass "
           "solves apart); optimum: relative L2 error of f at the discrete optimum, target: "
           "1 % above it, error: where the run stopped (all against the analytic optimum); "
           "peer err: the peer's own final error (L-BFGS-B, its tutorial's tolerances); cache: "
@@ -394,7 +428,7 @@ def _seed_cells(summary) -> dict:
 
 def bench_command(args) -> None:
     return {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory,
-            "mother": _bench_mother, "prdp": _bench_prdp,
+            "mother": _bench_mother, "prdp": _bench_prdp, "batch": _bench_batch,
             "descent": _bench_descent}[args.bench](args)
 
 

@@ -208,11 +208,15 @@ def _parser() -> argparse.ArgumentParser:
     amg.add_argument("--repeats", type=int, default=5, help="timed pairs (median)")
     mother = bench_sub.add_parser(
         "mother", help="mother problem: whole-process time and error against dolfin-adjoint",
-        description="dolfin-adjoint's Poisson mother problem (P1/P1, alpha = 1e-6) solved by "
-        "CG on the reduced Hessian with truncated inner PCG, each run a fresh process, until "
-        "the relative L2 error of f is within 1 %% of the discrete optimum's; against "
-        "dolfin-adjoint's L-BFGS-B in fresh processes alternated with them, where its Python "
-        "is given (see prdp_fem.bench.inverse)")
+        description="dolfin-adjoint's Poisson mother problem (P1/P1, alpha = 1e-6), each run "
+        "a fresh process, solved until f is within 1 %% of the discrete optimum's error of "
+        "that optimum: by MINRES on its KKT system (--solver kkt) or by CG on the reduced "
+        "Hessian through inner PCG solves (--solver reduced); against dolfin-adjoint's "
+        "L-BFGS-B in fresh processes alternated with them, where its Python is given (see "
+        "prdp_fem.bench.inverse)")
+    mother.add_argument("--solver", choices=["kkt", "reduced"], default="kkt",
+                        help="kkt: all-at-once MINRES, Pearson-Wathen preconditioner "
+                        "(default); reduced: CG on the reduced Hessian")
     mother.add_argument("--sizes", type=int, nargs="+", default=[128, 256, 512, 1024],
                         help="unit-square cells per side")
     mother.add_argument("--repeats", type=int, default=5,
@@ -224,12 +228,15 @@ def _parser() -> argparse.ArgumentParser:
                         help="the Python of a legacy FEniCS with dolfin-adjoint 2023.0.0 "
                         "(default: none; the command says how to install one)")
     mother.add_argument("--iterations", type=int, metavar="K",
-                        help="PRDP on the inner state and adjoint PCG solves, K0 = dK = K "
+                        help="--solver reduced: PRDP on the inner state and adjoint PCG "
+                        "solves, K0 = dK = K "
                         f"(e.g. {DEFAULT_INNER_K}; default: converged inner solves)")
     mother.add_argument("--inner-rtol", type=float, metavar="R",
-                        help="every inner solve to the relative residual R (default 1e-8)")
-    mother.add_argument("--preconditioner", default="amg",
-                        help="of the inner PCG: amg | jacobi | identity")
+                        help="--solver reduced: every inner solve to the relative residual "
+                        "R (default 1e-8)")
+    mother.add_argument("--preconditioner",
+                        help="of the inner PCG of --solver reduced: amg (default) | jacobi | "
+                        "identity")
     mother.add_argument("--cache", choices=["cold", "warm", "both"], default="cold",
                         help="cold: every process compiles its program (the goal's reading); "
                         "warm: the processes load it from a compilation cache one untimed "
@@ -269,6 +276,18 @@ def _parser() -> argparse.ArgumentParser:
     _add_inverse_scenes(descent)
     descent.add_argument("--out", type=Path, help="where descent.csv goes (default: a new "
                          "./bench-descent)")
+    batch = bench_sub.add_parser(
+        "batch", help="throughput of batched inversion against a loop of single inversions",
+        description="solve 1, 8, 32, 128 source problems that differ in their noise draw by "
+        "one invert_batch call (one vmapped program, PRDP per member) and by a Python loop "
+        "of invert calls, alternated; problems per second on each side (see "
+        "prdp_fem.bench.batch)")
+    batch.add_argument("--sizes", type=int, nargs="+", default=[1, 8, 32, 128],
+                       help="batch sizes (problems)")
+    batch.add_argument("--n", type=int, default=32, help="unit-square cells per side")
+    batch.add_argument("--steps", type=int, default=20, help="L-BFGS steps per problem")
+    batch.add_argument("--repeats", type=int, default=5,
+                       help="alternated timings per size (the median is reported)")
     return parser
 
 

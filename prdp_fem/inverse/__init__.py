@@ -1,7 +1,9 @@
 """Inverse problems: the driver (:func:`invert`), refinement controllers (PRDP, fixed K,
-converged, adaptive tolerance), the reduced-Hessian CG, histories, savings and gradient checks.
+converged, adaptive tolerance), the reduced-Hessian CG and the all-at-once KKT solve of source
+problems, histories, savings and gradient checks.
 """
 
+from .batch import BatchInversion, invert_batch
 from .comparison import ComparisonRow, compare, first_settled, format_table, settled
 from .descent import DescentCheck, IterateRecorder, descent_check
 from .driver import (
@@ -16,6 +18,7 @@ from .driver import (
     invert,
 )
 from .history import History, StepRecord
+from .kkt import KKTSolution, KKTSystem, kkt_solve, kkt_system
 from .parameter_choice import AlphaChoice, l_curve, morozov
 from .posterior import LaplacePosterior, generalized_eigenpairs, laplace_posterior
 from .reduced import ReducedCG, homogeneous, reduced_cg
@@ -34,6 +37,7 @@ from .taylor import TaylorResult, taylor_test
 
 __all__ = [
     "AlphaChoice",
+    "BatchInversion",
     "ComparisonRow",
     "DescentCheck",
     "History",
@@ -41,6 +45,8 @@ __all__ = [
     "Inversion",
     "InversionError",
     "IterateRecorder",
+    "KKTSolution",
+    "KKTSystem",
     "LaplacePosterior",
     "Objective",
     "ReducedCG",
@@ -63,6 +69,9 @@ __all__ = [
     "initial_params",
     "inverse_problem",
     "invert",
+    "invert_batch",
+    "kkt_solve",
+    "kkt_system",
     "l_curve",
     "laplace_posterior",
     "morozov",

@@ -78,11 +78,14 @@ __all__ = [
     "Inversion",
     "InversionError",
     "Objective",
+    "StepScalars",
     "Validation",
     "WarmStart",
+    "default_optimizer",
     "initial_params",
     "inverse_problem",
     "invert",
+    "make_step",
 ]
 
 
@@ -436,9 +439,11 @@ class Objective:
                 self.problem.regularization_residual)
 
 
-def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
-    """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so that runs
-    differing only in them run one compiled program (per scan length in unrolled mode).
+def make_step(optimizer, gradient, tolerance_mode, preconditioner):
+    """One optimiser step of :func:`invert` (and, vmapped, of
+    :func:`~prdp_fem.inverse.batch.invert_batch`); the counter and (K, K_adj, rtol) are
+    arguments, so that runs differing only in them run one compiled program (per scan length
+    in unrolled mode).
 
     ``preconditioner`` is closed over, except :class:`~prdp_fem.linalg.AMGCycle` (pass the class):
     the cycle is then the step's last argument (see :func:`preconditioner_key`)."""
@@ -454,14 +459,14 @@ def _make_step(optimizer, gradient, tolerance_mode, preconditioner):
             optimizer, opt_state, z, value_fn)
         z_next = optax.apply_updates(z, updates)
         misfit = value - problem.alpha * problem.regularizer(problem.field(z))
-        return z_next, opt_state, following, _StepScalars(
+        return z_next, opt_state, following, StepScalars(
             value, misfit, problem.parameter_error(z_next), optax.tree.norm(grad),
             step_failed(opt_state), jnp.all(jnp.isfinite(z_next)), *counts).packed()
 
     return step
 
 
-class _StepScalars(NamedTuple):
+class StepScalars(NamedTuple):
     """What the loop reads of a step, one float64 vector on the way out (:meth:`packed`):
     read one by one, the seven results cost about 50 us of a 0.4 ms ``plate_hole`` step
     (a wait per output leaf and a transfer per scalar)."""
@@ -483,7 +488,7 @@ class _StepScalars(NamedTuple):
         return jnp.stack([jnp.asarray(v, jnp.float64) for v in self])
 
     @classmethod
-    def read(cls, packed: jax.Array) -> _StepScalars:
+    def read(cls, packed: jax.Array) -> StepScalars:
         """The host values (waits for the step: the vector is among its outputs)."""
         return cls(*np.asarray(packed).tolist())
 
@@ -495,14 +500,14 @@ class _ReturnedCounts(NamedTuple):
     adjoint: int = 0
     primal_solves: int = 0
 
-    def add(self, step: _StepScalars) -> _ReturnedCounts:
+    def add(self, step: StepScalars) -> _ReturnedCounts:
         return _ReturnedCounts(self.primal + round(step.primal),
                                self.adjoint + round(step.adjoint),
                                self.primal_solves + round(step.primal_solves))
 
 
 @lru_cache(maxsize=1)
-def _default_optimizer() -> optax.GradientTransformationExtraArgs:
+def default_optimizer() -> optax.GradientTransformationExtraArgs:
     """:func:`~prdp_fem.optim.linesearch.lbfgs`, one object for every call that passes none (pure
     and immutable, as optax's transformations are): such runs share their compiled step."""
     return lbfgs()
@@ -510,7 +515,7 @@ def _default_optimizer() -> optax.GradientTransformationExtraArgs:
 
 def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> SharedCompile:
     optimizer = optax.with_extra_args_support(optimizer)  # keyed by the object as given
-    return SharedCompile(_make_step(optimizer, gradient, tolerance_mode, preconditioner),
+    return SharedCompile(make_step(optimizer, gradient, tolerance_mode, preconditioner),
                          static_argnum=5)
 
 
@@ -624,7 +629,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")
-    given = _default_optimizer() if optimizer is None else optimizer
+    given = default_optimizer() if optimizer is None else optimizer
     optimizer = optax.with_extra_args_support(given)  # a new wrapper for a plain transform
 
     if not isinstance(warm_start, bool):
@@ -685,7 +690,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
             problem, counter, z, opt_state, solves_from,
             step_scan_length(gradient, settings[0]),
             *arguments, *cycle_argument(preconditioner))
-        result = _StepScalars.read(packed)
+        result = StepScalars.read(packed)
         returned = returned.add(result)
         monitored = result.grad_norm if monitor == "gradient" else result.value
         if validate is not None and k % monitor.every == 0:

@@ -28,6 +28,7 @@ from .cg import (
     zero_counts,
 )
 from .host_cg import HostSolution, dot, jacobi_pcg, power_of_two_scale
+from .host_minres import MINRES_RESULTS, MinresSolution, chebyshev_inverse, minres
 from .operator import (
     KERNELS,
     CooMatrix,
@@ -53,6 +54,7 @@ __all__ = [
     "COUNTS",
     "DEFAULT_IMPLEMENTATION",
     "KERNELS",
+    "MINRES_RESULTS",
     "AMGCycle",
     "AMGLevel",
     "ConvergedCG",
@@ -65,6 +67,7 @@ __all__ = [
     "IdentityPreconditioner",
     "IterationCounter",
     "JacobiPreconditioner",
+    "MinresSolution",
     "PyamgCycle",
     "RebuildPolicy",
     "RebuildState",
@@ -77,6 +80,7 @@ __all__ = [
     "TruncatedJacobi",
     "amg_hierarchy",
     "amg_preconditioner",
+    "chebyshev_inverse",
     "default_kernel",
     "diagonal",
     "dot",
@@ -87,6 +91,7 @@ __all__ = [
     "jacobi_solve",
     "make_preconditioner",
     "matvec",
+    "minres",
     "power_of_two_scale",
     "prepare",
     "prepare_on_host",

@@ -138,7 +138,7 @@ __all__ = [
 ]
 
 BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h",
-                  "simp_cube", "hippylib_tutorial")
+                  "simp_slab", "hippylib_tutorial")
 GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
 PACKAGE_MESH_PREFIX = "@meshes/"
 
