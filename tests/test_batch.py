@@ -50,9 +50,10 @@ def noisy():
 EAGER = prdp(K0=1, dK=1, ema_window=2, delta=2)
 
 
-def test_a_batch_with_its_own_k_per_member_equals_looping_invert(noisy):
+@pytest.mark.parametrize("mode", ["vmap", "map"])
+def test_a_batch_with_its_own_k_per_member_equals_looping_invert(noisy, mode):
     refinement = EAGER
-    batch = invert_batch(noisy, refinement=refinement, steps=15)
+    batch = invert_batch(noisy, refinement=refinement, steps=15, mode=mode)
     singles = [invert(problem, refinement=refinement, steps=15) for problem in noisy]
     schedules = [[record.iterations for record in h] for h in batch.histories]
     assert schedules == [[record.iterations for record in s.history] for s in singles]
@@ -159,13 +160,16 @@ def test_bad_batches_are_refused_naming_the_member(noisy):
         invert_batch(noisy, steps=1, preconditioner=pf.linalg.RebuiltAMG())
     with pytest.raises(SolverConfigError, match="monitor="):
         invert_batch(noisy, steps=1, monitor=Validation(every=1))
+    with pytest.raises(SolverConfigError, match=r"mode='pmap': expected one of \['vmap', 'map'\]"):
+        invert_batch(noisy, steps=1, mode="pmap")
 
 
 def test_bench_batch_prints_the_equality_and_refuses_bad_sizes(capsys):
-    assert main(["bench", "batch", "--sizes", "1", "3", "--n", "6", "--steps", "3",
+    assert main(["bench", "batch", "--sizes", "1", "3", "--n", "4", "--steps", "2",
                  "--repeats", "1"]) == 0
-    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:4]]
-    assert [int(row[0]) for row in rows] == [1, 3]
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:6]]
+    assert [(int(row[0]), row[1]) for row in rows] == [(1, "vmap"), (1, "map"), (3, "vmap"),
+                                                       (3, "map")]
     assert all(float(row[-1]) <= 1e-12 for row in rows)  # max diff: batch = loop
     assert main(["bench", "batch", "--sizes", "0"]) == 2
     assert "--sizes 0: expected integers >= 1" in capsys.readouterr().err

@@ -1,21 +1,23 @@
 """Throughput of batched inversion (``prdp-fem bench batch``).
 
 ``batch_throughput`` solves ``members`` inverse problems that differ in their data -- the
-mother problem's state observed in full with 1 % noise, one noise seed per member -- two ways,
-alternated ``repeats`` times: one :func:`~prdp_fem.inverse.batch.invert_batch` call, and a
-Python loop of :func:`~prdp_fem.inverse.driver.invert` calls (each reusing the one compiled
-step, as a script looping over data sets does). Both run the same optimiser, controller and
-number of steps, each member under its own PRDP controller; both are timed warm (their
-programs compiled by an untimed run first, the batched program's compile time reported
-apart). Reported: the medians of each side's wall time, problems per second, the median of
-the per-repeat ratios loop / batch, and the largest difference between a member's result and
-its single run's.
+mother problem's state observed in full with 1 % noise, one noise seed per member -- three
+ways, alternated ``repeats`` times: one :func:`~prdp_fem.inverse.batch.invert_batch` call
+in each of its modes (``vmap``: the members together; ``map``: in turn inside the one
+program), and a Python loop of :func:`~prdp_fem.inverse.driver.invert` calls (each reusing
+the one compiled step, as a script looping over data sets does). All run the same optimiser,
+controller and number of steps, each member under its own PRDP controller; all are timed
+warm (their programs compiled by an untimed run first, the batched program's compile time
+reported apart). Reported per mode: the medians of the batch's and the loop's wall time,
+problems per second, the median of the per-repeat ratios loop / batch, and the largest
+difference between a member's result and its single run's.
 """
 
 from __future__ import annotations
 
 import statistics
 import time
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
@@ -24,7 +26,7 @@ from ..errors import SolverConfigError
 from ..fem.discretization import discretize
 from ..fem.observations import full_field, with_noise
 from ..fem.reference import direct_solve
-from ..inverse.batch import invert_batch
+from ..inverse.batch import MODES, invert_batch
 from ..inverse.driver import InverseProblem, inverse_problem, invert
 from ..inverse.refinement import Refinement, prdp
 from ..mesh.generators import unit_square
@@ -34,6 +36,7 @@ __all__ = ["BatchThroughput", "batch_throughput", "noise_batch"]
 
 class BatchThroughput(NamedTuple):
     members: int
+    mode: str               # invert_batch's mode: "vmap" or "map"
     dofs: int
     batch_s: float          # median wall time of one invert_batch call
     loop_s: float           # median wall time of the loop of invert calls
@@ -80,36 +83,43 @@ def _check(sizes, n, steps, repeats) -> None:
 def batch_throughput(sizes=(1, 8, 32, 128), *, n: int = 32, steps: int = 20,
                      repeats: int = 5, refinement: Refinement | None = None
                      ) -> list[BatchThroughput]:
-    """One row per batch size (see the module's text)."""
+    """Rows per batch size and mode (see the module's text)."""
     _check(list(sizes), n, steps, repeats)
     refinement = prdp() if refinement is None else refinement
-    return [_throughput(noise_batch(n, members), steps, repeats, refinement)
-            for members in sizes]
+    return [row for members in sizes
+            for row in _throughput(noise_batch(n, members), steps, repeats, refinement)]
 
 
 def _throughput(problems: list[InverseProblem], steps: int, repeats: int,
-                refinement: Refinement) -> BatchThroughput:
-    def batched():
-        return invert_batch(problems, refinement=refinement, steps=steps)
-
-    def looped():
-        return [invert(problem, refinement=refinement, steps=steps) for problem in problems]
-
-    warm, singles = batched(), looped()  # compile both (untimed)
-    difference = max(
-        float(np.max(np.abs(np.asarray(warm.params[i]) - np.asarray(single.params)))
-              / max(float(np.max(np.abs(np.asarray(single.params)))), 1e-300))
-        for i, single in enumerate(singles))
-    batch_times, loop_times = [], []
-    for _ in range(repeats):  # alternated: a slow spell of the machine hits both
-        for call, times in ((batched, batch_times), (looped, loop_times)):
+                refinement: Refinement) -> list[BatchThroughput]:
+    calls = {mode: partial(invert_batch, problems, refinement=refinement, steps=steps,
+                           mode=mode) for mode in MODES}
+    calls["loop"] = lambda: [invert(problem, refinement=refinement, steps=steps)
+                             for problem in problems]
+    warm = {name: call() for name, call in calls.items()}  # compiles each (untimed)
+    times = {name: [] for name in calls}
+    for _ in range(repeats):  # alternated: a slow spell of the machine hits every side
+        for name, call in calls.items():
             start = time.perf_counter()
             call()
-            times.append(time.perf_counter() - start)
-    return BatchThroughput(
-        len(problems), problems[0].system.n_free, statistics.median(batch_times),
-        statistics.median(loop_times),
-        statistics.median(loop / batch for loop, batch in zip(loop_times, batch_times,
-                                                               strict=True)),
-        warm.compile_time, difference,
-        max(record.iterations for history in warm.histories for record in history))
+            times[name].append(time.perf_counter() - start)
+    rows = []
+    for mode in MODES:
+        batch = warm[mode]
+        difference = max(_relative_difference(batch.params[i], single.params)
+                         for i, single in enumerate(warm["loop"]))
+        rows.append(BatchThroughput(
+            len(problems), mode, problems[0].system.n_free, statistics.median(times[mode]),
+            statistics.median(times["loop"]),
+            statistics.median(loop / batch for loop, batch in zip(times["loop"], times[mode],
+                                                                   strict=True)),
+            batch.compile_time, difference,
+            max(record.iterations for history in batch.histories for record in history)))
+    return rows
+
+
+def _relative_difference(params, reference) -> float:
+    """``max |params - reference| / max |reference|``."""
+    reference = np.asarray(reference)
+    scale = max(float(np.max(np.abs(reference))), np.finfo(float).tiny)
+    return float(np.max(np.abs(np.asarray(params) - reference))) / scale

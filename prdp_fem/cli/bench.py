@@ -167,19 +167,21 @@ def _bench_batch(args) -> None:
 
     print(f"batched inversion: {args.steps} L-BFGS steps per problem, PRDP per member, noise "
           f"seeds of the mother-type source problem on a {args.n} x {args.n} mesh; one "
-          "invert_batch call against a loop of invert calls, alternated, medians of "
-          f"{args.repeats}")
-    print(f"{'members':>7} {'dofs':>6} {'batch [s]':>9} {'loop [s]':>9} {'batch /s':>9} "
-          f"{'loop /s':>8} {'speedup':>7} {'compile [s]':>11} {'max K':>5} {'max diff':>9}")
+          "invert_batch call (vmap: members together, map: in turn) against a loop of invert "
+          f"calls, alternated, medians of {args.repeats}")
+    print(f"{'members':>7} {'mode':>4} {'dofs':>6} {'batch [s]':>9} {'loop [s]':>9} "
+          f"{'batch /s':>9} {'loop /s':>8} {'speedup':>7} {'compile [s]':>11} {'max K':>5} "
+          f"{'max diff':>9}")
     for row in batch_throughput(args.sizes, n=args.n, steps=args.steps, repeats=args.repeats):
-        print(f"{row.members:>7} {row.dofs:>6} {row.batch_s:>9.3f} {row.loop_s:>9.3f} "
-              f"{row.batch_rate:>9.2f} {row.loop_rate:>8.2f} {row.speedup:>7.2f} "
-              f"{row.compile_s:>11.2f} {row.largest_K:>5} {row.max_difference:>9.1e}",
-              flush=True)
+        print(f"{row.members:>7} {row.mode:>4} {row.dofs:>6} {row.batch_s:>9.3f} "
+              f"{row.loop_s:>9.3f} {row.batch_rate:>9.2f} {row.loop_rate:>8.2f} "
+              f"{row.speedup:>7.2f} {row.compile_s:>11.2f} {row.largest_K:>5} "
+              f"{row.max_difference:>9.1e}", flush=True)
     print("batch /s, loop /s: problems per second; speedup: median of the per-repeat ratios "
           "loop / batch; compile: the batched program's (the loop's step is compiled once for "
           "all sizes); max diff: the largest relative difference of a member's result from its "
-          "single run's")
+          "single run's (vmap sums its reductions in another order; map is the loop's "
+          "arithmetic)")
 
 
 def _bench_mother(args) -> None:
