@@ -82,6 +82,7 @@ def test_unrolled_and_converged_batches_equal_their_loops(noisy):
             assert _relative(batch.params[i], single.params) <= 1e-12
 
 
+@pytest.mark.slow  # one more program to compile (5 s)
 def test_a_batch_of_sensor_sets_equals_its_loop():
     """Members observing at other points (as many of them): stacked observation operators."""
     disc = pf.discretize(pf.unit_square(8, "triangle"), element="P1", kappa_space="P0",
@@ -164,12 +165,16 @@ def test_bad_batches_are_refused_naming_the_member(noisy):
         invert_batch(noisy, steps=1, mode="pmap")
 
 
-def test_bench_batch_prints_the_equality_and_refuses_bad_sizes(capsys):
+@pytest.mark.slow  # three programs to compile (12 s)
+def test_bench_batch_prints_the_equality(capsys):
     assert main(["bench", "batch", "--sizes", "1", "3", "--n", "4", "--steps", "2",
                  "--repeats", "1"]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:6]]
     assert [(int(row[0]), row[1]) for row in rows] == [(1, "vmap"), (1, "map"), (3, "vmap"),
                                                        (3, "map")]
     assert all(float(row[-1]) <= 1e-12 for row in rows)  # max diff: batch = loop
+
+
+def test_bench_batch_refuses_bad_sizes(capsys):
     assert main(["bench", "batch", "--sizes", "0"]) == 2
     assert "--sizes 0: expected integers >= 1" in capsys.readouterr().err

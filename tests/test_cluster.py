@@ -48,6 +48,7 @@ def serial(tmp_path_factory):
     return out, result
 
 
+@pytest.mark.slow  # a LocalCluster's start and a study on it: 45 s of the default suite's CPU
 def test_a_cluster_study_writes_the_serial_studys_records_and_resumes(serial, tmp_path):
     serial_out, serial_result = serial
     out = tmp_path / "study"

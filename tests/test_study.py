@@ -304,6 +304,7 @@ def test_optimizer_scene_runs_each_lower_the_parameter_error(name, n):
         assert errors[-1] < 0.9 * start, (run, start, errors)
 
 
+@pytest.mark.slow  # four optimisers' programs (8 s)
 def test_optimizer_scene_second_order_runs_lower_the_error():
     """The default-suite slice of the test above: Gauss-Newton and HIG on the source scene.
     The error falls from the zero start, and the objective falls at every step (the error

@@ -4,8 +4,9 @@ A batch is a list of :class:`~prdp_fem.inverse.driver.InverseProblem` s of one s
 the same mesh, unknown, observation layout and regulariser -- that differ in their arrays:
 data sets (noise draws, other sources), sensor values, known coefficients, regularisation
 weights. :func:`invert_batch` runs :func:`~prdp_fem.inverse.driver.invert`'s own step
-(:func:`~prdp_fem.inverse.driver.make_step`) under ``jax.vmap``: one compiled program
-advances every member by one optimiser step, each with its own CG iteration count.
+(:func:`~prdp_fem.inverse.driver.make_step`) under ``jax.vmap`` (or ``jax.lax.map``, below):
+one compiled program advances every member by one optimiser step, each with its own CG
+iteration count.
 
 * **Per-member K** (default): every member has its own refinement controller, fed its own
   loss (or gradient norm), so under PRDP each member refines when *its* progress stalls.
@@ -185,7 +186,7 @@ def invert_batch(problems: Sequence[InverseProblem], *,
                  steps: int = 100, init: np.ndarray | None = None,
                  preconditioner: Any = "jacobi", monitor: str | None = None,
                  shared_refinement: bool = False, mode: str = "vmap") -> BatchInversion:
-    """Minimise each member's ``J`` for ``steps`` optimiser steps in one vmapped program.
+    """Minimise each member's ``J`` for ``steps`` optimiser steps in one compiled program.
 
     Parameters
     ----------

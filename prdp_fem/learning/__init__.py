@@ -1,4 +1,5 @@
-"""Training through the solver: a learned inverse and a time-stepping heat hybrid.
+"""Training through the solver: a learned inverse and a time-stepping heat hybrid, with any
+JAX model (a function of parameters, an Equinox or a Flax module, or the built-in MLP).
 """
 
 from .heat import (
@@ -34,6 +35,7 @@ from .learned import (
     source_samples,
     training_saving,
 )
+from .model import Model, check_model, equinox_model, flax_model
 
 __all__ = [
     "MODES",
@@ -44,12 +46,16 @@ __all__ = [
     "HeatRecord",
     "LearnedFactors",
     "LearnedInverse",
+    "Model",
     "Network",
     "SourceSamples",
     "Training",
     "Trajectories",
     "batch_loss",
+    "check_model",
     "correction",
+    "equinox_model",
+    "flax_model",
     "heat_problem",
     "heat_step",
     "initial_network",

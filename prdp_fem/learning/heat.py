@@ -89,7 +89,8 @@ from ..inverse.steps import (
 from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
-from .learned import Network, Training, mlp_apply, mlp_init
+from .learned import Network, Training, mlp_init
+from .model import Model, check_model
 
 __all__ = [
     "MODES",
@@ -267,18 +268,19 @@ def _check_choice(value: Any, name: str, allowed: tuple[str, ...]) -> None:
         raise SolverConfigError(f"{name}={value!r}: expected one of {allowed}")
 
 
-def correction(network: Network | None, u: jax.Array) -> jax.Array:
-    """``N(u) = rho(u) MLP(u / rho(u))``, ``rho`` the RMS of ``u`` (zero at ``u = 0``, with
-    finite gradients); ``network=None``: zero."""
+def correction(network: Model | Network | None, u: jax.Array) -> jax.Array:
+    """``N(u) = rho(u) model(u / rho(u))``, ``rho`` the RMS of ``u`` (zero at ``u = 0``, with
+    finite gradients); ``network=None``: zero. ``network`` is any model
+    (:mod:`prdp_fem.learning.model`) from the free dofs to the free dofs."""
     if network is None:
         return jnp.zeros_like(u)
     power = jnp.mean(u**2)
     positive = power > 0
     rho = jnp.sqrt(jnp.where(positive, power, 1.0))  # safe before the square root
-    return jnp.where(positive, rho, 0.0) * mlp_apply(network, u / rho)
+    return jnp.where(positive, rho, 0.0) * network(u / rho)
 
 
-def stepper(setup: str, network: Network | None, problem: HeatProblem, u: jax.Array, solver,
+def stepper(setup: str, network: Model | Network | None, problem: HeatProblem, u: jax.Array, solver,
             *, stop_solver: bool = False, step: Step = heat_step):
     """``G(u)`` of ``setup`` and the CG iterations it ran. ``stop_solver`` stops the gradient
     at the solver's input and output (NOG: the solver is never differentiated)."""
@@ -299,7 +301,7 @@ def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> ja
         jnp.vdot(truth, problem.mass(truth)), 1e-300)
 
 
-def window_loss(network: Network, problem: HeatProblem, window: jax.Array, solver, *,
+def window_loss(network: Model | Network, problem: HeatProblem, window: jax.Array, solver, *,
                 setup: str, mode: str, step: Step = heat_step):
     """The loss of one window ``(m + 1, n_free)`` (see the module docstring) and its CG
     iterations."""
@@ -317,7 +319,7 @@ def window_loss(network: Network, problem: HeatProblem, window: jax.Array, solve
     return total / m, iterations
 
 
-def batch_loss(network: Network, problem: HeatProblem, batch: jax.Array, solver, *,
+def batch_loss(network: Model | Network, problem: HeatProblem, batch: jax.Array, solver, *,
                setup: str, mode: str, step: Step = heat_step):
     """Mean :func:`window_loss` over ``batch`` (``(B, m + 1, n_free)``, solves under ``vmap``)
     and the total CG iterations of its forward solves."""
@@ -327,8 +329,8 @@ def batch_loss(network: Network, problem: HeatProblem, batch: jax.Array, solver,
     return jnp.mean(losses), jnp.sum(iterations)
 
 
-def rollout(network: Network | None, problem: HeatProblem, u0: jax.Array, steps: int, solver,
-            *, setup: str = "correction", step: Step = heat_step):
+def rollout(network: Model | Network | None, problem: HeatProblem, u0: jax.Array, steps: int,
+            solver, *, setup: str = "correction", step: Step = heat_step):
     """``steps`` steps of ``G`` from ``u0``: the states ``(steps + 1, n_free)`` and the CG
     iterations. ``network=None`` with ``setup="correction"`` is the coarse solver alone."""
     def body(u, _):
@@ -339,7 +341,7 @@ def rollout(network: Network | None, problem: HeatProblem, u0: jax.Array, steps:
     return jnp.concatenate([u0[None], states]), jnp.sum(iterations)
 
 
-def rollout_error(network: Network | None, problem: HeatProblem, trajectories: Trajectories,
+def rollout_error(network: Model | Network | None, problem: HeatProblem, trajectories: Trajectories,
                   solver, *, setup: str = "correction", step: Step = heat_step):
     """Mean over trajectories and steps ``n >= 1`` of ``||u_n - u*_n||_M / ||u*_n||_M`` for
     rollouts from ``u*_0`` (vmapped), and their total CG iterations."""
@@ -404,11 +406,15 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
         solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
         stepper = partial(step_fn, counter=counter) if counted else step_fn
-        (loss, iterations), grads = jax.value_and_grad(batch_loss, has_aux=True)(
-            network, problem, batch, solver, setup=setup, mode=mode, step=stepper)
-        grads = grads._replace(input_scale=jnp.zeros(()), output_scale=jnp.zeros(()))
-        updates, opt_state = optimizer.update(grads, opt_state, network)
-        return optax.apply_updates(network, updates), opt_state, loss, iterations, \
+
+        def loss_of(params):  # the model's params train; the rest (an MLP's scales) is fixed
+            return batch_loss(network.replace_params(params), problem, batch, solver,
+                              setup=setup, mode=mode, step=stepper)
+
+        (loss, iterations), grads = jax.value_and_grad(loss_of, has_aux=True)(network.params)
+        updates, opt_state = optimizer.update(grads, opt_state, network.params)
+        params = optax.apply_updates(network.params, updates)
+        return network.replace_params(params), opt_state, loss, iterations, \
             optax.tree.norm(grads)
 
     return step
@@ -428,14 +434,7 @@ def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, precondi
 _step_program = kept_programs(_new_step_program)
 
 
-def _check_network(network: Network, n_free: int) -> None:
-    n_in, n_out = network.layers[0][0].shape[0], network.layers[-1][0].shape[1]
-    if (n_in, n_out) != (n_free, n_free):
-        raise ShapeError(f"network maps {n_in} -> {n_out} values; expected {n_free} -> "
-                         f"{n_free} (the free dofs of the problem)")
-
-
-def train(problem: HeatProblem, network: Network, train_set: Trajectories,
+def train(problem: HeatProblem, network: Model | Network, train_set: Trajectories,
           validation_set: Trajectories, *, setup: str = "correction", mode: str = "nog",
           unroll: int = 3, optimizer: optax.GradientTransformation | None = None,
           refinement: Refinement | None = None, epochs: int = 30, batch_size: int = 16,
@@ -443,7 +442,9 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
           validation_rtol: float = 1e-10, step: Step = heat_step,
           test_set: Trajectories | None = None,
           callback: Callable[[HeatRecord], None] | None = None) -> Training:
-    """Train ``network`` as the ``setup`` stepper with ``mode`` over windows of ``unroll``
+    """Train ``network`` (any model, :mod:`prdp_fem.learning.model`, from the free dofs to
+    the free dofs; only its ``params`` train, an MLP's scales stay fixed) as the ``setup``
+    stepper with ``mode`` over windows of ``unroll``
     steps: ``epochs`` epochs of shuffled mini-batches of windows (``seed``), ``K`` picked
     once per epoch by ``refinement`` (default :func:`~prdp_fem.inverse.prdp` with ``K0=1, dK=1``,
     the reference's heat schedule) from the validation rollout error. ``step`` replaces
@@ -470,7 +471,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
         if data.states.ndim != 3 or data.states.shape[-1] != problem.n_free:
             raise ShapeError(f"{name}: states{tuple(data.states.shape)}; expected "
                              f"(n_trajectories, steps + 1, {problem.n_free})")
-    _check_network(network, problem.n_free)
+    check_model(network, problem.n_free, problem.n_free, "the free dofs of the problem")
     data = windows(train_set, unroll)
     n = int(data.shape[0])
     if batch_size > n:
@@ -491,7 +492,7 @@ def train(problem: HeatProblem, network: Network, train_set: Trajectories,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
         net, prob, val, validation_solver, setup=setup, step=step)[0])
-    opt_state, control = optimizer.init(network), refinement.init()
+    opt_state, control = optimizer.init(network.params), refinement.init()
     rng = np.random.default_rng(seed)
     records, run_time, primal = [], 0.0, 0
     for epoch in range(1, epochs + 1):

@@ -16,9 +16,10 @@ A refinement controller (:mod:`prdp_fem.inverse.refinement`) picks ``K`` once pe
 *validation misfit*: the same observation misfit on held-out samples, computed with a
 converged solve so that it does not move when ``K`` does.
 
-The network is a plain-JAX MLP (:func:`mlp_init`, :func:`mlp_apply`: ``tanh`` hidden layers, a
-linear output, inputs and outputs scaled by the data's spread). No extra dependency: an MLP
-is a dozen lines.
+The network is any model (:mod:`prdp_fem.learning.model`: a JAX function of trainable
+parameters, an Equinox or a Flax module); the default is a plain-JAX MLP (:func:`mlp_init`,
+:func:`mlp_apply`: ``tanh`` hidden layers, a linear output, inputs and outputs scaled by the
+data's spread).
 
 >>> import prdp_fem as pf
 >>> disc = pf.discretize(pf.unit_square(4))
@@ -64,6 +65,7 @@ from ..inverse.steps import (
 from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
+from .model import Model, check_model
 
 __all__ = [
     "BatchObjective",
@@ -148,11 +150,26 @@ def source_samples(problem: LearnedInverse, sources: np.ndarray, *, noise: float
 
 
 class Network(NamedTuple):
-    """MLP weights ``[(W, b), ...]`` and the scales of its input and output (not trained)."""
+    """MLP weights ``[(W, b), ...]`` and the scales of its input and output (not trained
+    by :func:`train`): a model (:mod:`prdp_fem.learning.model`) whose ``params`` are the
+    layers."""
 
     layers: list
     input_scale: jax.Array
     output_scale: jax.Array
+
+    @property
+    def params(self) -> list:
+        return self.layers
+
+    def predict(self, params, observation: jax.Array) -> jax.Array:
+        return mlp_apply(self._replace(layers=params), observation)
+
+    def replace_params(self, params) -> Network:
+        return self._replace(layers=params)
+
+    def __call__(self, observation: jax.Array) -> jax.Array:
+        return mlp_apply(self, observation)
 
 
 def mlp_init(key: jax.Array, sizes: list[int], *, input_scale: float = 1.0,
@@ -270,13 +287,14 @@ def learned_inverse(disc: Discretization, observation: Observation, *, kappa=1.0
                           jnp.asarray(float(supervised)))
 
 
-def batch_loss(network: Network, problem: LearnedInverse, batch: SourceSamples,
+def batch_loss(network: Model | Network, problem: LearnedInverse, batch: SourceSamples,
                solver, counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
     """The training loss over ``batch`` (solves batched with ``vmap``) and the CG
-    iterations its forward solves ran (``counter`` also tallies every solve on the host)."""
+    iterations its forward solves ran (``counter`` also tallies every solve on the host).
+    ``network`` is any model (:mod:`prdp_fem.learning.model`)."""
 
     def one(f_true, d):
-        f = mlp_apply(network, d)
+        f = network(d)
         misfit, iterations = problem.misfit(f, d, solver, counter)
         e = f - f_true
         return misfit + problem.supervised * 0.5 * jnp.vdot(e, problem.mass(e)), \
@@ -288,10 +306,11 @@ def batch_loss(network: Network, problem: LearnedInverse, batch: SourceSamples,
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class BatchObjective:
-    r"""The batch loss as a function of the network's *weights*: the ``value_fn`` that
+    r"""The batch loss as a function of the model's *parameters*: the ``value_fn`` that
     :func:`train` hands to optax (like :class:`prdp_fem.inverse.Objective` for one inversion).
 
-    Only ``layers`` are arguments; the input and output scales of ``network`` stay frozen.
+    Only ``params`` are arguments (called ``layers`` below); the rest of ``network`` (an
+    MLP's input and output scales) stays frozen.
     Calling it gives ``L(theta)`` (:func:`batch_loss`). Its residual, stacked over the batch,
 
     .. math::
@@ -310,13 +329,13 @@ class BatchObjective:
     """
 
     problem: LearnedInverse
-    network: Network           # its scales are used; its layers are replaced by the argument
+    network: Model | Network   # the model; its params are replaced by the argument
     batch: SourceSamples
     solver: Any
     counter: IterationCounter | None = None
 
     def __call__(self, layers) -> jax.Array:
-        return batch_loss(self.network._replace(layers=layers), self.problem, self.batch,
+        return batch_loss(self.network.replace_params(layers), self.problem, self.batch,
                           self.solver, self.counter)[0]
 
     @cached_property
@@ -329,11 +348,11 @@ class BatchObjective:
         return 1.0 / jnp.sqrt(jnp.asarray(self.batch.sources.shape[0], jnp.float64))
 
     def _sample_misfit(self, layers, d) -> jax.Array:
-        f = mlp_apply(self.network._replace(layers=layers), d)
+        f = self.network.predict(layers, d)
         return self._scale() * self.problem.misfit_residual(f, d, self.solver, self.counter)
 
     def _sample_supervised(self, layers, f_true, d) -> jax.Array:
-        f = mlp_apply(self.network._replace(layers=layers), d)
+        f = self.network.predict(layers, d)
         return self._scale() * self.problem.supervised_residual(f, f_true)
 
     def misfit_residual(self, layers) -> jax.Array:
@@ -395,14 +414,14 @@ def _stacked(jacobian) -> jax.Array:
     return jnp.concatenate([jnp.reshape(leaf, (rows, -1)) for leaf in leaves], axis=1)
 
 
-def validation(network: Network, problem: LearnedInverse, samples: SourceSamples,
+def validation(network: Model | Network, problem: LearnedInverse, samples: SourceSamples,
                rtol: float = 1e-10, preconditioner: Any = "jacobi"):
     """Mean observation misfit of held-out samples with a *converged* solve, and the mean
     relative source error (jit it: ``rtol`` is the only static choice)."""
     solver = step_solver("implicit", True, 100_000, 100_000, rtol, preconditioner)
 
     def one(f_true, d):
-        f = mlp_apply(network, d)
+        f = network(d)
         return problem.misfit(f, d, solver)[0], problem.source_error(f, f_true)
 
     misfits, errors = jax.vmap(one)(samples.sources, samples.observations)
@@ -429,7 +448,7 @@ class EpochRecord(NamedTuple):
 
 
 class Training(NamedTuple):
-    network: Network
+    network: Model | Network  # the trained model
     refinement: RefinementState
     records: list[EpochRecord]
 
@@ -494,7 +513,7 @@ def _check_training_options(optimizer, gradient, epochs, batch_size, n, refineme
             "mini-batches)")
 
 
-def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
+def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSamples,
           validation_set: SourceSamples, *, optimizer: optax.GradientTransformation | None = None,
           refinement: Refinement | None = None, epochs: int = 50, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
@@ -504,8 +523,13 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     ``refinement`` (default :func:`~prdp_fem.inverse.prdp` with ``K0=5, dK=5``) picks the CG
     iterations once per epoch from the validation misfit.
 
-    Only the weights train (the input and output scales are frozen: the optimiser sees
-    ``network.layers`` alone). ``optimizer`` is any optax transformation: its update gets
+    ``network`` is any model (:mod:`prdp_fem.learning.model`: ``Model(apply, params)``, an
+    Equinox or Flax module through :func:`~prdp_fem.learning.model.equinox_model` and
+    :func:`~prdp_fem.learning.model.flax_model`, or the built-in :class:`Network`) mapping an
+    observation vector to a nodal source. Only its ``params`` train (an MLP's input and
+    output scales are frozen: the optimiser sees ``network.layers`` alone), and the trained
+    model comes back in :attr:`Training.network`. ``optimizer`` is any optax
+    transformation: its update gets
     ``value``, ``grad`` and ``value_fn`` (a :class:`BatchObjective`), so besides
     ``optax.adam``/``optax.sgd`` it can be ``optax.lbfgs()`` (zoom line search; full batch
     only: ``batch_size`` equal to the training samples), :func:`~prdp_fem.optim.newton.newton_cg`
@@ -520,16 +544,20 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     tangent solves count as adjoint iterations. ``callback(record)`` runs after every epoch.
 
     Raises :class:`~prdp_fem.errors.SolverConfigError` for bad options (including L-BFGS with
-    mini-batches) and :class:`~prdp_fem.inverse.driver.InversionError` when a step produces a
-    non-finite loss or gradient.
+    mini-batches) or an object that is not a model, :class:`~prdp_fem.errors.ShapeError` for
+    a model whose output is not one nodal source per observation, and
+    :class:`~prdp_fem.inverse.driver.InversionError` when a step produces a non-finite loss or
+    gradient.
     """
     from ..inverse.driver import InversionError
 
     n = int(train_set.sources.shape[0])
     refinement = prdp(K0=5, dK=5) if refinement is None else refinement
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
+    check_model(network, int(train_set.observations.shape[1]), problem.system.source.shape[1],
+                "the nodal source of the problem, one per observation vector")
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
-                            network.layers)
+                            network.params)
     key = preconditioner_key(preconditioner)
     step = _step_program(optimizer, gradient, refinement.tolerance_mode, key,
                          keep=keeps_program(key))
@@ -539,7 +567,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
     counter = IterationCounter()
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
-    layers = network.layers
+    layers = network.params
     opt_state, control = optimizer.init(layers), refinement.init()
     rng = np.random.default_rng(seed)
     records, run_time, steps = [], 0.0, 0
@@ -567,7 +595,7 @@ def train(problem: LearnedInverse, network: Network, train_set: SourceSamples,
             layers, opt_state = result.layers, result.opt_state
             losses.append(float(result.loss))
             steps += 1
-        network = network._replace(layers=layers)
+        network = network.replace_params(layers)
         if epoch == 1:  # compile outside the timed region
             jax.block_until_ready(validate(network, problem, validation_set))
         start = time.perf_counter()
