@@ -96,7 +96,9 @@ def _scaled(model: Model, network) -> Model:
     return Model(apply, model.params)
 
 
-@pytest.mark.parametrize("make", [_equinox, _flax], ids=["equinox", "flax"])
+# flax with the slow cases (6 s): the same trainer path as Equinox's, through its adapter
+@pytest.mark.parametrize("make", [_equinox, pytest.param(_flax, marks=pytest.mark.slow)],
+                         ids=["equinox", "flax"])
 def test_equinox_and_flax_models_train_through_the_solver(small, make):
     """Each lowers the validation misfit, its gradient through the truncated solves passes
     the Taylor test, and the trained model predicts with its new parameters."""
@@ -116,6 +118,7 @@ def test_equinox_and_flax_models_train_through_the_solver(small, make):
     np.testing.assert_allclose(trained(d), trained.predict(trained.params, d), rtol=1e-15)
 
 
+@pytest.mark.slow  # the heat hybrid's programs (6 s)
 def test_a_model_trains_the_heat_hybrid_as_the_built_in_mlp():
     """heat.train trains the model's params: the MLP's layers, its scales fixed."""
     disc = pf.discretize(pf.unit_square(4), element="P1", kappa_space="P0", dirichlet=0.0)
