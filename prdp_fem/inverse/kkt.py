@@ -28,11 +28,11 @@ size and ``alpha``. That holds exactly for the tracking problem with full-field 
 L2 regulariser and a source in the state's space (dolfin-adjoint's "mother problem").
 Elsewhere it is an approximation MINRES still converges with: a misfit weighted by ``w``
 (``H = w M``) took 14-28 iterations for ``w`` from 1e-4 to 1e4, the same as the matching
-rescaled for ``w``. ``H^{-1}``
-and ``(alpha R)^{-1}`` are a few Chebyshev semi-iterations, ``(A + beta H)^{-1}`` one AMG
-V-cycle (pyamg, symmetric Gauss-Seidel; Ruge-Stueben by default, whose V-cycle on this
-matrix contracted by 0.05 at every size measured, against 0.34-0.63 for smoothed
-aggregation, which made MINRES take twice the iterations). Every operation is a SciPy sparse
+rescaled for ``w``. ``H^{-1}`` and ``(alpha R)^{-1}`` are a few Chebyshev semi-iterations,
+``(A + H / sqrt(alpha))^{-1}`` one AMG V-cycle (pyamg, symmetric Gauss-Seidel;
+Ruge-Stueben by default, whose V-cycle on this matrix contracted by 0.05 at every size
+measured, against 0.34-0.63 for smoothed aggregation, which made MINRES take twice the
+iterations). Every operation is a SciPy sparse
 product or a pyamg cycle on the host: nothing is compiled.
 
 No truncation and no PRDP here: the iteration count of a robust preconditioner does not grow
@@ -155,7 +155,7 @@ def kkt_solve(problem: InverseProblem, *, rtol: float = 1e-10, iterations: int =
     iterations
         At most this many MINRES iterations.
     amg
-        The hierarchy of ``A + beta H``: ``"rs"`` (Ruge-Stueben, default) or ``"sa"``
+        The hierarchy of ``A + H / sqrt(alpha)``: ``"rs"`` (Ruge-Stueben, default) or ``"sa"``
         (smoothed aggregation; cheaper to build in 3-D, twice the iterations in 2-D).
     mass_steps
         Chebyshev semi-iterations of each mass-type block.
