@@ -254,6 +254,7 @@ def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
             (argnum, iterations, reverse, reference, spread)
 
 
+@pytest.mark.slow  # a sweep of data shapes (5.5 s); the reported case stays in the default suite
 @settings(max_examples=3, deadline=None)
 @given(kind=st.sampled_from(["mode", "modes", "constant", "random", "smooth+noise"]),
        k=st.integers(1, 6), l=st.integers(1, 6),
