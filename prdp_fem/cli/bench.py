@@ -213,7 +213,7 @@ def _bench_mother(args) -> None:
                          solver=args.solver)
     if args.solver == "kkt":
         print("all-at-once MINRES on the KKT system, Pearson-Wathen preconditioner (AMG "
-              "V-cycles of A + beta M)")
+              "V-cycles of A + M / sqrt(alpha))")
     else:
         inner = f"PRDP K0 = dK = {K}" if inner_rtol is None else f"rtol {inner_rtol:g}"
         print(f"reduced-Hessian CG, inner {preconditioner}-PCG: {inner}")
