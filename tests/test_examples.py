@@ -129,3 +129,22 @@ def test_bayesian_coefficient_posterior_is_pinned(load_example, tmp_path):
     assert result["prdp_shift_in_std"] < 0.05
     assert result["cg_prdp"] < result["cg_converged"]
     assert (tmp_path / "posterior.vtu").exists()
+
+
+def test_kkt_source_example_is_mesh_independent_and_reaches_the_optimum(load_example):
+    rows = load_example("kkt_source").main(["16", "32"])
+    iterations = [row["kkt_iterations"] for row in rows]
+    assert max(iterations) <= 30 and max(iterations) - min(iterations) <= 3
+    assert all(row["vcycles"] == 2 * (row["kkt_iterations"] + 1) for row in rows)
+    assert all(row["difference"] < 1e-6 for row in rows)  # the reduced CG's optimum
+    assert rows[1]["error"] == pytest.approx(1.058e-2, rel=1e-3)
+    assert rows[0]["pcg_iterations"] > 10 * rows[0]["vcycles"]
+
+
+@pytest.mark.slow  # three programs to compile (8 s)
+def test_batched_inversion_example_equals_its_loop(load_example):
+    result = load_example("batched_inversion").run(members=4, n=8)
+    loop = result["loop_errors"]
+    np.testing.assert_allclose(result["errors"]["map"], loop, rtol=1e-12)
+    np.testing.assert_allclose(result["errors"]["vmap"], loop, rtol=1e-6)
+    assert len(result["schedules"]) == 4 and all(len(s) == 20 for s in result["schedules"])
