@@ -54,6 +54,7 @@ from ..errors import SolverConfigError
 from ..linalg.amg import amg_hierarchy
 from ..linalg.host_minres import chebyshev_inverse, minres
 from .driver import InverseProblem
+from .reduced import check_quadratic
 
 __all__ = ["KKTSolution", "KKTSystem", "kkt_solve", "kkt_system"]
 
@@ -124,16 +125,8 @@ def kkt_system(problem: InverseProblem) -> KKTSystem:
 
 
 def _check_problem(problem: InverseProblem) -> None:
-    parameterization = problem.parameterization
-    if parameterization.unknown != "source" or parameterization.bounds is not None:
-        raise SolverConfigError(
-            f"kkt_solve: unknown={parameterization.unknown!r}, "
-            f"bounds={parameterization.bounds!r}; expected unknown='source' without bounds "
-            "(a linear-quadratic problem; use invert() otherwise)")
-    if problem.regularizer.kind != "l2":
-        raise SolverConfigError(
-            f"kkt_solve: regularization={problem.regularizer.kind!r}; expected 'l2' (its "
-            "preconditioner needs an invertible regulariser; reduced_cg solves 'h1')")
+    check_quadratic(problem, "kkt_solve", ("l2",),
+                    "its preconditioner needs an invertible regulariser; reduced_cg solves 'h1'")
     if problem.system.nullspace is not None:
         raise SolverConfigError("kkt_solve: the state equation has a nullspace (pure Neumann "
                                 "data); expected a unique state (Dirichlet dofs or a pin)")

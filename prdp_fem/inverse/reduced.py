@@ -66,7 +66,7 @@ from .steps import (
     step_solver,
 )
 
-__all__ = ["ReducedCG", "homogeneous", "reduced_cg"]
+__all__ = ["ReducedCG", "check_quadratic", "homogeneous", "reduced_cg"]
 
 
 class ReducedCG(NamedTuple):
@@ -99,17 +99,22 @@ def homogeneous(problem: InverseProblem) -> InverseProblem:
                                regularizer=regularizer)
 
 
-def _check_quadratic(problem: InverseProblem) -> None:
+def check_quadratic(problem: InverseProblem, caller: str = "reduced_cg",
+                    regularizations: tuple[str, ...] = ("l2", "h1"),
+                    why: str = "TV is not quadratic; use invert()") -> None:
+    """Refuse a problem whose objective is not quadratic in a source (a SolverConfigError
+    naming ``caller``), or whose regulariser is not one of ``regularizations`` (``why``)."""
     parameterization = problem.parameterization
     if parameterization.unknown != "source" or parameterization.bounds is not None:
         raise SolverConfigError(
-            f"reduced_cg: unknown={parameterization.unknown!r}, "
+            f"{caller}: unknown={parameterization.unknown!r}, "
             f"bounds={parameterization.bounds!r}; expected unknown='source' without bounds "
             "(a quadratic objective; use invert() otherwise)")
-    if problem.regularizer.kind not in ("l2", "h1"):
+    if problem.regularizer.kind not in regularizations:
+        expected = " or ".join(repr(kind) for kind in regularizations)
         raise SolverConfigError(
-            f"reduced_cg: regularization={problem.regularizer.kind!r}; expected 'l2' or 'h1' "
-            "(TV is not quadratic; use invert())")
+            f"{caller}: regularization={problem.regularizer.kind!r}; expected {expected} "
+            f"({why})")
 
 
 def _make_gradient(tolerance_mode: bool, preconditioner: Any):
@@ -201,7 +206,7 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     ``refinements`` those before the step (the controller sees the residual after the record
     and the callback).
     """
-    _check_quadratic(problem)
+    check_quadratic(problem)
     refinement = fixed(50) if refinement is None else refinement
     _check_options(refinement, iterations, rtol, riesz_rtol, preconditioner)
     counter = IterationCounter()
