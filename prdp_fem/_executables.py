@@ -131,12 +131,24 @@ def _floating_point_error(error: Exception, fn) -> FloatingPointError | None:
 
 
 def _argument_type(leaf):
-    """Shape and dtype (a Python scalar: its type)."""
+    """Shape, dtype and placement over devices (a Python scalar: its type)."""
     shape = getattr(leaf, "shape", None)
-    return type(leaf) if shape is None else (shape, leaf.dtype)
+    return type(leaf) if shape is None else (shape, leaf.dtype, _spread(leaf))
 
 
 def _strong(leaf):
-    """An array leaf as a strongly typed abstract value (a Python scalar stays itself)."""
+    """An array leaf as a strongly typed abstract value (a Python scalar stays itself),
+    with its sharding where it is spread over several devices (a sharded system's arrays:
+    the program is compiled for them; any other argument is placed by the compiler)."""
     shape = getattr(leaf, "shape", None)
-    return leaf if shape is None else jax.ShapeDtypeStruct(shape, leaf.dtype)
+    if shape is None:
+        return leaf
+    return jax.ShapeDtypeStruct(shape, leaf.dtype, sharding=_spread(leaf))
+
+
+def _spread(leaf):
+    """The sharding of an array on more than one device, else ``None``."""
+    sharding = getattr(leaf, "sharding", None)
+    if sharding is None or len(sharding.device_set) < 2:
+        return None
+    return sharding

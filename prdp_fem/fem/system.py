@@ -29,11 +29,14 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
 
 from .._checks import finite_vector, is_traced, real_dtype
 from ..errors import CoefficientError, ShapeError
 from ..linalg import cg
 from ..linalg.operator import EllLayout, FixedMatrix, SparseMatrix
+from ..linalg.sharding import Partition, partition
 
 __all__ = ["LinearSystem"]
 
@@ -68,7 +71,8 @@ class LinearSystem:
     dirichlet_values: jax.Array
     n_dofs: int
     nullspace: jax.Array | None = None
-    layout: EllLayout | None = None  # the ELL layout of (rows, cols): the fast CG kernel
+    # the ELL layout of (rows, cols), the fast CG kernel; or a Partition over devices
+    layout: EllLayout | Partition | None = None
 
     @property
     def n_free(self) -> int:
@@ -77,6 +81,16 @@ class LinearSystem:
     @property
     def n_kappa(self) -> int:
         return self.assembly.shape[1]
+
+    def sharded(self, mesh: Mesh, *, parts: np.ndarray | None = None,
+                axis: str | None = None) -> LinearSystem:
+        """This system with its free dofs spread over the devices of ``mesh`` (see
+        :mod:`prdp_fem.linalg.sharding`): its solves run sharded, results and derivatives as
+        on one device. ``parts``: a part per free dof, else blocks of a reverse
+        Cuthill-McKee ordering."""
+        return dataclasses.replace(self, layout=partition(
+            np.asarray(self.rows), np.asarray(self.cols), self.n_free, mesh, parts=parts,
+            axis=axis))
 
     def operator(self, kappa: jax.Array) -> SparseMatrix:
         """``A(kappa)`` on the free dofs (linear in ``kappa``)."""

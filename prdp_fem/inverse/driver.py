@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh
 
 from .._checks import finite_vector, host_values
 from .._executables import SharedCompile, kept_programs
@@ -131,6 +132,14 @@ class InverseProblem:
     @property
     def n_parameters(self) -> int:
         return int(self.regularizer.reference.shape[0])
+
+    def sharded(self, mesh: Mesh, *, parts: np.ndarray | None = None,
+                axis: str | None = None) -> InverseProblem:
+        """This problem with its state spread over the devices of ``mesh``
+        (:meth:`~prdp_fem.fem.system.LinearSystem.sharded`): :func:`invert` then runs every
+        solve sharded. Preconditioners: ``"jacobi"`` or ``"identity"``."""
+        return dataclasses.replace(self, system=self.system.sharded(mesh, parts=parts,
+                                                                    axis=axis))
 
     def with_alpha(self, alpha: float) -> InverseProblem:
         return dataclasses.replace(self, alpha=jnp.asarray(float(alpha)))

@@ -48,6 +48,7 @@ from .operator import (
     symmetric_matvec,
 )
 from .precond import IdentityPreconditioner, JacobiPreconditioner, jacobi, make_preconditioner
+from .sharding import Partition, partition, shard
 from .stationary import TruncatedJacobi, jacobi_solve
 
 __all__ = [
@@ -68,6 +69,7 @@ __all__ = [
     "IterationCounter",
     "JacobiPreconditioner",
     "MinresSolution",
+    "Partition",
     "PyamgCycle",
     "RebuildPolicy",
     "RebuildState",
@@ -92,12 +94,14 @@ __all__ = [
     "make_preconditioner",
     "matvec",
     "minres",
+    "partition",
     "power_of_two_scale",
     "prepare",
     "prepare_on_host",
     "read_counts",
     "rebuild_policy",
     "rmatvec",
+    "shard",
     "solve",
     "symmetric_matvec",
     "unrolled_length",

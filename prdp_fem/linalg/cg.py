@@ -143,6 +143,7 @@ from ._tally import (
 )
 from .operator import SparseMatrix, prepare
 from .precond import PRECONDITIONERS, JacobiPreconditioner, make_preconditioner
+from .sharding import Partition
 
 __all__ = ["COUNTS", "ConvergedCG", "IterationCounter", "ReverseTally", "Solution", "Status",
            "TruncatedCG", "read_counts", "solve", "unrolled_length", "zero_counts"]
@@ -410,6 +411,11 @@ def solve(matrix: SparseMatrix, b: jax.Array, solver: Any,
     if not isinstance(solver, TruncatedCG | ConvergedCG):
         raise SolverConfigError(
             f"solver={solver!r}: expected TruncatedCG, ConvergedCG or TruncatedJacobi")
+    if isinstance(matrix.layout, Partition) and not isinstance(solver.preconditioner, str):
+        raise SolverConfigError(
+            f"preconditioner={type(solver.preconditioner).__name__}: a matrix spread over "
+            "devices (linalg.shard) is preconditioned by 'jacobi' or 'identity'; an AMG "
+            "hierarchy is built for one device")
     dynamic, static = _split_solver(solver, matrix.shape[0])
     if is_traced(matrix.values, b, x0, nullspace, dynamic):
         return _solve_traced(matrix, b, x0, solver, nullspace, counter)
@@ -488,6 +494,13 @@ def _compiled_program(preconditioner):
 
 def _solve_traced(matrix, b, x0, solver, nullspace, counter) -> Solution:
     """The solve, with its outcome in ``status`` (``x0``: ``None`` for a zero start)."""
+    if isinstance(matrix.layout, Partition):  # spread over devices: solve it renumbered
+        part = matrix.layout
+        start, direction = (None if v is None else part.to_partitioned(v)
+                            for v in (x0, nullspace))
+        sol = _solve_traced(part.partitioned(matrix), part.to_partitioned(b), start, solver,
+                            direction, counter)
+        return sol._replace(x=part.from_partitioned(sol.x))
     precond = make_preconditioner(solver.preconditioner, matrix)
     incompatible = jnp.asarray(False)
     start = x0

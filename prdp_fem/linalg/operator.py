@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 from functools import partial
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -57,6 +58,7 @@ from jax.experimental import sparse as jsparse
 from .._sorting import first_of_each
 from ..errors import ShapeError
 from ._products import paired_product, symmetric_product
+from .halo import HaloLayout
 
 __all__ = ["KERNELS", "CooMatrix", "CsrMatrix", "EllLayout", "EllMatrix", "FixedMatrix",
            "SparseMatrix", "default_kernel", "diagonal", "ell_layout", "host_prepared", "matvec",
@@ -247,7 +249,9 @@ class SparseMatrix:
     shape
         ``(n_rows, n_cols)``, static.
     layout
-        :class:`EllLayout` of the pattern, or ``None`` (the COO kernel is used).
+        :class:`EllLayout` of the pattern, a :class:`~prdp_fem.linalg.sharding.Partition`
+        over the devices of a mesh (:func:`~prdp_fem.linalg.sharding.shard`), or ``None``
+        (the COO kernel is used).
     kernel
         ``None`` (:func:`prepare` chooses by backend) or one of :data:`KERNELS`, static:
         benchmarks compare kernels with it (:meth:`with_kernel`).
@@ -257,7 +261,7 @@ class SparseMatrix:
     cols: jax.Array
     values: jax.Array
     shape: tuple[int, int]
-    layout: EllLayout | None = None
+    layout: Any = None
     kernel: str | None = None
 
     @property
@@ -519,6 +523,9 @@ def prepare(matrix: SparseMatrix) -> EllMatrix | CooMatrix | CsrMatrix:
     carries a layout, and COO when it does not. Differentiable in the values (a gather of
     them); prepare once per solve, not per product.
     """
+    if matrix.layout is not None and not isinstance(matrix.layout, EllLayout):
+        # a layout over the devices of a mesh (prdp_fem.linalg.sharding) has its own kernel
+        return matrix.layout.prepare(matrix.values)
     kernel = matrix.kernel
     if kernel is None:
         kernel = "coo" if matrix.layout is None else default_kernel()
@@ -710,7 +717,7 @@ def diagonal(matrix: SparseMatrix) -> jax.Array:
     gradient at K = 0 on the inclusion scene (the Jacobi preconditioner of every solve).
     """
     layout = matrix.layout
-    if layout is not None and layout.diagonal.shape[0] == matrix.shape[0]:
+    if isinstance(layout, EllLayout | HaloLayout) and layout.diagonal.shape[0] == matrix.shape[0]:
         d = _padded(matrix.values)[layout.diagonal]
         if layout.repeated_diagonal.shape[0]:
             d = d.at[layout.repeated_diagonal_rows].add(matrix.values[layout.repeated_diagonal])
