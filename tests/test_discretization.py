@@ -412,3 +412,26 @@ def test_a_pinned_pure_neumann_problem_is_the_balanced_solution_shifted():
         pf.discretize(mesh, dirichlet=None, pins=[((0.51, 0.5), 0.0)])
     with pytest.raises(pf.errors.DiscretizationError, match=r"pins\[0\] = .*expected a finite"):
         pf.discretize(mesh, dirichlet=None, pins=[((0.5,), 0.0)])
+
+
+@pytest.mark.parametrize("element, kappa_space, mesh", [
+    ("P1", "P1", lambda: pf.unit_cube(4)), ("P2", "P1", lambda: pf.unit_square(6)),
+    ("Q1", "P0", lambda: pf.unit_square(5, "quad"))])
+def test_assembly_in_passes_gives_the_maps_of_one_pass(monkeypatch, element, kappa_space, mesh):
+    """Big meshes assemble kappa -> A in passes over their elements (bounded memory): a
+    pass of a few elements at a time sums to the same maps and patterns."""
+    import prdp_fem.fem.discretization as discretization
+
+    def maps():
+        disc = pf.discretize(mesh(), element=element, kappa_space=kappa_space,
+                             dirichlet={"left": 0.0})
+        return disc.assembly, disc.pattern, disc.lifting_assembly, disc.lifting_pattern
+
+    whole = maps()
+    monkeypatch.setattr(discretization, "_ENTRIES_PER_PASS", 200)
+    passes = maps()
+    for one, many in ((whole[0], passes[0]), (whole[2], passes[2])):
+        assert one.shape == many.shape and one.nnz == many.nnz
+        assert abs(one - many).max() <= 1e-15 * abs(one).max()
+    for one, many in zip(whole[1] + whole[3], passes[1] + passes[3], strict=True):
+        np.testing.assert_array_equal(one, many)

@@ -1,4 +1,5 @@
-"""``prdp-fem bench ...``: the benchmarks (cg, memory, amg, mother, prdp, descent, batch)."""
+"""``prdp-fem bench ...``: the benchmarks (cg, memory, amg, mother, prdp, descent, batch,
+scale)."""
 
 from __future__ import annotations
 
@@ -182,6 +183,51 @@ def _bench_batch(args) -> None:
           "all sizes); max diff: the largest relative difference of a member's result from its "
           "single run's (vmap sums its reductions in another order; map is the loop's "
           "arithmetic)")
+
+
+def _percent(value: float) -> str:
+    return "nan" if value != value else f"{value:.0%}"
+
+
+def _bench_scale(args) -> None:
+    from ..bench.scale import inversion_at_scale, parse_mesh, sharded_iteration
+
+    for spec in args.meshes:  # all checked before the first one runs
+        parse_mesh(spec)
+    if args.meshes:
+        print(f"log-kappa inversion, P1, AMG-PCG, {args.steps} L-BFGS steps: converged "
+              "(rtol 1e-10) against PRDP (K0 = 4, dK = 2); a fresh process per mesh")
+        print(f"{'mesh':>12} {'dofs':>8} {'setup [s]':>9} {'conv/step':>9} {'prdp/step':>9} "
+              f"{'conv->t [s]':>11} {'@step':>5} {'prdp->t [s]':>11} {'save t':>6} "
+              f"{'save its':>8} {'prdp<=t [s]':>11} {'save t':>6} {'conv err':>8} "
+              f"{'prdp err':>8} {'K':>3} {'compile':>7} {'peak RSS':>8}")
+        for spec in args.meshes:
+            (r,) = inversion_at_scale([spec], steps=args.steps)
+            print(f"{r.mesh:>12} {r.dofs:>8} {r.setup_s:>9.1f} {r.converged_step_s:>9.3f} "
+                  f"{r.prdp_step_s:>9.3f} {r.converged_to_target_s:>11.1f} "
+                  f"{r.converged_reached_step:>5} {r.prdp_to_target_s:>11.1f} "
+                  f"{_percent(r.time_saving):>6} {_percent(r.iteration_saving):>8} "
+                  f"{r.prdp_at_or_below_s:>11.1f} {_percent(r.at_or_below_saving):>6} "
+                  f"{r.converged_error:>8.4f} {r.prdp_error:>8.4f} {r.final_K:>3} "
+                  f"{r.compile_s:>7.1f} {r.peak_rss_gb:>6.2f} GB", flush=True)
+        print("per step: run time without compilation / steps; conv->t: the converged run's "
+              "own time to its final error (from the step @step on it stays within 1 %); "
+              "prdp->t: PRDP's time to stay within that band, prdp<=t: to stay at or below "
+              "its top; save: 1 - PRDP's / the converged run's, t: time, its: CG iterations "
+              "(nan: not reached); peak RSS: the process's high-water mark")
+    if args.sharded_n:
+        print(f"\nJacobi-PCG, {args.iterations} iterations per solve, 2-D P1 on "
+              f"unit_square({args.sharded_n}); forced host devices sharing this machine's "
+              f"cores; alternated, medians of {args.repeats}")
+        print(f"{'devices':>7} {'dofs':>8} {'halo':>6} {'per iteration [ms]':>18} "
+              f"{'vs one device':>13}")
+        for r in sharded_iteration(args.sharded_n, tuple(args.devices), args.iterations,
+                                   args.repeats):
+            name = "one" if r.devices == 0 else str(r.devices)
+            print(f"{name:>7} {r.dofs:>8} {r.halo:>6} {r.iteration_ms:>18.3f} "
+                  f"{r.ratio:>13.2f}", flush=True)
+        print("one: the plain kernel on one device; 1, 2, 4: spread over a jax.sharding.Mesh "
+              "of that many devices (halo: values a device receives per product)")
 
 
 def _bench_mother(args) -> None:
@@ -431,7 +477,7 @@ def _seed_cells(summary) -> dict:
 def bench_command(args) -> None:
     return {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory,
             "mother": _bench_mother, "prdp": _bench_prdp, "batch": _bench_batch,
-            "descent": _bench_descent}[args.bench](args)
+            "descent": _bench_descent, "scale": _bench_scale}[args.bench](args)
 
 
 def _bench_descent(args) -> None:

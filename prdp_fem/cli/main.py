@@ -288,6 +288,24 @@ def _parser() -> argparse.ArgumentParser:
     batch.add_argument("--steps", type=int, default=20, help="L-BFGS steps per problem")
     batch.add_argument("--repeats", type=int, default=5,
                        help="alternated timings per size (the median is reported)")
+    scale = bench_sub.add_parser(
+        "scale", help="an inversion at 250k-1M state dofs, and the sharded PCG iteration",
+        description="a log-kappa inversion with PRDP against the converged run on each mesh "
+        "(a fresh process each: time per optimiser step, time to the converged run's error, "
+        "peak resident memory), then one Jacobi-PCG iteration on one device and spread over "
+        "1, 2, 4 forced host devices (see prdp_fem.bench.scale)")
+    scale.add_argument("--meshes", nargs="*", default=["square:501", "square:1001", "cube:81"],
+                       metavar="KIND:N", help="square:N (unit_square(N), (N-1)^2 free dofs) "
+                       "or cube:N (unit_cube(N), (N-1)^3); none: skip the inversions")
+    scale.add_argument("--steps", type=int, default=100, help="L-BFGS steps per run")
+    scale.add_argument("--sharded-n", type=int, default=501,
+                       help="unit-square cells per side of the sharded PCG (0: skip it)")
+    scale.add_argument("--devices", type=int, nargs="+", default=[1, 2, 4],
+                       help="device counts to spread the sharded PCG over")
+    scale.add_argument("--iterations", type=int, default=50,
+                       help="PCG iterations per timed solve")
+    scale.add_argument("--repeats", type=int, default=5,
+                       help="alternated timings of the sharded PCG (the median is reported)")
     return parser
 
 

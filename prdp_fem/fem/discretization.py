@@ -75,6 +75,9 @@ KAPPA_KINDS = ("scalar", "tensor")
 VOIGT = {2: ((0, 0), (1, 1), (0, 1)), 3: ((0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1))}
 # relative size below which an assembled entry is structurally zero (e.g. right triangles)
 _STRUCTURAL_ZERO = 1e-14
+# assembled entries per pass of the maps kappa -> A (see _assembly_maps): about 250 MB with
+# their indices, twice that while a pass's parts are joined
+_ENTRIES_PER_PASS = 1 << 23
 # relative residual of the mass-matrix solve in Discretization.project (round-off: cond <= ~4)
 PROJECTION_RTOL = 1e-14
 
@@ -644,45 +647,98 @@ def _assembly_maps(basis, kappa_basis, free, forms):
     ``forms[c]`` is the bilinear form of coefficient component ``c`` (one for a scalar).
     Each assembled entry's row and column are renumbered once (free or Dirichlet), in
     ``int32``: at 512 x 512 there are 4.7 million, and every copy of them is fresh memory.
+    The elements are assembled in passes of at most :data:`_ENTRIES_PER_PASS` entries, each
+    pass's entries summed before the next: every element contributes ``(local dofs)^2 x
+    (coefficient dofs)`` entries (64 for P1 tetrahedra with a P1 coefficient), and held all
+    at once they took 20 GB for the 512k free dofs of ``unit_cube(81)``.
     """
     n = basis.N
-    rows, cols, kappa_idx, data = _assembled_entries(basis, kappa_basis, forms)
     free_index = np.full(n, -1, dtype=np.int32)
     free_index[free] = np.arange(len(free), dtype=np.int32)
-    free_row, free_col = free_index[rows], free_index[cols]
-    row_free = free_row >= 0
-    on_free, on_dirichlet = row_free & (free_col >= 0), row_free & (free_col < 0)
-    n_free, n_kappa = len(free), len(forms) * kappa_basis.N
-
-    # Dirichlet columns: their own summed pattern (free row, index into the Dirichlet dofs)
     dirichlet_index = np.full(n, -1, dtype=np.int32)
-    dirichlet_index[free_index < 0] = np.arange(n - n_free, dtype=np.int32)
-    lifting_assembly, lifting_pattern = _summed_map(
-        free_row[on_dirichlet], dirichlet_index[cols[on_dirichlet]], n - n_free,
-        kappa_idx[on_dirichlet], data[on_dirichlet], n_kappa)
-
-    # condensed pattern: entries keyed by (row, col) in free numbering, sorted by row then col
-    assembly, pattern = _summed_map(free_row[on_free], free_col[on_free], n_free,
-                                    kappa_idx[on_free], data[on_free], n_kappa)
+    dirichlet_index[free_index < 0] = np.arange(n - len(free), dtype=np.int32)
+    n_free, n_kappa = len(free), len(forms) * kappa_basis.N
+    free_parts, lifting_parts = [], []
+    for rows, cols, kappa_idx, data in _assembled_entries(basis, kappa_basis, forms):
+        free_row, free_col = free_index[rows], free_index[cols]
+        row_free = free_row >= 0
+        on_free, on_dirichlet = row_free & (free_col >= 0), row_free & (free_col < 0)
+        # Dirichlet columns: their own pattern (free row, index into the Dirichlet dofs)
+        lifting_parts.append(_summed(free_row[on_dirichlet],
+                                     dirichlet_index[cols[on_dirichlet]], n - n_free,
+                                     kappa_idx[on_dirichlet], data[on_dirichlet], n_kappa))
+        # condensed pattern: entries keyed by (row, col) in free numbering
+        free_parts.append(_summed(free_row[on_free], free_col[on_free], n_free,
+                                  kappa_idx[on_free], data[on_free], n_kappa))
+    assembly, pattern = _structural(*_merged(free_parts, n_kappa), n_free)
+    lifting_assembly, lifting_pattern = _structural(*_merged(lifting_parts, n_kappa),
+                                                    n - n_free)
     return AssemblyMaps(assembly, pattern, lifting_assembly, lifting_pattern)
 
 
 def _assembled_entries(basis, kappa_basis, forms):
-    """Row, column, coefficient index and value of every assembled entry (duplicates apart):
-    for each component's form, one assembly per coefficient basis function."""
+    """Row, column, coefficient index and value of every assembled entry (duplicates apart),
+    pass by pass over the elements: for each component's form, one assembly per coefficient
+    basis function."""
     nt = basis.nelems
-    rows, cols, kappa_idx, data = [], [], [], []
-    for component, form in enumerate(forms):
-        for a in range(kappa_basis.Nbfun):
-            coo = form.coo_data(basis, kappa=kappa_basis.basis[a][0])
-            rows.append(coo.indices[0])
-            cols.append(coo.indices[1])
-            # entries run element by element within each local (i, j) block
-            kappa_idx.append(component * kappa_basis.N
-                             + np.tile(kappa_basis.element_dofs[a], coo.data.size // nt))
-            data.append(coo.data)
-    return tuple(parts[0] if len(parts) == 1 else np.concatenate(parts)
-                 for parts in (rows, cols, kappa_idx, data))
+    per_element = basis.Nbfun ** 2 * kappa_basis.Nbfun * len(forms)
+    per_pass = max(1, _ENTRIES_PER_PASS // per_element)
+    for start in range(0, nt, per_pass):
+        elements = np.arange(start, min(start + per_pass, nt))
+        part, kappa_part = basis, kappa_basis
+        if elements.size < nt:  # the same dofs, mapping and quadrature on these elements
+            part, kappa_part = (skfem.CellBasis(basis.mesh, b.elem, mapping=basis.mapping,
+                                                quadrature=basis.quadrature,
+                                                elements=elements, dofs=b.dofs)
+                                for b in (basis, kappa_basis))
+        rows, cols, kappa_idx, data = [], [], [], []
+        for component, form in enumerate(forms):
+            for a in range(kappa_part.Nbfun):
+                coo = form.coo_data(part, kappa=kappa_part.basis[a][0])
+                rows.append(coo.indices[0])
+                cols.append(coo.indices[1])
+                # entries run element by element within each local (i, j) block
+                kappa_idx.append(component * kappa_basis.N + np.tile(
+                    kappa_part.element_dofs[a], coo.data.size // elements.size))
+                data.append(coo.data)
+        yield tuple(parts[0] if len(parts) == 1 else np.concatenate(parts)
+                    for parts in (rows, cols, kappa_idx, data))
+
+
+def _summed(r, c, n_cols, kappa_idx, data, n_kappa) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Duplicate ``(r, c)`` entries summed: the sorted keys ``r * n_cols + c`` and the map
+    ``G: kappa -> values`` on them."""
+    keys, entry = unique_with_inverse(r.astype(np.int64) * n_cols + c)
+    assembly = sp.csr_matrix((data, (entry, kappa_idx)), shape=(len(keys), n_kappa))
+    assembly.sum_duplicates()
+    return keys, assembly
+
+
+def _merged(parts: list, n_kappa: int) -> tuple[np.ndarray, sp.csr_matrix]:
+    """The passes' ``(keys, G)`` as one, entries of a key in several passes summed."""
+    if len(parts) == 1:
+        return parts[0]
+    keys, entry = unique_with_inverse(np.concatenate([keys for keys, _ in parts]))
+    offsets = np.cumsum([0] + [len(keys) for keys, _ in parts[:-1]])
+    coos = [assembly.tocoo() for _, assembly in parts]
+    rows = np.concatenate([entry[offset + coo.row] for offset, coo in zip(offsets, coos,
+                                                                             strict=True)])
+    merged = sp.csr_matrix((np.concatenate([coo.data for coo in coos]),
+                            (rows, np.concatenate([coo.col for coo in coos]))),
+                           shape=(len(keys), n_kappa))
+    merged.sum_duplicates()
+    return keys, merged
+
+
+def _structural(keys: np.ndarray, assembly: sp.csr_matrix, n_cols: int):
+    """``(G, (rows, cols))`` without the entries that are zero for every kappa (geometric
+    cancellation), diagonals kept; rows sorted."""
+    row_size = abs(assembly) @ np.ones(assembly.shape[1])  # a product: .sum(axis=1) took 2-3x
+    diagonal = keys // n_cols == keys % n_cols
+    scale = row_size.max() if row_size.size else 0.0
+    structural = diagonal | (row_size > _STRUCTURAL_ZERO * scale)
+    keys = keys[structural]
+    return assembly[structural].tocsr(), (keys // n_cols, keys % n_cols)
 
 
 def _assembled_at(basis, kappa_basis, forms, kappa: np.ndarray) -> sp.csr_matrix:
@@ -730,22 +786,6 @@ def _at_quadrature(kappa_basis, values: np.ndarray) -> np.ndarray:
     (0.36 s of unique on a 512 x 512 mesh)."""
     return sum(values[kappa_basis.element_dofs[a]][:, None] * np.asarray(kappa_basis.basis[a][0])
                for a in range(kappa_basis.Nbfun))
-
-
-def _summed_map(r, c, n_cols, kappa_idx, data, n_kappa):
-    """Sum duplicate (r, c) entries into a map G: kappa -> values on a row-sorted pattern.
-
-    Entries that are zero for every kappa (geometric cancellation) are dropped, diagonals kept.
-    """
-    keys, entry = unique_with_inverse(r.astype(np.int64) * n_cols + c)
-    assembly = sp.csr_matrix((data, (entry, kappa_idx)), shape=(len(keys), n_kappa))
-    assembly.sum_duplicates()
-    row_size = abs(assembly) @ np.ones(n_kappa)  # a product: .sum(axis=1) took 2-3x longer
-    diagonal = keys // n_cols == keys % n_cols
-    scale = row_size.max() if row_size.size else 0.0
-    structural = diagonal | (row_size > _STRUCTURAL_ZERO * scale)
-    keys = keys[structural]
-    return assembly[structural].tocsr(), (keys // n_cols, keys % n_cols)
 
 
 def _broadcast(values: np.ndarray, shape: tuple[int, ...], where: str) -> np.ndarray:
