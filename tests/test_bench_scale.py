@@ -28,7 +28,11 @@ def test_inversion_rows_measure_the_same_target_saving():
     assert [(r.mesh, r.dofs) for r in rows] == [("square:17", 16 ** 2), ("cube:6", 5 ** 3)]
     for r in rows:
         assert r.steps == 12 and r.parameters > r.dofs  # P1 kappa on the boundary too
+        assert 0 <= r.converged_reached_step <= 12
         assert math.isclose(r.time_saving, 1 - r.prdp_to_target_s / r.converged_to_target_s)
+        assert math.isclose(r.at_or_below_saving,
+                            1 - r.prdp_at_or_below_s / r.converged_to_target_s)
+        assert r.prdp_at_or_below_s <= r.prdp_to_target_s  # inside the band is at or below
         assert r.converged_step_s > 0 and r.prdp_step_s > 0 and 0 < r.peak_rss_gb < 8
         assert abs(r.prdp_error - r.converged_error) <= 0.01 * r.converged_error
 
