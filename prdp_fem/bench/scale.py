@@ -119,7 +119,7 @@ def inversion_at_scale(meshes: list[str], steps: int = 100) -> list[InversionAtS
     """One row per mesh spec, each measured in a fresh process."""
     for spec in meshes:
         parse_mesh(spec)
-    return [_in_child(["inversion", spec, str(steps)], InversionAtScale) for spec in meshes]
+    return [_in_child(["inversion", spec, str(steps)], InversionAtScale)[0] for spec in meshes]
 
 
 def sharded_iteration(n: int = 501, devices: tuple[int, ...] = (1, 2, 4), iterations: int = 50,
@@ -132,7 +132,9 @@ def sharded_iteration(n: int = 501, devices: tuple[int, ...] = (1, 2, 4), iterat
                       str(repeats)], ShardedIteration, devices=max(devices))
 
 
-def _in_child(argv: list[str], row: type, devices: int | None = None):
+def _in_child(argv: list[str], row: type, devices: int | None = None) -> list:
+    """The rows ``python -m prdp_fem.bench.scale ARGV`` prints, in a fresh process (with
+    ``devices`` forced host devices)."""
     env = this_package_first(dict(os.environ))
     if devices is not None:
         env["XLA_FLAGS"] = (f"{env.get('XLA_FLAGS', '')} "
@@ -141,9 +143,8 @@ def _in_child(argv: list[str], row: type, devices: int | None = None):
                           capture_output=True, text=True)
     if done.returncode:
         raise RuntimeError(f"bench scale {' '.join(argv)} failed: {done.stderr[-2000:]}")
-    rows = [row(**json.loads(line)) for line in done.stdout.splitlines()
+    return [row(**json.loads(line)) for line in done.stdout.splitlines()
             if line.startswith("{")]
-    return rows[0] if row is InversionAtScale else rows
 
 
 def _measure_inversion(spec: str, steps: int) -> InversionAtScale:
