@@ -124,3 +124,8 @@ class TracerError(PrdpFemError):
 
 class MeshRepairWarning(UserWarning):
     """A mesh was changed on load (orientation fixed, nodes merged or dropped)."""
+
+
+class CheckpointError(PrdpFemError):
+    """A checkpoint directory that cannot be used as asked: of another training, scene or
+    version, not fitting the model, or holding checkpoints a fresh run would overwrite."""

@@ -2,6 +2,7 @@
 JAX model (a function of parameters, an Equinox or a Flax module, or the built-in MLP).
 """
 
+from .checkpoint import Checkpoints, load_params, read_metadata
 from .heat import (
     MODES,
     SETUPS,
@@ -41,6 +42,7 @@ __all__ = [
     "MODES",
     "SETUPS",
     "BatchObjective",
+    "Checkpoints",
     "EpochRecord",
     "HeatProblem",
     "HeatRecord",
@@ -60,10 +62,12 @@ __all__ = [
     "heat_step",
     "initial_network",
     "learned_inverse",
+    "load_params",
     "mlp_apply",
     "mlp_init",
     "random_initial_states",
     "random_sources",
+    "read_metadata",
     "reference_trajectories",
     "rollout",
     "rollout_error",

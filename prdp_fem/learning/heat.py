@@ -89,6 +89,7 @@ from ..inverse.steps import (
 from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
+from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .learned import Network, Training, mlp_init
 from .model import Model, check_model
 
@@ -440,7 +441,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
           refinement: Refinement | None = None, epochs: int = 30, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
           validation_rtol: float = 1e-10, step: Step = heat_step,
-          test_set: Trajectories | None = None,
+          test_set: Trajectories | None = None, checkpoints: Checkpoints | None = None,
           callback: Callable[[HeatRecord], None] | None = None) -> Training:
     """Train ``network`` (any model, :mod:`prdp_fem.learning.model`, from the free dofs to
     the free dofs; only its ``params`` train, an MLP's scales stay fixed) as the ``setup``
@@ -453,7 +454,10 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     WIG's adjoint solves are tallied on the host (:class:`~prdp_fem.linalg.cg.IterationCounter`;
     ONE and NOG run none). ``test_set``: held-out trajectories whose rollout error (converged
     solves, outside the timed region) each record carries as ``test_error``.
-    ``callback(record)`` runs after every epoch, also outside the timed region.
+    ``checkpoints``: save and resume the whole training state, as
+    :func:`~prdp_fem.learning.learned.train` does.
+    ``callback(record)`` runs after every epoch, also outside the timed region (and first for
+    each record a resumed run restored).
 
     Returns a :class:`~prdp_fem.learning.learned.Training` of :class:`HeatRecord` s. Raises
     :class:`~prdp_fem.errors.SolverConfigError` / :class:`~prdp_fem.errors.ShapeError` for
@@ -467,10 +471,15 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     if gradient not in ("implicit", "unrolled"):
         raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
     epochs, batch_size = _count(epochs, "epochs"), _count(batch_size, "batch_size")
-    for name, data in (("train_set", train_set), ("validation_set", validation_set)):
+    for name, data in (("train_set", train_set), ("validation_set", validation_set),
+                       ("test_set", test_set)):
+        if data is None:
+            continue
         if data.states.ndim != 3 or data.states.shape[-1] != problem.n_free:
             raise ShapeError(f"{name}: states{tuple(data.states.shape)}; expected "
                              f"(n_trajectories, steps + 1, {problem.n_free})")
+        if data.states.shape[0] == 0:
+            raise ShapeError(f"{name}: no trajectories; expected at least one")
     check_model(network, problem.n_free, problem.n_free, "the free dofs of the problem")
     data = windows(train_set, unroll)
     n = int(data.shape[0])
@@ -492,47 +501,59 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
         net, prob, val, validation_solver, setup=setup, step=step)[0])
-    opt_state, control = optimizer.init(network.params), refinement.init()
     rng = np.random.default_rng(seed)
-    records, run_time, primal = [], 0.0, 0
-    for epoch in range(1, epochs + 1):
-        # no solver: one compile, nothing to refine
-        settings = control.settings() if solves else (0, 0, 0.0)
-        K, K_adj, rtol = device_settings(settings)
-        scan_length = step_scan_length(gradient, settings[0])  # read on the host, not the device
-        order = rng.permutation(n)
-        losses = []
-        for i in range(0, n - batch_size + 1, batch_size):
-            batch = data[order[i:i + batch_size]]
-            compile_before = step_fn.seconds  # compilation is timed apart from the run
+    with CheckpointSession.open(checkpoints, "heat") as saved:
+        state = start_state(saved, network.params, optimizer.init(network.params),
+                            refinement.init(), rng, HeatRecord, epochs, callback)
+        network = network.replace_params(state.params)
+        opt_state, control, records = state.opt_state, state.control, list(state.records)
+        primal, run_time = state.counters["primal"], state.counters["run_time"]
+        counter.adjoint = state.counters["adjoint"]
+        for epoch in range(state.epoch + 1, epochs + 1):
+            # no solver: one compile, nothing to refine
+            settings = control.settings() if solves else (0, 0, 0.0)
+            K, K_adj, rtol = device_settings(settings)
+            # read on the host, not the device
+            scan_length = step_scan_length(gradient, settings[0])
+            order = rng.permutation(n)
+            losses = []
+            for i in range(0, n - batch_size + 1, batch_size):
+                batch = data[order[i:i + batch_size]]
+                compile_before = step_fn.seconds  # compilation is timed apart from the run
+                start = time.perf_counter()
+                network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
+                    step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
+                            rtol, *cycle_argument(preconditioner)))
+                run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
+                if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
+                    raise InversionError(
+                        f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
+                        f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try a "
+                        "smaller learning rate or more CG iterations")
+                losses.append(float(loss))
+                primal += int(iterations)
+            if epoch == state.epoch + 1:  # compile outside the timed region
+                jax.block_until_ready(validate(network, problem, validation_set))
             start = time.perf_counter()
-            network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
-                        rtol, *cycle_argument(preconditioner)))
-            run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
-            if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
-                raise InversionError(
-                    f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
-                    f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try a "
-                    "smaller learning rate or more CG iterations")
-            losses.append(float(loss))
-            primal += int(iterations)
-        if epoch == 1:  # compile outside the timed region
-            jax.block_until_ready(validate(network, problem, validation_set))
-        start = time.perf_counter()
-        error = validate(network, problem, validation_set)
-        previous = control
-        if solves:
-            control = refinement.update(control, float(error))
-        run_time += time.perf_counter() - start
-        test_error = math.nan if test_set is None else float(
-            validate(network, problem, test_set))
-        record = HeatRecord(
-            epoch, int(previous.iterations) if solves else 0,
-            int(previous.adjoint_iterations) if solves else 0,
-            float(previous.rtol) if solves else 0.0, primal, run_time,
-            float(np.mean(losses)), float(error), counter.adjoint, test_error)
-        records.append(record)
-        if callback is not None:
-            callback(record)
+            error = validate(network, problem, validation_set)
+            previous = control
+            if solves:
+                control = refinement.update(control, float(error))
+            run_time += time.perf_counter() - start
+            test_error = math.nan if test_set is None else float(
+                validate(network, problem, test_set))
+            record = HeatRecord(
+                epoch, int(previous.iterations) if solves else 0,
+                int(previous.adjoint_iterations) if solves else 0,
+                float(previous.rtol) if solves else 0.0, primal, run_time,
+                float(np.mean(losses)), float(error), counter.adjoint, test_error)
+            records.append(record)
+            if callback is not None:
+                callback(record)
+            if saved is not None:
+                saved.save(TrainingState(epoch, network.params, opt_state, control,
+                                         rng.bit_generator.state, records,
+                                         {"primal": primal, "adjoint": counter.adjoint,
+                                          "steps": 0, "run_time": run_time}),
+                           final=epoch == epochs)
     return Training(network, control, records)

@@ -65,6 +65,7 @@ from ..inverse.steps import (
 from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
+from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .model import Model, check_model
 
 __all__ = [
@@ -445,6 +446,7 @@ class EpochRecord(NamedTuple):
     validation_error: float   # mean relative L2 error of the predicted sources
     adjoint_iterations_total: int = 0  # cumulative adjoint and tangent CG iterations
     steps: int = 0            # cumulative optimiser steps
+    test_error: float = math.nan  # mean relative L2 source error of ``test_set``, untimed
 
 
 class Training(NamedTuple):
@@ -513,12 +515,28 @@ def _check_training_options(optimizer, gradient, epochs, batch_size, n, refineme
             "mini-batches)")
 
 
+def _check_split(samples: SourceSamples | None, name: str, problem: LearnedInverse,
+                 n_observations: int) -> None:
+    """Refuse an empty split, or one whose fields are not this problem's."""
+    if samples is None:
+        return
+    sources, observations = samples.sources, samples.observations
+    if sources.ndim != 2 or observations.ndim != 2 or sources.shape[0] != observations.shape[0] \
+            or sources.shape[1] != problem.system.source.shape[1] \
+            or observations.shape[1] != n_observations:
+        raise ShapeError(f"{name}: sources{tuple(sources.shape)}, observations"
+                         f"{tuple(observations.shape)}; expected (n, "
+                         f"{problem.system.source.shape[1]}) and (n, {n_observations})")
+    if sources.shape[0] == 0:
+        raise ShapeError(f"{name}: no samples; expected at least one")
+
+
 def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSamples,
           validation_set: SourceSamples, *, optimizer: optax.GradientTransformation | None = None,
           refinement: Refinement | None = None, epochs: int = 50, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
-          validation_rtol: float = 1e-10,
-          callback=None) -> Training:
+          validation_rtol: float = 1e-10, test_set: SourceSamples | None = None,
+          checkpoints: Checkpoints | None = None, callback=None) -> Training:
     """Train ``network`` for ``epochs`` epochs of shuffled mini-batches (``seed``) while
     ``refinement`` (default :func:`~prdp_fem.inverse.prdp` with ``K0=5, dK=5``) picks the CG
     iterations once per epoch from the validation misfit.
@@ -541,16 +559,28 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
     The iteration tally is exact: every solve -- gradient, line-search trials, Hessian or
     Jacobian products -- adds its iterations on the host
     (:class:`~prdp_fem.linalg.IterationCounter`);
-    tangent solves count as adjoint iterations. ``callback(record)`` runs after every epoch.
+    tangent solves count as adjoint iterations. ``test_set``: held-out samples whose mean
+    source error (converged solves, outside the timed region) each record carries as
+    ``test_error``. ``checkpoints`` (:class:`~prdp_fem.learning.checkpoint.Checkpoints`):
+    save the whole training state every ``checkpoints.every`` epochs and at the end, and with
+    ``resume=True`` continue from the latest checkpoint, bit for bit as an uninterrupted run.
+    ``callback(record)`` runs after every epoch, and first for each record a resumed run
+    restored (so that a log it writes is complete).
 
     Raises :class:`~prdp_fem.errors.SolverConfigError` for bad options (including L-BFGS with
-    mini-batches) or an object that is not a model, :class:`~prdp_fem.errors.ShapeError` for
-    a model whose output is not one nodal source per observation, and
+    mini-batches) or an object that is not a model, :class:`~prdp_fem.errors.CheckpointError`
+    for checkpoints of another training (or a fresh run into a directory that holds some),
+    :class:`~prdp_fem.errors.ShapeError` for a model whose output is not one nodal source
+    per observation or an empty split, and
     :class:`~prdp_fem.inverse.driver.InversionError` when a step produces a non-finite loss or
     gradient.
     """
     from ..inverse.driver import InversionError
 
+    n_observations = int(train_set.observations.shape[-1])
+    for name, samples in (("train_set", train_set), ("validation_set", validation_set),
+                          ("test_set", test_set)):
+        _check_split(samples, name, problem, n_observations)
     n = int(train_set.sources.shape[0])
     refinement = prdp(K0=5, dK=5) if refinement is None else refinement
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
@@ -567,55 +597,69 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
     counter = IterationCounter()
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
-    layers = network.params
-    opt_state, control = optimizer.init(layers), refinement.init()
     rng = np.random.default_rng(seed)
-    records, run_time, steps = [], 0.0, 0
-    for epoch in range(1, epochs + 1):
-        settings = control.settings()
-        K, K_adj, rtol = device_settings(settings)
-        scan_length = step_scan_length(gradient, settings[0])  # read on the host, not the device
-        order = rng.permutation(n) if batch_size < n else np.arange(n)
-        batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
-        losses = []
-        for index in batches:
-            batch = train_set.take(index)
-            compile_before = step.seconds  # compilation is timed apart from the run
-            start = time.perf_counter()
-            result = jax.block_until_ready(
-                step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
-                     rtol, *cycle_argument(preconditioner)))
-            run_time += time.perf_counter() - start - (step.seconds - compile_before)
-            if not (math.isfinite(float(result.loss))
-                    and math.isfinite(float(result.grad_norm))):
-                raise InversionError(
-                    f"epoch {epoch}: non-finite loss or gradient (loss {float(result.loss)!r}, "
-                    f"K={int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
-                    "learning rate or more CG iterations")
-            layers, opt_state = result.layers, result.opt_state
-            losses.append(float(result.loss))
-            steps += 1
+    with CheckpointSession.open(checkpoints, "learned") as saved:
+        state = start_state(saved, network.params, optimizer.init(network.params),
+                            refinement.init(), rng, EpochRecord, epochs, callback)
+        layers, opt_state, control = state.params, state.opt_state, state.control
+        records, (run_time, steps) = list(state.records), (state.counters["run_time"],
+                                                          state.counters["steps"])
+        counter.primal, counter.adjoint = state.counters["primal"], state.counters["adjoint"]
         network = network.replace_params(layers)
-        if epoch == 1:  # compile outside the timed region
-            jax.block_until_ready(validate(network, problem, validation_set))
-        start = time.perf_counter()
-        misfit, error = validate(network, problem, validation_set)
-        previous = control
-        control = refinement.update(control, float(misfit))
-        run_time += time.perf_counter() - start
-        if uses_stored_value(opt_state) and previous.settings() != control.settings():
-            # the stored value/gradient belong to the old solver: recompute them next step
-            # (same shape and dtype as stored: the step is compiled per argument type)
-            stored = optax.tree_utils.tree_get(opt_state, "value")
-            opt_state = optax.tree_utils.tree_set(opt_state,
-                                                  value=jax.lax.full_like(stored, jnp.inf))
-        record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
-                             float(previous.rtol), counter.primal, run_time,
-                             float(np.mean(losses)), float(misfit), float(error),
-                             counter.adjoint, steps)
-        records.append(record)
-        if callback is not None:
-            callback(record)
+        for epoch in range(state.epoch + 1, epochs + 1):
+            settings = control.settings()
+            K, K_adj, rtol = device_settings(settings)
+            # read on the host, not the device
+            scan_length = step_scan_length(gradient, settings[0])
+            order = rng.permutation(n) if batch_size < n else np.arange(n)
+            batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
+            losses = []
+            for index in batches:
+                batch = train_set.take(index)
+                compile_before = step.seconds  # compilation is timed apart from the run
+                start = time.perf_counter()
+                result = jax.block_until_ready(
+                    step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
+                         rtol, *cycle_argument(preconditioner)))
+                run_time += time.perf_counter() - start - (step.seconds - compile_before)
+                if not (math.isfinite(float(result.loss))
+                        and math.isfinite(float(result.grad_norm))):
+                    raise InversionError(
+                        f"epoch {epoch}: non-finite loss or gradient (loss {float(result.loss)!r}, "
+                        f"K={int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
+                        "learning rate or more CG iterations")
+                layers, opt_state = result.layers, result.opt_state
+                losses.append(float(result.loss))
+                steps += 1
+            network = network.replace_params(layers)
+            if epoch == state.epoch + 1:  # compile outside the timed region
+                jax.block_until_ready(validate(network, problem, validation_set))
+            start = time.perf_counter()
+            misfit, error = validate(network, problem, validation_set)
+            previous = control
+            control = refinement.update(control, float(misfit))
+            run_time += time.perf_counter() - start
+            if uses_stored_value(opt_state) and previous.settings() != control.settings():
+                # the stored value/gradient belong to the old solver: recompute them next step
+                # (same shape and dtype as stored: the step is compiled per argument type)
+                stored = optax.tree_utils.tree_get(opt_state, "value")
+                opt_state = optax.tree_utils.tree_set(opt_state,
+                                                      value=jax.lax.full_like(stored, jnp.inf))
+            test_error = math.nan if test_set is None else float(
+                validate(network, problem, test_set)[1])
+            record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
+                                 float(previous.rtol), counter.primal, run_time,
+                                 float(np.mean(losses)), float(misfit), float(error),
+                                 counter.adjoint, steps, test_error)
+            records.append(record)
+            if callback is not None:
+                callback(record)
+            if saved is not None:
+                saved.save(TrainingState(epoch, layers, opt_state, control, rng.bit_generator.state,
+                                         records, {"primal": counter.primal,
+                                                   "adjoint": counter.adjoint,
+                                                   "steps": steps, "run_time": run_time}),
+                           final=epoch == epochs)
     return Training(network, control, records)
 
 
