@@ -144,3 +144,76 @@ def test_an_empty_split_is_refused(inverse):
     with pytest.raises(ShapeError, match="test_set: no samples"):
         learned.train(problem, network, train_set, validation_set, epochs=1, batch_size=4,
                       test_set=validation_set.take(np.arange(0)))
+
+
+class DiesAfter:
+    """A study's progress whose ``step`` (after each epoch record) kills the run at the
+    ``n``-th epoch."""
+
+    def __init__(self, n: int):
+        self.n, self.epochs = n, 0
+
+    def run_started(self, name, steps):
+        pass
+
+    def step(self):
+        self.epochs += 1
+        if self.epochs == self.n:
+            raise Stop
+
+    def run_finished(self, name, skipped):
+        pass
+
+
+STUDY = """
+name = "resumable"
+[mesh]
+n = 5
+[inverse]
+unknown = "source"
+[learned]
+samples = 8
+validation_samples = 4
+test_samples = 4
+hidden = [4]
+epochs = 5
+batch_size = 4
+checkpoint_every = 2
+[refinement]
+kind = "prdp"
+K0 = 2
+dK = 2
+tau_step = 0.01
+ema_window = 1
+delta = 2
+[optimizer]
+name = "adam"
+learning_rate = 3e-3
+[[study.runs]]
+name = "prdp"
+"""
+
+
+def test_a_killed_study_resumes_its_run_from_the_last_checkpoint(tmp_path):
+    import tomllib
+
+    from prdp_fem.scene import parse_scene
+    from prdp_fem.studies.runner import ResultsLog, checkpoint_directory, run_study
+
+    scene = parse_scene(tomllib.loads(STUDY))
+    whole = run_study(scene, tmp_path / "whole")
+    out = tmp_path / "killed"
+    with pytest.raises(Stop):  # the first run dies after epoch 3: its checkpoint is epoch 2
+        run_study(scene, out, progress=DiesAfter(3))
+    run = whole.summary[0]["run"]
+    assert read_metadata(checkpoint_directory(out, run))["epochs"] == [2]
+    resumed = run_study(scene, out, resume=True)
+
+    def epochs(directory, attempt):
+        return [{k: v for k, v in r.items() if k not in ("time", "attempt")}
+                for r in ResultsLog(directory / "results.jsonl").records()
+                if r["type"] == "epoch" and r["run"] == run and r["attempt"] == attempt]
+
+    assert epochs(out, 2) == epochs(tmp_path / "whole", 1)  # restored, then trained on
+    assert len({r["iterations"] for r in epochs(out, 2)}) > 1
+    assert resumed.summary[0]["final_error"] == whole.summary[0]["final_error"]

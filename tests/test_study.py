@@ -254,7 +254,7 @@ def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, m
     rows = {row["run"]: row for row in result.summary}
     assert rows["prdp"]["cg_iterations"] < rows["converged"]["cg_iterations"]
     assert rows["gauss_newton"]["final_error"] == [r for r in epochs if r["run"] ==
-                                                  "gauss_newton"][-1]["validation_error"]
+                                                  "gauss_newton"][-1]["test_error"]
     assert rows["gauss_newton"]["optimizer_steps"] == 3 and rows["prdp"]["optimizer_steps"] == 6
     assert sorted(p.name for p in result.figures) == [
         "error_vs_iterations.png", "error_vs_time.png", "iterations_over_steps.png"]

@@ -317,12 +317,18 @@ class LearnedSetup(NamedTuple):
     train_set: SourceSamples
     validation_set: SourceSamples
     network: Network          # untrained (seeded), scales from the training data
+    test_set: SourceSamples | None = None
+    split: dict | None = None  # sample indices of each set, as checkpoints record them
 
 
 def build_learned(scene: Scene) -> LearnedSetup:
     """The learned inverse of the scene: ``[learned]`` samples observed through ``[inverse]``'s
     observation operator (converged reference solves plus noise), an MLP
-    ``[n_obs, *hidden, n_dofs]`` with LeCun-normal weights seeded by ``learned.seed``."""
+    ``[n_obs, *hidden, n_dofs]`` with LeCun-normal weights seeded by ``learned.seed``.
+
+    Training and validation sources are one draw (seed ``learned.seed``), the test sources a
+    draw of their own (seed ``learned.seed + 2``), so that adding test samples leaves the
+    others as they were."""
     spec = scene.learned
     if spec is None or scene.inverse is None:
         raise SceneError(f"{scene.source}: expected study.kind = 'learned' with an [inverse] "
@@ -334,13 +340,26 @@ def build_learned(scene: Scene) -> LearnedSetup:
     n = spec.samples + spec.validation_samples
     sources = random_sources(disc, n, seed=spec.seed, width=spec.width)
     samples = source_samples(problem, sources, noise=spec.noise, seed=spec.seed + 1)
+    test_set = source_samples(
+        problem, random_sources(disc, spec.test_samples, seed=spec.seed + 2, width=spec.width),
+        noise=spec.noise, seed=spec.seed + 3)
     train_set = samples.take(np.arange(spec.samples))
     validation_set = samples.take(np.arange(spec.samples, n))
     network = mlp_init(jax.random.PRNGKey(spec.seed),
                        [int(observation.operator.shape[0]), *spec.hidden, disc.n_dofs],
                        input_scale=float(np.std(np.asarray(train_set.observations))),
                        output_scale=float(np.std(sources[:spec.samples])))
-    return LearnedSetup(disc, problem.with_residual(), train_set, validation_set, network)
+    return LearnedSetup(disc, problem.with_residual(), train_set, validation_set, network,
+                        test_set, data_split(spec.samples, spec.validation_samples,
+                                             spec.test_samples))
+
+
+def data_split(train: int, validation: int, test: int) -> dict[str, list[int]]:
+    """The indices of each set in the order the scene draws its data (training, validation,
+    test), as a checkpoint records them."""
+    first, second = train, train + validation
+    return {"train": list(range(first)), "validation": list(range(first, second)),
+            "test": list(range(second, second + test))}
 
 
 def train_options(scene: Scene) -> dict[str, Any]:
@@ -374,6 +393,7 @@ class HeatSetup(NamedTuple):
     validation_set: heat.Trajectories
     test_set: heat.Trajectories
     network: Network          # untrained (seeded), its output scale from the training data
+    split: dict | None = None  # trajectory indices of each set, as checkpoints record them
 
 
 def build_heat(scene: Scene) -> HeatSetup:
@@ -397,7 +417,7 @@ def build_heat(scene: Scene) -> HeatSetup:
     train_set = data.take(np.arange(first))
     network = heat.initial_network(problem, train_set, spec.setup, spec.hidden, spec.seed)
     return HeatSetup(disc, problem, train_set, data.take(np.arange(first, second)),
-                     data.take(np.arange(second, sum(counts))), network)
+                     data.take(np.arange(second, sum(counts))), network, data_split(*counts))
 
 
 def heat_train_options(scene: Scene) -> dict[str, Any]:

@@ -32,17 +32,19 @@ takes the default written in the dataclass below):
     (:func:`~prdp_fem.optim.hig.hig`): ``exponent``, ``tau``, ``rank``, ``relative``;
     adam, sgd: ``decay`` (constant | cosine: to zero over the run)
 ``[learned]``
-    a learned inverse (:mod:`prdp_fem.learning.learned`): ``samples``, ``validation_samples``,
-    ``noise`` (relative to each sample's RMS), ``width`` (of the random source
-    bumps), ``hidden`` (layer sizes), ``epochs``, ``batch_size``, ``seed``,
-    ``supervised``; its observations come from ``[inverse]`` (``unknown =
-    "source"``; ``truth``/``data`` are not needed: the sources are random)
+    a learned inverse (:mod:`prdp_fem.learning.learned`): ``samples``,
+    ``validation_samples``, ``test_samples`` (held out, reported), ``noise`` (relative to
+    each sample's RMS), ``width`` (of the random source bumps), ``hidden`` (layer sizes),
+    ``epochs``, ``batch_size``, ``seed``, ``supervised``, ``checkpoint_every`` (epochs
+    between saved training states: ``--resume`` continues from the last one); its
+    observations come from ``[inverse]`` (``unknown = "source"``; ``truth``/``data`` are not
+    needed: the sources are random)
 ``[heat]``
     a learned heat stepper (:mod:`prdp_fem.learning.heat`, :class:`HeatSpec`): ``dt``,
     ``steps``, ``substeps``, ``trajectories``, ``validation_trajectories``,
     ``test_trajectories``, ``width``, ``hidden``, ``setup`` (correction |
     prediction), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
-    ``batch_size``, ``seed``; ``[pde]`` gives ``kappa``, ``source`` and the
+    ``batch_size``, ``seed``, ``checkpoint_every``; ``[pde]`` gives ``kappa``, ``source`` and the
     Dirichlet data, ``[optimizer]`` is adam (default) or sgd
 ``[study]``
     ``kind`` (inverse | forward | h | learned | heat; a ``[learned]`` or
@@ -546,7 +548,9 @@ class LearnedSpec:
     """A learned inverse (:mod:`prdp_fem.learning.learned`): a network maps observations to sources.
 
     ``samples`` training and ``validation_samples`` held-out random sources (three Gaussian
-    bumps of width ``width`` times the mesh diameter, seeded by ``seed``), observed through
+    bumps of width ``width`` times the mesh diameter, seeded by ``seed``) and
+    ``test_samples`` more (a draw of their own, seeded by ``seed + 2``: the reported error),
+    observed through
     ``[inverse]``'s observation operator with ``noise`` times each sample's RMS; an MLP
     ``[n_obs, *hidden, n_dofs]`` trained for ``epochs`` epochs of mini-batches of
     ``batch_size`` (default ``samples``: the full batch, which L-BFGS requires);
@@ -562,6 +566,8 @@ class LearnedSpec:
     batch_size: int = 64      # default: samples (full batch)
     seed: int = 0
     supervised: float = 1e-2
+    test_samples: int = 16
+    checkpoint_every: int = 10  # epochs between saved training states (and the last)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -592,6 +598,7 @@ class HeatSpec:
     epochs: int = 150
     batch_size: int = 16
     seed: int = 0
+    checkpoint_every: int = 10  # epochs between saved training states (and the last)
 
     @property
     def windows(self) -> int:
@@ -1049,7 +1056,9 @@ def _learned(t: _Table) -> LearnedSpec:
               lambda v: _is_int(v) and 1 <= v <= samples,
               f"an integer from 1 to learned.samples = {samples}"),
         t.integer("seed", LearnedSpec.seed, 0),
-        t.number("supervised", LearnedSpec.supervised, low=0.0))
+        t.number("supervised", LearnedSpec.supervised, low=0.0),
+        t.integer("test_samples", LearnedSpec.test_samples, 1),
+        t.integer("checkpoint_every", LearnedSpec.checkpoint_every, 1))
     t.finish()
     return spec
 
@@ -1070,7 +1079,7 @@ def _heat(t: _Table) -> HeatSpec:
         t.get("unroll", d.unroll, lambda v: _is_int(v) and 1 <= v <= steps,
               f"an integer from 1 to heat.steps = {steps}"),
         t.integer("epochs", d.epochs, 1), t.integer("batch_size", d.batch_size, 1),
-        t.integer("seed", d.seed, 0))
+        t.integer("seed", d.seed, 0), t.integer("checkpoint_every", d.checkpoint_every, 1))
     if spec.batch_size > spec.windows:
         raise t.fail("batch_size", f"at most the {spec.windows} training windows (heat."
                      f"trajectories = {spec.trajectories} x {spec.steps - spec.unroll + 1} "

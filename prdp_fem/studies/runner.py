@@ -61,6 +61,7 @@ from ..inverse.driver import invert
 from ..inverse.history import History, StepRecord
 from ..inverse.posterior import laplace_posterior
 from ..learning import heat
+from ..learning.checkpoint import Checkpoints
 from ..learning.learned import train
 from ..linalg.cg import ConvergedCG, solve
 from ..linalg.operator import SparseMatrix
@@ -319,10 +320,32 @@ def _write_posterior(setup, params, rank: int, samples: int, path: Path) -> None
     posterior.write_vtu(path, setup.disc, samples=samples, variance=method)
 
 
+CHECKPOINTS = "checkpoints"
+
+
+def checkpoint_directory(out: Path, run: str) -> Path:
+    """Where a learned or heat study's run saves its training states."""
+    return Path(out) / CHECKPOINTS / _slug(run)
+
+
+def run_checkpoints(out: Path, name: str, variant: Scene, split: dict, *,
+                    resume: bool = True) -> Checkpoints:
+    """The checkpoints of run ``name``: every ``checkpoint_every`` epochs of its
+    ``[learned]``/``[heat]`` table, named by the run, its settings' fingerprint and the data
+    split (a checkpoint of another scene or split is refused). A run that starts again
+    continues from its last checkpoint: only a study that was resumed reaches a run whose
+    directory holds some."""
+    spec = variant.learned if variant.learned is not None else variant.heat
+    return Checkpoints(checkpoint_directory(out, name), every=spec.checkpoint_every,
+                       resume=resume, metadata={"run": name, "fingerprint": variant.fingerprint,
+                                                "split": split})
+
+
 def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
     setup = setups(variant)
     progress.run_started(name, variant.learned.epochs)
     train(setup.problem, setup.network, setup.train_set, setup.validation_set,
+          test_set=setup.test_set, checkpoints=run_checkpoints(out, name, variant, setup.split),
           callback=_epoch_logger(name, attempt, log, progress), **train_options(variant))
 
 
@@ -330,7 +353,9 @@ def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -
     setup = setups(variant)
     progress.run_started(name, variant.heat.epochs)
     heat.train(setup.problem, setup.network, setup.train_set, setup.validation_set,
-               test_set=setup.test_set, callback=_epoch_logger(name, attempt, log, progress),
+               test_set=setup.test_set, checkpoints=run_checkpoints(out, name, variant,
+                                                                    setup.split),
+               callback=_epoch_logger(name, attempt, log, progress),
                **heat_train_options(variant))
 
 
@@ -543,7 +568,7 @@ def _finished_records(scene: Scene, records: list[dict]) -> dict[str, list[dict]
     return by_run
 
 
-LEARNED_METRIC = "mean relative L2 error of held-out sources"
+LEARNED_METRIC = "mean relative L2 error of held-out test sources"
 
 
 def _epoch_history(rows: list[dict], *, evaluations: str, misfit: str,
@@ -568,10 +593,13 @@ def _epoch_history(rows: list[dict], *, evaluations: str, misfit: str,
 
 
 def learned_history(rows: list[dict]) -> History:
-    """A learned study's epoch records as a History: ``parameter_error`` is the held-out
-    source error, ``misfit`` the validation misfit, ``evaluations`` the optimiser steps."""
+    """A learned study's epoch records as a History: ``parameter_error`` is the source error
+    of the held-out test samples (of the validation samples in records written before test
+    splits), ``misfit`` the validation misfit (the PRDP signal), ``evaluations`` the
+    optimiser steps."""
+    tested = all(r.get("test_error") is not None for r in rows)
     return _epoch_history(rows, evaluations="steps", misfit="validation_misfit",
-                          error="validation_error")
+                          error="test_error" if tested else "validation_error")
 
 
 HEAT_METRIC = "held-out rollout error"
