@@ -4,6 +4,7 @@ Subcommands
 -----------
 ``study``      sweep a scene's configurations: results.jsonl, summary.csv, figures, fields
 ``invert``     one inversion with the scene's own settings (same outputs)
+``evaluate``   test metrics and predictions (VTU, .pvd rollouts) of a learned or heat study
 ``solve``      forward solve of a scene or a bare mesh file, written as VTU
 ``mesh-info``  cells, quality, tags and problems of a mesh file
 ``scenes``     list the built-in scenes, or print one
@@ -40,6 +41,7 @@ from .._version import __version__
 from ..errors import PrdpFemError, SolverConfigError
 from ._shared import Interrupted, is_interrupt
 from .bench import DEFAULT_INNER_K, bench_command
+from .evaluate import evaluate_command
 from .forward import DEFAULT_ITERATIONS, forward_command
 from .mesh_info import mesh_info_command
 from .scenes import scenes_command
@@ -55,6 +57,9 @@ EXAMPLES = {
   prdp-fem study my_scene.toml --steps 20      # your scene, fewer optimiser steps
   prdp-fem study my_scene.toml --out runs/a --resume   # continue a killed study
   prdp-fem study inclusion --executor dask     # the configurations on a local Dask cluster""",
+    "evaluate": """examples:
+  prdp-fem study learned && prdp-fem evaluate learned    # train, then test metrics + VTU
+  prdp-fem evaluate heat.toml --out runs/heat --run "correction wig prdp" --samples 2""",
     "invert": """examples:
   prdp-fem invert plate_hole --out runs/plate
   prdp-fem invert my_scene.toml --steps 50""",
@@ -129,6 +134,18 @@ def _parser() -> argparse.ArgumentParser:
     invert.add_argument("scene", help="a scene .toml file or a built-in scene name")
     invert.add_argument("--out", type=Path, help="output directory (default: ./invert-SCENE)")
     invert.add_argument("--steps", type=int, help="optimiser steps (overrides the scene)")
+
+    evaluate = _command(sub, "evaluate", "test metrics and predictions of a learned or heat "
+                        "study's trained runs (their last checkpoints)")
+    evaluate.add_argument("scene", help="the study's scene (.toml file or built-in name)")
+    evaluate.add_argument("--out", type=Path, help="the study's directory (default: "
+                          "./study-SCENE); evaluation.csv and evaluation/ are written there")
+    evaluate.add_argument("--run", nargs="+", metavar="NAME",
+                          help="only these runs (default: every run with a checkpoint)")
+    evaluate.add_argument("--samples", type=int, default=4,
+                          help="test samples or trajectories to write as VTU (default: 4)")
+    evaluate.add_argument("--steps", type=int,
+                          help="the --steps the study was run with (epochs)")
 
     solve = _command(sub, "solve", "forward solve of a scene or a mesh file, written as VTU")
     solve.add_argument("input", help="a scene (.toml or built-in name) or a mesh file")
@@ -330,7 +347,8 @@ def _add_inverse_scenes(parser: argparse.ArgumentParser) -> None:
 #: What ``bench prdp`` writes at the top of its output directory, besides the studies.
 
 
-COMMANDS = {"study": study_command, "invert": invert_command, "solve": solve_command,
+COMMANDS = {"study": study_command, "invert": invert_command, "evaluate": evaluate_command,
+            "solve": solve_command,
             "mesh-info": mesh_info_command, "mesh": mesh_info_command,
             "scenes": scenes_command, "forward": forward_command, "bench": bench_command,
             "stability": stability_command}

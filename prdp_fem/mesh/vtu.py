@@ -1,5 +1,8 @@
 """Fields on the mesh as VTU files (ParaView), written atomically.
 
+A time series is a ParaView collection (``.pvd``) of such files, one per time
+(:func:`write_pvd`).
+
 A field is given by the space it lives in: ``"nodal"`` (the solution space: P1/Q1 values at
 the vertices; of P2/Q2 the vertex values, which skfem numbers first), ``"P1"`` (vertex values)
 or ``"P0"`` (one value per cell).
@@ -17,7 +20,7 @@ from .._atomic import atomic_path
 from ..errors import DiscretizationError, ShapeError
 from .io import HEX_SKFEM_TO_MESHIO, meshio_cell_type
 
-__all__ = ["write_vtu"]
+__all__ = ["write_pvd", "write_vtu"]
 
 
 def write_vtu(mesh: skfem.Mesh, path: str | Path,
@@ -55,4 +58,25 @@ def write_vtu(mesh: skfem.Mesh, path: str | Path,
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         meshio.write(tmp, out, file_format="vtu")
+    return path
+
+
+def write_pvd(path: str | Path, steps: list[tuple[float, str | Path]]) -> Path:
+    """A ParaView collection at ``path`` (``.pvd``) of ``(time, VTU file)`` pairs: the files
+    are named relative to ``path``'s directory, so the series moves with its folder."""
+    import os
+    from xml.sax.saxutils import quoteattr
+
+    path = Path(path)
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             "  <Collection>"]
+    for time, file in steps:
+        relative = Path(os.path.relpath(Path(file).absolute(), path.absolute().parent))
+        lines.append(f'    <DataSet timestep="{float(time)!r}" group="" part="0" '
+                     f"file={quoteattr(relative.as_posix())}/>")
+    lines += ["  </Collection>", "</VTKFile>", ""]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_text("\n".join(lines))
     return path

@@ -177,12 +177,13 @@ class ResultsLog:
             os.fsync(stream.fileno())
 
 
-def _slug(name: str) -> str:
+def run_file_name(name: str) -> str:
+    """A run's name as one file or directory name (its outputs are named by it)."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "run"
 
 
 def _field_file(out: Path, run: str) -> Path:
-    return out / "fields" / f"{_slug(run)}.vtu"
+    return out / "fields" / f"{run_file_name(run)}.vtu"
 
 
 def completed(records: list[dict]) -> dict[str, int]:
@@ -325,7 +326,7 @@ CHECKPOINTS = "checkpoints"
 
 def checkpoint_directory(out: Path, run: str) -> Path:
     """Where a learned or heat study's run saves its training states."""
-    return Path(out) / CHECKPOINTS / _slug(run)
+    return Path(out) / CHECKPOINTS / run_file_name(run)
 
 
 def run_checkpoints(out: Path, name: str, variant: Scene, split: dict, *,
