@@ -14,6 +14,14 @@ residual is :math:`\Delta t\,(b - A u_n)`, small for a small step, so a truncate
 ``K`` iterations is already close. A :class:`HeatProblem` holds the system matrix, the mass
 matrix and the load on the free dofs (a pytree: a jit argument).
 
+A nonlinear variant: with ``reaction = r > 0`` the equation is Fisher-KPP's
+:math:`\partial_t u - \nabla\cdot(\kappa \nabla u) = f + r\, u (1 - u)`, the reaction taken
+explicitly (IMEX: :math:`(M + \Delta t A) u_{n+1} = M (u_n + \Delta t\, r\, u_n (1 - u_n)) +
+\Delta t\, b`), so each step is still one SPD solve, truncated by PCG in the coarse solver. Fronts
+grow and travel; an error in one step changes the growth of the next, so the gradient through
+several steps (WIG) carries what one-step training (ONE) cannot see. The correction network
+is then applied as it is (:func:`correction` with ``homogeneous=False``).
+
 Learned time steppers (List, Chen, Bali, Thuerey, arXiv 2402.12971). The reference is a *fine*
 solver (:func:`reference_trajectories`: ``substeps`` direct solves of step ``dt / substeps`` per
 step ``dt``); the *coarse* solver :math:`S_K` is one step of size ``dt`` with ``K`` PCG
@@ -126,23 +134,30 @@ Step = Callable[[Any, jax.Array, Any], tuple[jax.Array, jax.Array]]
 
 
 @partial(jax.tree_util.register_dataclass, data_fields=["matrix", "mass", "load", "dt"],
-         meta_fields=[])
+         meta_fields=["reaction"])
 @dataclasses.dataclass(frozen=True)
 class HeatProblem:
     """Implicit Euler on the free dofs: ``matrix = M + dt A``, ``mass = M``,
-    ``load = dt b`` (source, Neumann data and Dirichlet lifting); a pytree."""
+    ``load = dt b`` (source, Neumann data and Dirichlet lifting); a pytree.
+
+    ``reaction`` (static; 0: the heat equation) is the rate ``r`` of a Fisher-KPP reaction
+    ``r u (1 - u)``, taken explicitly (IMEX): the step stays one SPD solve with ``M + dt A``.
+    """
 
     matrix: SparseMatrix
     mass: FixedMatrix  # symmetric, laid out once
     load: jax.Array
     dt: jax.Array
+    reaction: float = 0.0
 
     @property
     def n_free(self) -> int:
         return int(self.matrix.shape[0])
 
     def rhs(self, u: jax.Array) -> jax.Array:
-        """``M u + dt b``: the right-hand side of the step from ``u``."""
+        """``M (u + dt r u (1 - u)) + dt b``: the right-hand side of the step from ``u``."""
+        if self.reaction:
+            u = u + self.dt * self.reaction * u * (1.0 - u)
         return self.mass(u) + self.load
 
 
@@ -159,12 +174,13 @@ def _count(value: Any, name: str, minimum: int = 1) -> int:
     return int(value)
 
 
-def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
-                 source=None) -> HeatProblem:
+def heat_problem(disc: Discretization, dt: float, *, kappa=1.0, source=None,
+                 reaction: float = 0.0) -> HeatProblem:
     """The implicit-Euler :class:`HeatProblem` of step ``dt`` on ``disc`` (its Dirichlet and
     Neumann data, held constant in time), coefficient ``kappa``, nodal ``source`` (``None``:
-    zero)."""
+    zero) and Fisher-KPP rate ``reaction`` (0: the heat equation)."""
     dt = _positive(dt, "dt")
+    reaction = _rate(reaction)
     if source is not None:
         source = finite_vector(source, "source", disc.n_dofs)
     free = disc.free_dofs
@@ -172,7 +188,14 @@ def heat_problem(disc: Discretization, dt: float, *, kappa=1.0,
     stiffness, b = disc.host_system_at(kappa, source)  # one kappa: no map kappa -> A
     matrix = (mass + dt * stiffness).tocsr()
     return HeatProblem(SparseMatrix.from_scipy(matrix), FixedMatrix.symmetric(mass),
-                       jnp.asarray(dt * b), jnp.asarray(dt))
+                       jnp.asarray(dt * b), jnp.asarray(dt), reaction)
+
+
+def _rate(value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.floating | np.integer) \
+            or not (math.isfinite(value) and value >= 0):
+        raise SolverConfigError(f"reaction={value!r}: expected a finite number >= 0")
+    return float(value)
 
 
 def heat_step(problem: HeatProblem, u: jax.Array, solver, *,
@@ -223,25 +246,34 @@ def random_initial_states(disc: Discretization, n_states: int, *, seed: int = 0,
 
 
 def reference_trajectories(disc: Discretization, initial, *, dt: float, steps: int,
-                           substeps: int = 4, kappa=1.0, source=None) -> Trajectories:
+                           substeps: int = 4, kappa=1.0, source=None,
+                           reaction: float = 0.0) -> Trajectories:
     """Fine-solver trajectories: from each nodal initial field (rows of ``initial``, restricted
     to the free dofs), ``steps`` steps of size ``dt``, each made of ``substeps`` implicit-Euler
-    steps of size ``dt / substeps`` solved directly (sparse LU: converged to round-off)."""
+    steps of size ``dt / substeps`` (the reaction, if any, explicit: the scheme of
+    :func:`heat_step`) solved directly (sparse LU: converged to round-off)."""
     steps, substeps = _count(steps, "steps"), _count(substeps, "substeps")
     dt = _positive(dt, "dt")
     initial = np.asarray(initial, dtype=float)
     if initial.ndim != 2 or initial.shape[1] != disc.n_dofs:
         raise ShapeError(f"initial{initial.shape}: expected (n_trajectories, {disc.n_dofs}) "
                          "nodal fields")
-    fine = heat_problem(disc, dt / substeps, kappa=kappa, source=source)
+    fine = heat_problem(disc, dt / substeps, kappa=kappa, source=source, reaction=reaction)
     lu = spla.splu(fine.matrix.to_scipy().tocsc())
     mass, load = fine.mass.to_scipy(), np.asarray(fine.load)
+    fine_dt, rate = float(fine.dt), fine.reaction
     u = finite_vector(initial.ravel(), "initial", initial.size).reshape(initial.shape)
     u = u[:, disc.free_dofs].T  # (n_free, n_trajectories): one LU solve per substep for all
     states = [u]
     for _ in range(steps):
-        for _ in range(substeps):
-            u = lu.solve(mass @ u + load[:, None])
+        with np.errstate(over="ignore", invalid="ignore"):  # checked below, with the cause
+            for _ in range(substeps):
+                reacted = u + fine_dt * rate * u * (1.0 - u) if rate else u
+                u = lu.solve(mass @ reacted + load[:, None])
+        if not np.all(np.isfinite(u)):
+            raise SolverConfigError(f"reference_trajectories: non-finite states (dt={dt!r}, "
+                                    f"reaction={rate!r}); expected dt * reaction / substeps "
+                                    "small enough for the explicit reaction to be stable")
         states.append(u)
     return Trajectories(jnp.asarray(np.stack(states).transpose(2, 0, 1)))
 
@@ -269,12 +301,16 @@ def _check_choice(value: Any, name: str, allowed: tuple[str, ...]) -> None:
         raise SolverConfigError(f"{name}={value!r}: expected one of {allowed}")
 
 
-def correction(network: Model | Network | None, u: jax.Array) -> jax.Array:
+def correction(network: Model | Network | None, u: jax.Array, *,
+               homogeneous: bool = True) -> jax.Array:
     """``N(u) = rho(u) model(u / rho(u))``, ``rho`` the RMS of ``u`` (zero at ``u = 0``, with
-    finite gradients); ``network=None``: zero. ``network`` is any model
+    finite gradients); ``homogeneous=False``: ``model(u)`` (a nonlinear step is not
+    homogeneous in ``u``); ``network=None``: zero. ``network`` is any model
     (:mod:`prdp_fem.learning.model`) from the free dofs to the free dofs."""
     if network is None:
         return jnp.zeros_like(u)
+    if not homogeneous:
+        return network(u)
     power = jnp.mean(u**2)
     positive = power > 0
     rho = jnp.sqrt(jnp.where(positive, power, 1.0))  # safe before the square root
@@ -286,14 +322,15 @@ def stepper(setup: str, network: Model | Network | None, problem: HeatProblem, u
     """``G(u)`` of ``setup`` and the CG iterations it ran. ``stop_solver`` stops the gradient
     at the solver's input and output (NOG: the solver is never differentiated)."""
     _check_choice(setup, "setup", SETUPS)
+    homogeneous = not problem.reaction  # the heat step is linear in u (f = 0, g = 0)
     if setup == "prediction":
-        return u + correction(network, u), jnp.zeros((), jnp.int32)
+        return u + correction(network, u, homogeneous=homogeneous), jnp.zeros((), jnp.int32)
     if stop_solver:
         u = jax.lax.stop_gradient(u)
     coarse, iterations = step(problem, u, solver)
     if stop_solver:
         coarse = jax.lax.stop_gradient(coarse)
-    return coarse + correction(network, coarse), iterations
+    return coarse + correction(network, coarse, homogeneous=homogeneous), iterations
 
 
 def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> jax.Array:
@@ -390,7 +427,7 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
         u = jax.vmap(lambda x: heat_step(problem, x, exact)[0])(u)
     u, target = np.asarray(u), np.asarray(target)
     rho = np.sqrt(np.mean(u**2, axis=1, keepdims=True))
-    rho = np.where(rho > 0, rho, 1.0)
+    rho = np.where((rho > 0) & (not problem.reaction), rho, 1.0)  # see correction()
     scale = float(np.std((target - u) / rho))
     return mlp_init(jax.random.PRNGKey(seed), [problem.n_free, *hidden, problem.n_free],
                     output_scale=scale if scale > 0 else 1.0)

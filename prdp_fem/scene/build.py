@@ -408,11 +408,13 @@ def build_heat(scene: Scene) -> HeatSetup:
     kappa = coefficient(scene, disc)
     source = disc.interpolate(field_function(scene, "pde.source", scene.pde.source,
                                              disc.mesh.dim()))
-    problem = heat.heat_problem(disc, spec.dt, kappa=kappa, source=source)
+    problem = heat.heat_problem(disc, spec.dt, kappa=kappa, source=source,
+                                reaction=spec.reaction)
     counts = (spec.trajectories, spec.validation_trajectories, spec.test_trajectories)
     initial = heat.random_initial_states(disc, sum(counts), seed=spec.seed, width=spec.width)
     data = heat.reference_trajectories(disc, initial, dt=spec.dt, steps=spec.steps,
-                                       substeps=spec.substeps, kappa=kappa, source=source)
+                                       substeps=spec.substeps, kappa=kappa, source=source,
+                                       reaction=spec.reaction)
     first, second = np.cumsum(counts[:2])
     train_set = data.take(np.arange(first))
     network = heat.initial_network(problem, train_set, spec.setup, spec.hidden, spec.seed)

@@ -44,8 +44,10 @@ takes the default written in the dataclass below):
     ``steps``, ``substeps``, ``trajectories``, ``validation_trajectories``,
     ``test_trajectories``, ``width``, ``hidden``, ``setup`` (correction |
     prediction), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
-    ``batch_size``, ``seed``, ``checkpoint_every``; ``[pde]`` gives ``kappa``, ``source`` and the
-    Dirichlet data, ``[optimizer]`` is adam (default) or sgd
+    ``batch_size``, ``seed``, ``checkpoint_every``, ``reaction`` (a Fisher-KPP rate
+    ``r``: ``r u (1 - u)`` added, explicitly; 0, the default: the heat equation);
+    ``[pde]`` gives ``kappa``, ``source`` and the Dirichlet data, ``[optimizer]`` is adam
+    (default) or sgd
 ``[study]``
     ``kind`` (inverse | forward | h | learned | heat; a ``[learned]`` or
     ``[heat]`` table makes its kind the default), ``[[study.runs]]`` (``name``
@@ -140,7 +142,7 @@ __all__ = [
 ]
 
 BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h",
-                  "simp_slab", "hippylib_tutorial")
+                  "simp_slab", "hippylib_tutorial", "learned_plate")
 GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
 PACKAGE_MESH_PREFIX = "@meshes/"
 
@@ -581,7 +583,8 @@ class HeatSpec:
     positive Gaussian bumps of width ``width`` times the mesh diameter). An MLP
     ``[n_free, *hidden, n_free]`` trained as the ``setup`` stepper (``correction`` or
     ``prediction``) with ``mode`` (``one``, ``nog``, ``wig``) over windows of ``unroll`` steps,
-    ``epochs`` epochs of mini-batches of ``batch_size`` windows.
+    ``epochs`` epochs of mini-batches of ``batch_size`` windows. ``reaction``: the rate ``r`` of
+    a Fisher-KPP reaction ``r u (1 - u)`` (nonlinear; 0: the heat equation).
     """
 
     dt: float = 0.02
@@ -599,6 +602,7 @@ class HeatSpec:
     batch_size: int = 16
     seed: int = 0
     checkpoint_every: int = 10  # epochs between saved training states (and the last)
+    reaction: float = 0.0      # Fisher-KPP rate r of r u (1 - u) (0: the heat equation)
 
     @property
     def windows(self) -> int:
@@ -1079,7 +1083,8 @@ def _heat(t: _Table) -> HeatSpec:
         t.get("unroll", d.unroll, lambda v: _is_int(v) and 1 <= v <= steps,
               f"an integer from 1 to heat.steps = {steps}"),
         t.integer("epochs", d.epochs, 1), t.integer("batch_size", d.batch_size, 1),
-        t.integer("seed", d.seed, 0), t.integer("checkpoint_every", d.checkpoint_every, 1))
+        t.integer("seed", d.seed, 0), t.integer("checkpoint_every", d.checkpoint_every, 1),
+        t.number("reaction", d.reaction, low=0.0))
     if spec.batch_size > spec.windows:
         raise t.fail("batch_size", f"at most the {spec.windows} training windows (heat."
                      f"trajectories = {spec.trajectories} x {spec.steps - spec.unroll + 1} "

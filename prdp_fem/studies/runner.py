@@ -274,7 +274,7 @@ def _heat_key(variant: Scene) -> tuple:  # what the trajectories and the network
     spec = variant.heat
     return (variant.mesh, variant.pde, variant.directory, spec.dt, spec.steps, spec.substeps,
             spec.trajectories, spec.validation_trajectories, spec.test_trajectories,
-            spec.width, spec.hidden, spec.setup, spec.seed)
+            spec.width, spec.hidden, spec.setup, spec.seed, spec.reaction)
 
 
 def _epoch_logger(name: str, attempt: int, log: ResultsLog, progress: Progress):
