@@ -142,7 +142,8 @@ __all__ = [
 ]
 
 BUILTIN_SCENES = ("cube_kappa", "mother", "inclusion", "plate_hole", "cube", "poisson_h",
-                  "simp_slab", "hippylib_tutorial", "learned_plate")
+                  "simp_slab", "hippylib_tutorial", "learned_plate", "heat_emulator",
+                  "reaction_diffusion")
 GENERATORS = ("unit_square", "unit_cube", "l_shape", "disk", "rectangle_with_hole")
 PACKAGE_MESH_PREFIX = "@meshes/"
 
