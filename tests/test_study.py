@@ -256,6 +256,11 @@ def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, m
     assert rows["gauss_newton"]["final_error"] == [r for r in epochs if r["run"] ==
                                                   "gauss_newton"][-1]["test_error"]
     assert rows["gauss_newton"]["optimizer_steps"] == 3 and rows["prdp"]["optimizer_steps"] == 6
+    # savings against the converged run of the same optimiser and batch only: Gauss-Newton
+    # has none in this scene, so it has no saving (not one against Adam's converged run)
+    assert rows["prdp"]["reference"] == "converged" and rows["gauss_newton"]["reference"] is None
+    assert np.isnan(rows["gauss_newton"]["time_saving"])
+    assert rows["prdp"]["target_error"] == rows["converged"]["final_error"]
     assert sorted(p.name for p in result.figures) == [
         "error_vs_iterations.png", "error_vs_time.png", "iterations_over_steps.png"]
     # resume: nothing left to run; a run whose 'done' record is lost runs again, alone

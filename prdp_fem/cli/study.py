@@ -51,8 +51,14 @@ def run_study_command(scene, out: Path | None, resume: bool, prefix: str,
     if line:
         print(line)
     print_table(result.summary, SUMMARY_COLUMNS[scene.study.kind])
+    if scene.study.kind == "learned":  # each against the converged run of its optimiser
+        alone = [row["run"] for row in result.summary if not row.get("reference")]
+        if alone:
+            print(f"no saving (no converged run of the same optimiser and batch): "
+                  f"{', '.join(alone)}")
     own = [f"{row['run']} against {row['reference']}" for row in result.summary
-           if row.get("reference", scene.study.reference) != scene.study.reference]
+           if scene.study.kind == "inverse"
+           and row.get("reference", scene.study.reference) != scene.study.reference]
     if own:  # the converged run of the same preconditioner
         print(f"savings of runs with their own preconditioner: {'; '.join(own)}")
     figures = ", ".join(str(p.relative_to(out)) for p in result.figures)

@@ -44,6 +44,7 @@ import os
 import re
 import time
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
@@ -699,7 +700,8 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
     elif kind == "learned":
         histories = {n: learned_history(r) for n, r in by_run.items()}
         rows = [_learned_row(row, histories[row["run"]])
-                for row in _inverse_summary(scene, histories, "parameter_error")]
+                for row in _inverse_summary(scene, histories, "parameter_error",
+                                            partial(learned_reference, scene))]
         figures = plots.inverse_figures(scene.name, histories, "parameter_error", out, {},
                                         metric_label=LEARNED_METRIC, step_label="epoch")
     elif kind == "heat":
@@ -730,18 +732,40 @@ def inverse_histories(scene: Scene, out: str | Path) -> dict[str, History]:
     return {name: _history(rows) for name, rows in by_run.items()}
 
 
-def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -> list[dict]:
+def learned_reference(scene: Scene, name: str) -> str | None:
+    """The converged run a learned study's run ``name`` is measured against: one that trains
+    the same network on the same data with the same optimiser, batch size and
+    preconditioner (only the solves differ); ``None`` where the scene has none -- a saving
+    against another optimiser's run would be the optimiser's, not the refinement's."""
+    variants = dict(scene.runs())
+    run = variants[name]
+    return next((other for other, v in variants.items()
+                 if v.refinement.kind == "converged" and v.learned == run.learned
+                 and v.solver.preconditioner == run.solver.preconditioner
+                 and v.same_problem(run)), None)
+
+
+def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str,
+                     reference_of: Callable[[str], str | None] | None = None) -> list[dict]:
+    """Inverse rows; ``reference_of(name)``: each run's own reference, whose final error is
+    then its target (default: ``scene.reference_of``, one target for all, the reference
+    run's final error)."""
     finals = {n: getattr(h[-1], metric) for n, h in histories.items() if len(h)}
     reference = histories.get(scene.study.reference)
     if scene.study.target_error is not None:
-        target = scene.study.target_error
+        common = scene.study.target_error
     elif reference is not None and len(reference):
-        target = getattr(reference[-1], metric)
+        common = getattr(reference[-1], metric)
     else:
-        target = min(finals.values(), default=math.nan)
+        common = min(finals.values(), default=math.nan)
     band, at_or_below = scene.study.band, scene.study.reached == "at_or_below"
 
-    def time_to_target(name: str):
+    def target_of(compared_with: str | None) -> float:
+        if reference_of is None or scene.study.target_error is not None:
+            return common
+        return finals.get(compared_with, math.nan)
+
+    def time_to_target(name: str | None, target: float):
         # same target, both sides: the reference's own time to the target, not its whole run
         history = histories.get(name)
         return _settled(history, target, band, metric, at_or_below) \
@@ -752,9 +776,11 @@ def _inverse_summary(scene: Scene, histories: dict[str, History], metric: str) -
         if not len(history):
             continue
         last = history[-1]
-        compared_with = scene.reference_of(name)
-        base = time_to_target(compared_with)
-        hit = _settled(history, target, band, metric, at_or_below)
+        compared_with = (scene.reference_of if reference_of is None else reference_of)(name)
+        target = target_of(compared_with)
+        base = time_to_target(compared_with, target)
+        hit = _settled(history, target, band, metric, at_or_below) \
+            if not math.isnan(target) else None
         iterations = last.total_iterations
         hit_iterations = hit.total_iterations if hit else math.nan
         final = getattr(last, metric)
