@@ -26,9 +26,8 @@ from ..learning.evaluation import (
     write_rollouts,
     write_source_predictions,
 )
-from ..scene.build import build_heat, build_learned
 from ..scene.spec import Scene
-from .runner import MANIFEST, StudyError, run_checkpoints, run_file_name
+from .runner import MANIFEST, StudyError, run_checkpoints, run_file_name, shared_setups
 
 __all__ = ["EVALUATION", "evaluate_study"]
 
@@ -57,12 +56,12 @@ def evaluate_study(scene: Scene, out: str | Path, *, runs: list[str] | None = No
     if unknown:
         raise StudyError(f"{scene.source}: no run {unknown[0]!r}; expected one of "
                          f"{list(variants)}")
-    build = build_learned if kind == "learned" else build_heat
+    setups = shared_setups(scene)
     with directory_lock(out):  # one writer: not while the study itself writes here
-        rows, setups = [], {}
+        rows = []
         for name in runs or list(variants):
             variant = variants[name]
-            setup = setups.get(variant.raw) or setups.setdefault(variant.raw, build(variant))
+            setup = setups(variant)
             checkpoints = run_checkpoints(out, name, variant, setup.split)
             if not runs and not _has_checkpoint(checkpoints.directory):
                 continue  # a run not trained yet: evaluated once it is

@@ -466,12 +466,19 @@ def _holds_records(out: Path) -> bool:
     return results.exists() and results.stat().st_size > 0
 
 
+def shared_setups(scene: Scene) -> Callable[[Scene], Any]:
+    """``setup(variant)`` for a learned or heat scene's runs: each problem, dataset and
+    untrained network built once for the runs that share them."""
+    return _Setups(build_learned, _learned_key) if scene.study.kind == "learned" else \
+        _Setups(build_heat, _heat_key)
+
+
 def _context(scene: Scene):
     """What the runners of ``scene``'s configurations share: the scene (h-studies) or a
     cache of the problems they build (:class:`_Setups`)."""
-    return {"h": lambda: scene, "learned": lambda: _Setups(build_learned, _learned_key),
-            "heat": lambda: _Setups(build_heat, _heat_key)}.get(
-        scene.study.kind, lambda: _Setups(build_inverse, _inverse_key))()
+    if scene.study.kind in ("learned", "heat"):
+        return shared_setups(scene)
+    return scene if scene.study.kind == "h" else _Setups(build_inverse, _inverse_key)
 
 
 def _preflight(scene: Scene, context) -> None:
