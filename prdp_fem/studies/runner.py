@@ -606,9 +606,14 @@ def learned_history(rows: list[dict]) -> History:
     of the held-out test samples (of the validation samples in records written before test
     splits), ``misfit`` the validation misfit (the PRDP signal), ``evaluations`` the
     optimiser steps."""
-    tested = all(r.get("test_error") is not None for r in rows)
     return _epoch_history(rows, evaluations="steps", misfit="validation_misfit",
-                          error="test_error" if tested else "validation_error")
+                          error=learned_error(rows))
+
+
+def learned_error(rows: list[dict]) -> str:
+    """The error a learned study reports: the test samples' where its records carry it."""
+    tested = all(r.get("test_error") is not None for r in rows)
+    return "test_error" if tested else "validation_error"
 
 
 HEAT_METRIC = "held-out rollout error"
@@ -673,12 +678,12 @@ def _iterations(record: StepRecord) -> int:
     return record.primal_iterations + record.adjoint_iterations_total
 
 
-def _learned_row(row: dict, history: History) -> dict:
+def _learned_row(row: dict, history: History, metric: str) -> dict:
     """An inverse summary row in a learned study's words: epochs, optimiser steps, and the
-    final validation misfit beside the held-out source error."""
+    final validation misfit beside the held-out source error (``metric``)."""
     renamed = {("epochs" if k == "steps" else k): v for k, v in row.items()
                if k not in ("compile_s", "evaluations")}
-    return {**renamed, "metric": "validation_error", "validation_misfit": history[-1].misfit,
+    return {**renamed, "metric": metric, "validation_misfit": history[-1].misfit,
             "optimizer_steps": history[-1].evaluations}
 
 
@@ -706,7 +711,7 @@ def summarize(scene: Scene, out: str | Path) -> tuple[list[dict], list[Path]]:
                                         {n: _field_file(out, n) for n in histories})
     elif kind == "learned":
         histories = {n: learned_history(r) for n, r in by_run.items()}
-        rows = [_learned_row(row, histories[row["run"]])
+        rows = [_learned_row(row, histories[row["run"]], learned_error(by_run[row["run"]]))
                 for row in _inverse_summary(scene, histories, "parameter_error",
                                             partial(learned_reference, scene))]
         figures = plots.inverse_figures(scene.name, histories, "parameter_error", out, {},
