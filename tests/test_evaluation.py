@@ -139,3 +139,15 @@ def test_heat_evaluation_rolls_out_the_test_trajectories_as_a_pvd_series(tmp_pat
     full[setup.disc.free_dofs] = evaluation.rollouts[0, -1]
     np.testing.assert_allclose(last.point_data["predicted"], full, rtol=1e-12, atol=1e-15)
     assert checkpoint_directory(out, "wig").is_dir()
+
+
+def test_seed_sets_a_learning_scenes_data_seed_and_is_refused_elsewhere(tmp_path, capsys):
+    from prdp_fem.cli._shared import scene_for
+
+    scene = scene_for("reaction_diffusion", None, 3)
+    assert all(variant.heat.seed == 3 for _, variant in scene.runs())
+    assert scene.fingerprint != scene_for("reaction_diffusion", None).fingerprint
+    assert main(["study", "mother", "--seed", "1", "--out", str(tmp_path / "x")]) == 2
+    message = capsys.readouterr().err.strip()
+    assert "--seed 1: study.kind = 'inverse'" in message and len(message.splitlines()) == 1
+    assert not (tmp_path / "x").exists()

@@ -71,10 +71,20 @@ class Bars:
         self._outer.close()
 
 
-def scene_for(name_or_path: str, steps: int | None):
+def scene_for(name_or_path: str, steps: int | None, seed: int | None = None):
+    """The scene, with ``--steps`` (optimiser steps, or a learned or heat study's epochs) and
+    ``--seed`` (the seed of the data a learned or heat scene draws) set."""
     from ..scene.spec import load_scene, with_overrides
 
     scene = load_scene(name_or_path)
+    if seed is not None:
+        kind = scene.study.kind
+        if kind not in ("learned", "heat"):
+            raise SolverConfigError(f"--seed {seed}: study.kind = {kind!r}; expected a learned or "
+                                    "heat scene (its data and network's seed)")
+        if seed < 0:
+            raise SolverConfigError(f"--seed {seed}: expected an integer >= 0")
+        scene = with_overrides(scene, {kind: {"seed": seed}})
     if steps is not None:
         if steps < 0:
             raise SolverConfigError(f"--steps {steps}: expected an integer >= 0")

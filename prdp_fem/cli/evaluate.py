@@ -11,7 +11,7 @@ from ._shared import print_table, scene_for
 def evaluate_command(args) -> None:
     from ..studies.evaluation import EVALUATION, evaluate_study
 
-    scene = scene_for(args.scene, args.steps)
+    scene = scene_for(args.scene, args.steps, args.seed)
     out = args.out if args.out is not None else Path(f"study-{scene.name}")
     rows = evaluate_study(scene, out, runs=args.run, samples=args.samples)
     print(f"{scene.name}: test metrics of {len(rows)} run(s) from their last checkpoints in "

@@ -56,7 +56,8 @@ EXAMPLES = {
   prdp-fem study inclusion --out runs/incl     # a built-in scene
   prdp-fem study my_scene.toml --steps 20      # your scene, fewer optimiser steps
   prdp-fem study my_scene.toml --out runs/a --resume   # continue a killed study
-  prdp-fem study inclusion --executor dask     # the configurations on a local Dask cluster""",
+  prdp-fem study inclusion --executor dask     # the configurations on a local Dask cluster
+  prdp-fem study reaction_diffusion --seed 3 --out runs/rd-3   # another data and network seed""",
     "evaluate": """examples:
   prdp-fem study learned && prdp-fem evaluate learned    # train, then test metrics + VTU
   prdp-fem evaluate heat.toml --out runs/heat --run "correction wig prdp" --samples 2""",
@@ -124,6 +125,9 @@ def _parser() -> argparse.ArgumentParser:
     study.add_argument("--steps", type=int,
                        help="optimiser steps, or epochs of a learned or heat study (overrides "
                        "the scene)")
+    study.add_argument("--seed", type=int,
+                       help="a learned or heat scene's seed: its data, splits and initial "
+                       "network (overrides the scene)")
     study.add_argument("--executor", default="serial", metavar="serial|dask[=ADDRESS]",
                        help="where the configurations run: one after another here (serial, "
                        "the default), or as tasks on a Dask cluster, a local one (dask) or a "
@@ -146,6 +150,7 @@ def _parser() -> argparse.ArgumentParser:
                           help="test samples or trajectories to write as VTU (default: 4)")
     evaluate.add_argument("--steps", type=int,
                           help="the --steps the study was run with (epochs)")
+    evaluate.add_argument("--seed", type=int, help="the --seed the study was run with")
 
     solve = _command(sub, "solve", "forward solve of a scene or a mesh file, written as VTU")
     solve.add_argument("input", help="a scene (.toml or built-in name) or a mesh file")
