@@ -156,9 +156,13 @@ class HeatProblem:
 
     def rhs(self, u: jax.Array) -> jax.Array:
         """``M (u + dt r u (1 - u)) + dt b``: the right-hand side of the step from ``u``."""
-        if self.reaction:
-            u = u + self.dt * self.reaction * u * (1.0 - u)
-        return self.mass(u) + self.load
+        return self.mass(_reacted(u, self.dt, self.reaction)) + self.load
+
+
+def _reacted(u, dt, rate: float):
+    """``u + dt r u (1 - u)``: the explicit reaction of a step (``u`` itself when ``r = 0``);
+    NumPy or JAX arrays."""
+    return u + dt * rate * u * (1.0 - u) if rate else u
 
 
 def _positive(value: Any, name: str) -> float:
@@ -268,8 +272,7 @@ def reference_trajectories(disc: Discretization, initial, *, dt: float, steps: i
     for _ in range(steps):
         with np.errstate(over="ignore", invalid="ignore"):  # checked below, with the cause
             for _ in range(substeps):
-                reacted = u + fine_dt * rate * u * (1.0 - u) if rate else u
-                u = lu.solve(mass @ reacted + load[:, None])
+                u = lu.solve(mass @ _reacted(u, fine_dt, rate) + load[:, None])
         if not np.all(np.isfinite(u)):
             raise SolverConfigError(f"reference_trajectories: non-finite states (dt={dt!r}, "
                                     f"reaction={rate!r}); expected dt * reaction / substeps "

@@ -268,7 +268,7 @@ def _learned_key(variant: Scene) -> tuple:  # what the datasets and the network 
     spec = variant.learned
     return (variant.mesh, variant.pde, variant.inverse, variant.directory, spec.samples,
             spec.validation_samples, spec.noise, spec.width, spec.hidden, spec.seed,
-            spec.supervised)
+            spec.supervised, spec.test_samples)
 
 
 def _heat_key(variant: Scene) -> tuple:  # what the trajectories and the network depend on
@@ -330,8 +330,7 @@ def checkpoint_directory(out: Path, run: str) -> Path:
     return Path(out) / CHECKPOINTS / run_file_name(run)
 
 
-def run_checkpoints(out: Path, name: str, variant: Scene, split: dict, *,
-                    resume: bool = True) -> Checkpoints:
+def run_checkpoints(out: Path, name: str, variant: Scene, split: dict) -> Checkpoints:
     """The checkpoints of run ``name``: every ``checkpoint_every`` epochs of its
     ``[learned]``/``[heat]`` table, named by the run, its settings' fingerprint and the data
     split (a checkpoint of another scene or split is refused). A run that starts again
@@ -339,8 +338,8 @@ def run_checkpoints(out: Path, name: str, variant: Scene, split: dict, *,
     directory holds some."""
     spec = variant.learned if variant.learned is not None else variant.heat
     return Checkpoints(checkpoint_directory(out, name), every=spec.checkpoint_every,
-                       resume=resume, metadata={"run": name, "fingerprint": variant.fingerprint,
-                                                "split": split})
+                       resume=True, metadata={"run": name, "fingerprint": variant.fingerprint,
+                                              "split": split})
 
 
 def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
