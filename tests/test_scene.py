@@ -315,6 +315,17 @@ def test_bad_toml_and_missing_file(tmp_path):
         load_scene("torus")
 
 
+def test_a_directory_named_like_a_builtin_scene_does_not_hide_it(tmp_path, monkeypatch):
+    """``prdp-fem study mother --out mother`` leaves a directory ``mother`` behind: the next
+    ``prdp-fem evaluate mother`` still means the built-in scene."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mother").mkdir()
+    assert load_scene("mother").fingerprint == load_scene(builtin_scene_path("mother")).fingerprint
+    (tmp_path / "torus").mkdir()
+    with pytest.raises(SceneError, match="torus"):  # not a built-in name: the path is meant
+        load_scene("torus")
+
+
 def test_relative_mesh_file_resolves_against_the_scene(tmp_path):
     (tmp_path / "sub").mkdir()
     (tmp_path / "sub" / "m.msh").write_bytes((ROOT / "meshes" / "square_tri.msh").read_bytes())

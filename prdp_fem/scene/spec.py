@@ -1253,10 +1253,13 @@ def builtin_scene_path(name: str) -> Path:
 
 
 def load_scene(path_or_name: str | Path) -> Scene:
-    """Read a scene file, or a built-in scene by name."""
+    """Read a scene file, or a built-in scene by name (a directory of that name, such as a
+    study's output, does not hide the built-in scene)."""
     text_path = str(path_or_name)
-    path = Path(text_path) if text_path.endswith(".toml") or Path(text_path).exists() \
-        or Path(text_path).is_symlink() else builtin_scene_path(text_path)
+    given = Path(text_path)
+    builtin = text_path in BUILTIN_SCENES and given.is_dir()
+    path = given if not builtin and (text_path.endswith(".toml") or given.exists()
+                                     or given.is_symlink()) else builtin_scene_path(text_path)
     checked_file(path, "scene .toml file or a built-in scene name", SceneError,
                  missing="scene file does not exist")
     try:
