@@ -1,5 +1,5 @@
 """``prdp-fem bench ...``: the benchmarks (cg, memory, amg, mother, prdp, descent, batch,
-scale)."""
+scale, learning)."""
 
 from __future__ import annotations
 
@@ -365,21 +365,26 @@ def _saving_instances(args) -> tuple[list, list]:
 
 
 def _bench_directory(args) -> Path:
-    """``bench prdp``'s output directory, with its manifest of the options: a new or empty
-    ``--out`` (default: a new ``./bench-prdp``), or, resumed, one written with the same
+    """``bench prdp``'s output directory (:func:`bench_directory`)."""
+    return bench_directory(args.out, args.resume, {"scene": args.scene, "steps": args.steps,
+                                                   "repeats": args.repeats,
+                                                   "seeds": args.seeds}, "prdp")
+
+
+def bench_directory(out: Path | None, resume: bool, options: dict, bench: str) -> Path:
+    """A seeded benchmark's output directory, with its manifest of the options: a new or
+    empty ``out`` (default: a new ``./bench-<bench>``), or, resumed, one written with the same
     options (its studies would otherwise start afresh beside the old ones, or fail late)."""
     from .._atomic import write_text_atomic
 
-    options = {"scene": args.scene, "steps": args.steps, "repeats": args.repeats,
-               "seeds": args.seeds}
-    out = fresh_directory("bench-prdp") if args.out is None else args.out
+    out = fresh_directory(f"bench-{bench}") if out is None else out
     manifest = out / BENCH_MANIFEST
-    if args.resume:
+    if resume:
         try:
             before = json.loads(manifest.read_text())
         except (OSError, json.JSONDecodeError):
             raise SolverConfigError(f"--resume: {manifest} is missing or unreadable; expected "
-                                    "the --out of an earlier bench prdp run") from None
+                                    f"the --out of an earlier bench {bench} run") from None
         changed = [f"--{key}" for key in options if before.get(key) != options[key]]
         if changed:
             raise SolverConfigError(
@@ -477,7 +482,14 @@ def _seed_cells(summary) -> dict:
 def bench_command(args) -> None:
     return {"cg": _bench_cg, "amg": _bench_amg, "memory": _bench_memory,
             "mother": _bench_mother, "prdp": _bench_prdp, "batch": _bench_batch,
-            "descent": _bench_descent, "scale": _bench_scale}[args.bench](args)
+            "descent": _bench_descent, "scale": _bench_scale,
+            "learning": _bench_learning}[args.bench](args)
+
+
+def _bench_learning(args) -> None:
+    from .bench_learning import bench_learning
+
+    bench_learning(args)
 
 
 def _bench_descent(args) -> None:

@@ -16,6 +16,7 @@ Subcommands
 ``bench mother``  whole-process time and error on dolfin-adjoint's mother problem, against it
 ``bench prdp``    the PRDP saving against the converged run on the built-in inverse scenes
 ``bench descent`` how often each refinement rule's steps descend the converged objective
+``bench learning`` the PRDP saving when training through the solver, over seeds
 
 Bad input (a scene, a mesh file, an option) prints one line ``prdp-fem: error: ...`` and exits
 with status 2, no traceback. Anything else that goes wrong (a bug, memory running out) prints
@@ -298,6 +299,27 @@ def _parser() -> argparse.ArgumentParser:
     _add_inverse_scenes(descent)
     descent.add_argument("--out", type=Path, help="where descent.csv goes (default: a new "
                          "./bench-descent)")
+    learning = bench_sub.add_parser(
+        "learning", help="PRDP saving when training through the solver, over seeds",
+        description="run each learned or heat scene's study once per seed (its data, splits "
+        "and network) and print, per run and seed, the held-out test error and the saving of "
+        "each PRDP run against its converged partner (time and CG iterations to the partner's "
+        "final test error, against the partner's own), then per run over the seeds and the "
+        "orders of the runs by test error (see prdp_fem.bench.learning)")
+    learning.add_argument("--scene", nargs="+", default=None, metavar="SCENE",
+                          help="learned or heat scene files or built-in names (default: "
+                          "heat_emulator reaction_diffusion)")
+    learning.add_argument("--steps", type=int, help="epochs (overrides the scenes)")
+    learning.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4],
+                          metavar="SEED", help="the scenes' seeds (default: 0 1 2 3 4)")
+    learning.add_argument("--out", type=Path, help="where the studies go, one directory per "
+                          "scene and seed, and the tables (learning.csv, seeds.csv, "
+                          "ranking.csv) at the end (default: a new ./bench-learning)")
+    learning.add_argument("--resume", action="store_true",
+                          help="continue the run in --out (same options): finished runs are "
+                          "read back, a killed one continues from its last checkpoint")
+    learning.add_argument("--executor", default="serial", metavar="serial|dask[=ADDRESS]",
+                          help="where each study's runs go (see prdp-fem study --help)")
     batch = bench_sub.add_parser(
         "batch", help="throughput of batched inversion against a loop of single inversions",
         description="solve 1, 8, 32, 128 source problems that differ in their noise draw by "
