@@ -11,6 +11,7 @@ from prdp_fem.bench.learning import (
     GOAL_ITERATION_SAVING,
     GOAL_TIME_SAVING,
     LearningRow,
+    coarse_ceiling,
     learning_rows,
     learning_summary,
     rankings,
@@ -19,6 +20,7 @@ from prdp_fem.bench.learning import (
 from prdp_fem.cli.main import main
 from prdp_fem.errors import SolverConfigError
 from prdp_fem.scene import load_scene
+from prdp_fem.studies.runner import StudyError, heat_history, study_histories
 
 TINY_HEAT = """
 name = "tiny_heat"
@@ -122,6 +124,35 @@ def test_the_goal_needs_both_savings_in_the_band(changes, met):
     assert _row(**changes).goal_met is met
 
 
+def _epochs(levels, seconds, iterations):
+    """Heat epoch records: epoch i at tolerance levels[i], costing seconds[i] and
+    iterations[i] (cumulated, as the records hold them)."""
+    return heat_history([
+        {"epoch": i + 1, "iterations": 0, "adjoint_iterations": 0, "rtol": rtol,
+         "primal_iterations": int(sum(iterations[:i + 1])), "adjoint_iterations_total": 0,
+         "time": float(sum(seconds[:i + 1])), "train_loss": 1.0, "validation_error": 1.0,
+         "test_error": 1.0}
+        for i, rtol in enumerate(levels)])
+
+
+def test_the_coarse_ceiling_is_the_first_level_s_cost_per_epoch_over_the_partner_s():
+    """Three epochs at 1e-2 (1 s, 20 its each), then finer; the partner: 2 s and 100 its per
+    epoch. Never refining, the run would save 1 - 1/2 of the time and 1 - 20/100 of the CG
+    iterations, however its later epochs went."""
+    run = _epochs([1e-2] * 3 + [1e-4, 1e-6], [1, 1, 1, 3, 5], [20, 20, 20, 90, 200])
+    partner = _epochs([1e-10] * 4, [2] * 4, [100] * 4)
+    assert coarse_ceiling(run, partner) == pytest.approx((0.5, 0.8))
+    never = _epochs([1e-2] * 2, [3, 3], [50, 50])  # never refines: all its epochs count
+    assert coarse_ceiling(never, partner) == pytest.approx((-0.5, 0.5))
+    assert all(math.isnan(v) for v in coarse_ceiling(_epochs([], [], []), partner))
+
+
+def test_study_histories_refuse_a_study_without_epochs_or_steps(tmp_path):
+    with pytest.raises(StudyError, match=r"study.kind = 'h'; expected an inverse, learned or "
+                                         r"heat study"):
+        study_histories(load_scene("poisson_h"), tmp_path)
+
+
 def test_the_summary_takes_savings_over_the_seeds_in_the_band_and_errors_over_all():
     rows = [_row(seed=0),
             _row(seed=1, time_saving=0.3, iteration_saving=0.5, test_error=3.0),
@@ -208,6 +239,11 @@ def test_bench_learning_runs_a_study_per_seed_and_reports_its_own_figures(tiny_h
             float(study["nog prdp"]["test_error"]) / float(study["nog converged"]["test_error"])
             - 1, rel=1e-12)
         assert prdp["reached_epoch"] == study["nog prdp"]["reached_epoch"]
+        histories = study_histories(seeded_scene(load_scene(tiny_heat), int(seed)),
+                                    out / "tiny_heat" / f"seed-{seed}")
+        ceiling = coarse_ceiling(histories["nog prdp"], histories["nog converged"])
+        assert (float(prdp["time_ceiling"]), float(prdp["iteration_ceiling"])) == ceiling
+        assert prdp["time_ceiling"] != "nan" and mine["prediction"]["time_ceiling"] == "nan"
         saving = float(study["nog prdp"]["time_saving"])
         assert (math.isnan(saving) and prdp["time_saving"] == "nan") or \
             float(prdp["time_saving"]) == saving

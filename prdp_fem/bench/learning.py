@@ -17,7 +17,8 @@ those that meet the goal (:data:`GOAL_TIME_SAVING` of the wall time and
 :data:`GOAL_ITERATION_SAVING` of the CG iterations, both), with the median and range of the
 savings over the instances that reach it and of the test error over all; :func:`rankings`
 orders a scene's runs by test error per seed (ONE / NOG / WIG on the nonlinear scene) and
-counts how often each order occurs.
+counts how often each order occurs. :func:`coarse_ceiling` bounds what any refinement schedule
+could save where a run's cost per epoch is not the solves' alone.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ __all__ = [
     "LearningRow",
     "LearningSummary",
     "Ranking",
+    "coarse_ceiling",
     "learning_rows",
     "learning_saving",
     "learning_summary",
@@ -70,6 +72,8 @@ class LearningRow(NamedTuple):
     reached_epoch: int | None   # from which the test error stays in the band (None: never)
     time_saving: float          # to the band, against the partner's own time to it (NaN: none)
     iteration_saving: float
+    time_ceiling: float = math.nan       # the saving of a run that never left its first level
+    iteration_ceiling: float = math.nan  # (coarse_ceiling; NaN: no partner or no records)
 
     @property
     def goal_met(self) -> bool:
@@ -96,6 +100,8 @@ class LearningSummary(NamedTuple):
     test_error_low: float
     test_error_high: float
     error_gap: float            # median over all seeds (NaN: no partner)
+    time_ceiling: float         # medians over all seeds (NaN: no partner)
+    iteration_ceiling: float
 
 
 class Ranking(NamedTuple):
@@ -154,6 +160,27 @@ def learning_rows(scene_name: str, seed: int, kind: str,
     return rows
 
 
+def coarse_ceiling(history, partner) -> tuple[float, float]:
+    """``(time, CG iterations)``: what a run would save had it trained every epoch at its
+    first, coarsest level (its leading epochs before the first refinement) and reached the band
+    in as many epochs as its converged ``partner`` -- one minus its cost per epoch there over
+    the partner's cost per epoch. A schedule that refines can save no more unless it reaches
+    the band in fewer epochs: where the cost the solves do not touch (the network's passes)
+    dominates, the time ceiling is low whatever the schedule."""
+    if not len(history) or not len(partner):
+        return math.nan, math.nan
+    first = [record for record in history if record.refinements == 0]
+    if not first:
+        return math.nan, math.nan
+    coarse = first[-1]
+    base = partner[-1]
+    time = 1 - (coarse.time / len(first)) / (base.time / len(partner)) \
+        if base.time > 0 else math.nan
+    iterations = 1 - (coarse.total_iterations / len(first)) / (
+        base.total_iterations / len(partner)) if base.total_iterations > 0 else math.nan
+    return time, iterations
+
+
 def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: bool = False,
                     progress=None, client=None) -> list[LearningRow]:
     """Run ``scene``'s study once per seed into ``out/seed-<S>`` and return every run's row.
@@ -163,7 +190,7 @@ def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: boo
     its last checkpoint. ``client``: a ``dask.distributed.Client`` for each study's runs (runs
     sharing a machine's cores slow each other: their time savings compare contended runs).
     """
-    from ..studies.runner import run_study  # here: it imports matplotlib
+    from ..studies.runner import run_study, study_histories  # here: they import matplotlib
 
     seeds = list(seeds)
     if not seeds or len(set(seeds)) < len(seeds):
@@ -171,9 +198,15 @@ def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: boo
     variants = [(seed, seeded_scene(scene, seed)) for seed in seeds]  # all checked first
     rows = []
     for seed, variant in variants:
-        result = run_study(variant, Path(out) / f"seed-{seed}", resume=resume,
-                           progress=progress, client=client)
-        rows += learning_rows(scene.name, seed, scene.study.kind, result.summary)
+        directory = Path(out) / f"seed-{seed}"
+        result = run_study(variant, directory, resume=resume, progress=progress, client=client)
+        histories = study_histories(variant, directory)
+        for row in learning_rows(scene.name, seed, scene.study.kind, result.summary):
+            if row.converged_run is not None:
+                time, iterations = coarse_ceiling(histories[row.run],
+                                                  histories[row.converged_run])
+                row = row._replace(time_ceiling=time, iteration_ceiling=iterations)
+            rows.append(row)
     return rows
 
 
@@ -198,7 +231,9 @@ def learning_summary(rows: Iterable[LearningRow]) -> list[LearningSummary]:
             *_spread([r.time_saving for r in reached]),
             *_spread([r.iteration_saving for r in reached]),
             *_spread([r.test_error for r in group]),
-            _spread([r.error_gap for r in group])[0]))
+            _spread([r.error_gap for r in group])[0],
+            _spread([r.time_ceiling for r in group])[0],
+            _spread([r.iteration_ceiling for r in group])[0]))
     return summaries
 
 

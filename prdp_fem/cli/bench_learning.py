@@ -90,7 +90,10 @@ def bench_learning(args) -> None:
               f"partner's (same optimiser and batch, or setup and mode) - 1; band@: the epoch "
               f"from which the test error stays within study.band of the partner's final one; "
               f"save: 1 - time or CG iterations to band@ / the partner's own to its band (not "
-              f"its whole run), compilation excluded; met: save_t >= "
+              f"its whole run), compilation excluded; ceil: the saving of a run that trains "
+              f"every epoch at its first (coarsest) level and reaches the band in as many "
+              f"epochs as the partner (1 - its cost per epoch there / the partner's); met: "
+              f"save_t >= "
               f"{100 * GOAL_TIME_SAVING:.0f} % and save_its >= "
               f"{100 * GOAL_ITERATION_SAVING:.0f} %; per run over the seeds: medians (ranges) "
               "of the savings over the seeds that reach the band, of the test error over all")
@@ -117,6 +120,7 @@ def _row_cells(row) -> dict:
             "cg_its": row.cg_iterations,
             "band@": "-" if row.reached_epoch is None else row.reached_epoch,
             "save_t": percent(row.time_saving), "save_its": percent(row.iteration_saving),
+            "ceil_t": percent(row.time_ceiling), "ceil_its": percent(row.iteration_ceiling),
             "met": ("yes" if row.goal_met else "no") if partnered else "-"}
 
 
@@ -136,4 +140,6 @@ def _summary_cells(summary) -> dict:
                                summary.iteration_saving_high),
             "test_err": f"{summary.test_error:.4g} ({summary.test_error_low:.4g} to "
                         f"{summary.test_error_high:.4g})",
-            "gap": percent(summary.error_gap, digits=1)}
+            "gap": percent(summary.error_gap, digits=1),
+            "ceil_t": percent(summary.time_ceiling),
+            "ceil_its": percent(summary.iteration_ceiling)}

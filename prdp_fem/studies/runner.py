@@ -743,6 +743,18 @@ def inverse_histories(scene: Scene, out: str | Path) -> dict[str, History]:
     return {name: _history(rows) for name, rows in by_run.items()}
 
 
+def study_histories(scene: Scene, out: str | Path) -> dict[str, History]:
+    """The records of every finished run of an inverse, learned or heat study in ``out`` as
+    histories (a learned or heat study's as :func:`learned_history` / :func:`heat_history`
+    give them: one record per epoch)."""
+    read = {"inverse": _history, "learned": learned_history, "heat": heat_history}
+    if scene.study.kind not in read:
+        raise StudyError(f"{scene.source}: study.kind = {scene.study.kind!r}; expected an "
+                         "inverse, learned or heat study")
+    by_run = _finished_records(scene, ResultsLog(Path(out) / RESULTS).records())
+    return {name: read[scene.study.kind](rows) for name, rows in by_run.items()}
+
+
 def learned_reference(scene: Scene, name: str) -> str | None:
     """The converged run a learned study's run ``name`` is measured against: one that trains
     the same network on the same data with the same optimiser, batch size and
