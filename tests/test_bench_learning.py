@@ -16,6 +16,7 @@ from prdp_fem.bench.learning import (
     learning_summary,
     rankings,
     seeded_scene,
+    throughput,
 )
 from prdp_fem.cli.main import main
 from prdp_fem.errors import SolverConfigError
@@ -147,6 +148,12 @@ def test_the_coarse_ceiling_is_the_first_level_s_cost_per_epoch_over_the_partner
     assert all(math.isnan(v) for v in coarse_ceiling(_epochs([], [], []), partner))
 
 
+def test_throughput_is_samples_per_second_of_training():
+    history = _epochs([1e-2] * 4, [0.5] * 4, [10] * 4)  # 4 epochs in 2 s
+    assert throughput(history, 64) == pytest.approx(128.0)
+    assert math.isnan(throughput(_epochs([], [], []), 64))
+
+
 def test_study_histories_refuse_a_study_without_epochs_or_steps(tmp_path):
     with pytest.raises(StudyError, match=r"study.kind = 'h'; expected an inverse, learned or "
                                          r"heat study"):
@@ -221,7 +228,7 @@ def test_bench_learning_runs_a_study_per_seed_and_reports_its_own_figures(tiny_h
     assert main(command) == 0
     printed = capsys.readouterr().out
     assert printed.splitlines()[0] == (f"learning saving: 1 scene(s) x 2 seed(s), 6 run(s) "
-                                       f"into {out}/")
+                                       f"into {out}/ on CPU")
     written = _csv(out / "learning.csv")
     assert [(r["seed"], r["run"]) for r in written] == [
         (seed, run) for seed in "01" for run in ("nog prdp", "nog converged", "prediction")]
@@ -244,6 +251,11 @@ def test_bench_learning_runs_a_study_per_seed_and_reports_its_own_figures(tiny_h
         ceiling = coarse_ceiling(histories["nog prdp"], histories["nog converged"])
         assert (float(prdp["time_ceiling"]), float(prdp["iteration_ceiling"])) == ceiling
         assert prdp["time_ceiling"] != "nan" and mine["prediction"]["time_ceiling"] == "nan"
+        windows = load_scene(tiny_heat).heat.windows  # 4 trajectories x 2 windows
+        for run, row in mine.items():  # every run's throughput, the emulator's too
+            history = histories[run]
+            assert float(row["samples_per_s"]) == pytest.approx(
+                windows * 3 / history[-1].time, rel=1e-12)
         saving = float(study["nog prdp"]["time_saving"])
         assert (math.isnan(saving) and prdp["time_saving"] == "nan") or \
             float(prdp["time_saving"]) == saving

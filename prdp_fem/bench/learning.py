@@ -46,6 +46,7 @@ __all__ = [
     "learning_summary",
     "rankings",
     "seeded_scene",
+    "throughput",
 ]
 
 #: The goal a PRDP run meets in one instance: at least this share of the converged run's own
@@ -74,6 +75,7 @@ class LearningRow(NamedTuple):
     iteration_saving: float
     time_ceiling: float = math.nan       # the saving of a run that never left its first level
     iteration_ceiling: float = math.nan  # (coarse_ceiling; NaN: no partner or no records)
+    samples_per_s: float = math.nan      # training samples (heat: windows) per training second
 
     @property
     def goal_met(self) -> bool:
@@ -102,6 +104,7 @@ class LearningSummary(NamedTuple):
     error_gap: float            # median over all seeds (NaN: no partner)
     time_ceiling: float         # medians over all seeds (NaN: no partner)
     iteration_ceiling: float
+    samples_per_s: float        # median over all seeds
 
 
 class Ranking(NamedTuple):
@@ -181,6 +184,14 @@ def coarse_ceiling(history, partner) -> tuple[float, float]:
     return time, iterations
 
 
+def throughput(history, samples_per_epoch: int) -> float:
+    """Training samples (a heat scene's windows) per second of a run's training time
+    (compilation excluded; validation and test evaluations included, as in its time)."""
+    if not len(history) or not history[-1].time > 0:
+        return math.nan
+    return samples_per_epoch * len(history) / history[-1].time
+
+
 def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: bool = False,
                     progress=None, client=None) -> list[LearningRow]:
     """Run ``scene``'s study once per seed into ``out/seed-<S>`` and return every run's row.
@@ -201,7 +212,10 @@ def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: boo
         directory = Path(out) / f"seed-{seed}"
         result = run_study(variant, directory, resume=resume, progress=progress, client=client)
         histories = study_histories(variant, directory)
+        per_epoch = variant.learned.samples if variant.study.kind == "learned" \
+            else variant.heat.windows
         for row in learning_rows(scene.name, seed, scene.study.kind, result.summary):
+            row = row._replace(samples_per_s=throughput(histories[row.run], per_epoch))
             if row.converged_run is not None:
                 time, iterations = coarse_ceiling(histories[row.run],
                                                   histories[row.converged_run])
@@ -233,7 +247,8 @@ def learning_summary(rows: Iterable[LearningRow]) -> list[LearningSummary]:
             *_spread([r.test_error for r in group]),
             _spread([r.error_gap for r in group])[0],
             _spread([r.time_ceiling for r in group])[0],
-            _spread([r.iteration_ceiling for r in group])[0]))
+            _spread([r.iteration_ceiling for r in group])[0],
+            _spread([r.samples_per_s for r in group])[0]))
     return summaries
 
 

@@ -37,6 +37,15 @@ def _scenes(args) -> list:
     return scenes
 
 
+def _device() -> str:
+    """The device the runs train on, as a table's reader needs it: kind and count."""
+    import jax
+
+    devices = jax.devices()
+    kind = devices[0].device_kind if devices[0].platform != "cpu" else "CPU"
+    return f"{len(devices)} x {kind}" if len(devices) > 1 else kind
+
+
 def _command(args, out) -> str:
     words = ["prdp-fem", "bench", "learning"]
     if args.scene:
@@ -67,7 +76,7 @@ def bench_learning(args) -> None:
                                                   "seeds": args.seeds}, "learning")
     runs = sum(len(scene.runs()) for scene in scenes) * len(args.seeds)
     print(f"learning saving: {len(scenes)} scene(s) x {len(args.seeds)} seed(s), {runs} "
-          f"run(s) into {out}/", flush=True)
+          f"run(s) into {out}/ on {_device()}", flush=True)
     bars, rows = Bars(runs), []
     with directory_lock(out):  # one writer: a second bench on ``out`` fails at once
         with interrupt_kept(bars, f"finished runs and checkpoints are kept in {out}/ "
@@ -96,7 +105,8 @@ def bench_learning(args) -> None:
               f"save_t >= "
               f"{100 * GOAL_TIME_SAVING:.0f} % and save_its >= "
               f"{100 * GOAL_ITERATION_SAVING:.0f} %; per run over the seeds: medians (ranges) "
-              "of the savings over the seeds that reach the band, of the test error over all")
+              "of the savings over the seeds that reach the band, of the test error over all; "
+              "samples/s: training samples (heat: windows) per second of training time")
         write_csv_atomic(out / LEARNING_TABLE,
                          [{**row._asdict(), "met": row.goal_met} for row in rows])
         write_csv_atomic(out / LEARNING_SEED_TABLE, [s._asdict() for s in summary])
@@ -121,7 +131,8 @@ def _row_cells(row) -> dict:
             "band@": "-" if row.reached_epoch is None else row.reached_epoch,
             "save_t": percent(row.time_saving), "save_its": percent(row.iteration_saving),
             "ceil_t": percent(row.time_ceiling), "ceil_its": percent(row.iteration_ceiling),
-            "met": ("yes" if row.goal_met else "no") if partnered else "-"}
+            "met": ("yes" if row.goal_met else "no") if partnered else "-",
+            "samples/s": f"{row.samples_per_s:.4g}"}
 
 
 def _summary_cells(summary) -> dict:
@@ -142,4 +153,5 @@ def _summary_cells(summary) -> dict:
                         f"{summary.test_error_high:.4g})",
             "gap": percent(summary.error_gap, digits=1),
             "ceil_t": percent(summary.time_ceiling),
-            "ceil_its": percent(summary.iteration_ceiling)}
+            "ceil_its": percent(summary.iteration_ceiling),
+            "samples/s": f"{summary.samples_per_s:.4g}"}
