@@ -388,3 +388,18 @@ def test_bad_options_are_refused_with_their_names(small):
         heat.reference_trajectories(disc, np.zeros((2, 3)), dt=0.1, steps=2)
     with pytest.raises(pf.CoefficientError, match="kappa"):
         heat.heat_problem(disc, 0.1, kappa=-1.0)
+
+
+def test_the_validation_rollouts_iterations_are_counted(small):
+    """CG iterations count every solve that ran: each epoch's validation rollout (converged
+    solves) adds its own iterations -- the last epoch's are the trained network's rollout's."""
+    from prdp_fem.inverse import fixed
+
+    _, problem, trajectories, validation = small
+    training = heat.train(problem, network_for(problem), trajectories, validation,
+                          unroll=2, refinement=fixed(3, 5), epochs=2, batch_size=12)
+    first, last = training.records
+    _, final = heat.rollout_error(training.network, problem, validation,
+                                  pf.ConvergedCG(rtol=1e-10, max_iterations=100_000))
+    assert 0 < first.validation_iterations < last.validation_iterations
+    assert last.validation_iterations - first.validation_iterations == int(final)

@@ -177,7 +177,8 @@ def test_heat_study_records_every_epoch_matches_train_and_resumes(tiny, tmp_path
     for key in ("validation_error", "test_error", "train_loss"):
         np.testing.assert_allclose([r[key] for r in mine], [getattr(r, key) for r in direct],
                                    rtol=1e-9, err_msg=key)
-    for key in ("primal_iterations", "adjoint_iterations_total", "rtol"):
+    for key in ("primal_iterations", "adjoint_iterations_total", "validation_iterations",
+                "rtol"):
         assert [r[key] for r in mine] == [getattr(r, key) for r in direct], key
     assert mine[-1]["adjoint_iterations_total"] > 0 == epochs["nog prdp"][-1][
         "adjoint_iterations_total"]
@@ -197,8 +198,12 @@ def test_heat_study_records_every_epoch_matches_train_and_resumes(tiny, tmp_path
                            at_or_below=True)
         assert prdp_row["reached_epoch"] == hit.step
         assert prdp_row["time_saving"] == pytest.approx(1 - hit.time / base_hit.time)
-        total = hit.primal_iterations + hit.adjoint_iterations_total
-        base_total = base_hit.primal_iterations + base_hit.adjoint_iterations_total
+        # every CG iteration that ran: training and validation solves
+        total = hit.primal_iterations + hit.adjoint_iterations_total + \
+            hit.validation_iterations
+        base_total = base_hit.primal_iterations + base_hit.adjoint_iterations_total + \
+            base_hit.validation_iterations
+        assert hit.validation_iterations > 0 and base_hit.validation_iterations > 0
         assert prdp_row["iteration_saving"] == pytest.approx(1 - total / base_total)
     assert prdp_row["equal_epochs_iteration_ratio"] == pytest.approx(
         prdp_row["cg_iterations"] / base["cg_iterations"])

@@ -156,6 +156,10 @@ def test_training_lowers_the_validation_misfit_and_prdp_refines(small):
     assert last.primal_iterations == sum(K * n * 32 for K, n in epochs_at.items())
     times = [record.time for record in training.records]
     assert times == sorted(times)
+    # and every validation solve that ran: the last epoch's are the trained network's
+    before = training.records[-2].validation_iterations
+    _, _, final = jax.jit(learned.validation)(training.network, problem, validation_set)
+    assert 0 < before and last.validation_iterations - before == int(final)
 
 
 @pytest.mark.slow  # two runs agree; training through the solver stays in the default suite

@@ -90,7 +90,8 @@ class TrainingState(NamedTuple):
     control: Any            # the refinement controller's state
     rng: dict               # ``numpy.random.Generator.bit_generator.state``
     records: list           # the epoch records so far (NamedTuples)
-    counters: dict          # cumulative host tallies: primal, adjoint, steps, run_time
+    counters: dict          # cumulative host tallies: primal, adjoint, validation, steps,
+    #                         run_time (validation: absent from older checkpoints, read as 0)
 
 
 def start_state(session: CheckpointSession | None, params, opt_state, control,

@@ -54,7 +54,9 @@ error*: full held-out trajectories rolled out from
 :math:`u^*_0` with *converged* coarse solves, so the monitored value does not move when ``K``
 does (:func:`rollout_error`: the mean over trajectories and steps of
 :math:`\|u_n - u^*_n\|_M / \|u^*_n\|_M`). The CG iterations of the training solves are returned
-by the jitted step (an exact tally, no host callback); run times exclude compilation.
+by the jitted step (an exact tally, no host callback), those of the validation rollouts by the
+rollout (``validation_iterations``: a saving counts every solve that ran); run times exclude
+compilation.
 
 >>> import prdp_fem as pf
 >>> disc = pf.discretize(pf.unit_square(4), dirichlet=0.0)
@@ -415,6 +417,7 @@ class HeatRecord(NamedTuple):
     validation_error: float   # rollout error of the validation trajectories (converged)
     adjoint_iterations_total: int = 0  # cumulative adjoint CG iterations (WIG; else 0)
     test_error: float = math.nan       # held-out rollout error (``test_set``), untimed
+    validation_iterations: int = 0     # cumulative CG iterations of the validation rollouts
 
 
 def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
@@ -540,7 +543,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
-        net, prob, val, validation_solver, setup=setup, step=step)[0])
+        net, prob, val, validation_solver, setup=setup, step=step))
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "heat") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
@@ -549,6 +552,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
         opt_state, control, records = state.opt_state, state.control, list(state.records)
         primal, run_time = state.counters["primal"], state.counters["run_time"]
         counter.adjoint = state.counters["adjoint"]
+        checked = state.counters.get("validation", 0)  # the validation solves' CG iterations
         for epoch in range(state.epoch + 1, epochs + 1):
             # no solver: one compile, nothing to refine
             settings = control.settings() if solves else (0, 0, 0.0)
@@ -575,18 +579,19 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
             if epoch == state.epoch + 1:  # compile outside the timed region
                 jax.block_until_ready(validate(network, problem, validation_set))
             start = time.perf_counter()
-            error = validate(network, problem, validation_set)
+            error, iterations = validate(network, problem, validation_set)
+            checked += int(iterations)  # CG iterations count everything that ran
             previous = control
             if solves:
                 control = refinement.update(control, float(error))
             run_time += time.perf_counter() - start
             test_error = math.nan if test_set is None else float(
-                validate(network, problem, test_set))
+                validate(network, problem, test_set)[0])
             record = HeatRecord(
                 epoch, int(previous.iterations) if solves else 0,
                 int(previous.adjoint_iterations) if solves else 0,
                 float(previous.rtol) if solves else 0.0, primal, run_time,
-                float(np.mean(losses)), float(error), counter.adjoint, test_error)
+                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked)
             records.append(record)
             if callback is not None:
                 callback(record)
@@ -594,6 +599,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 saved.save(TrainingState(epoch, network.params, opt_state, control,
                                          rng.bit_generator.state, records,
                                          {"primal": primal, "adjoint": counter.adjoint,
+                                          "validation": checked,
                                           "steps": 0, "run_time": run_time}),
                            final=epoch == epochs)
     return Training(network, control, records)

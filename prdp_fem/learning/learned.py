@@ -417,16 +417,18 @@ def _stacked(jacobian) -> jax.Array:
 
 def validation(network: Model | Network, problem: LearnedInverse, samples: SourceSamples,
                rtol: float = 1e-10, preconditioner: Any = "jacobi"):
-    """Mean observation misfit of held-out samples with a *converged* solve, and the mean
-    relative source error (jit it: ``rtol`` is the only static choice)."""
+    """Mean observation misfit of held-out samples with a *converged* solve, the mean
+    relative source error, and the CG iterations of those solves (jit it: ``rtol`` is the
+    only static choice)."""
     solver = step_solver("implicit", True, 100_000, 100_000, rtol, preconditioner)
 
     def one(f_true, d):
         f = network(d)
-        return problem.misfit(f, d, solver)[0], problem.source_error(f, f_true)
+        misfit, iterations = problem.misfit(f, d, solver)
+        return misfit, problem.source_error(f, f_true), iterations
 
-    misfits, errors = jax.vmap(one)(samples.sources, samples.observations)
-    return jnp.mean(misfits), jnp.mean(errors)
+    misfits, errors, iterations = jax.vmap(one)(samples.sources, samples.observations)
+    return jnp.mean(misfits), jnp.mean(errors), jnp.sum(iterations)
 
 
 # --------------------------------------------------------------------------------------
@@ -447,6 +449,7 @@ class EpochRecord(NamedTuple):
     adjoint_iterations_total: int = 0  # cumulative adjoint and tangent CG iterations
     steps: int = 0            # cumulative optimiser steps
     test_error: float = math.nan  # mean relative L2 source error of ``test_set``, untimed
+    validation_iterations: int = 0  # cumulative CG iterations of the validation solves
 
 
 class Training(NamedTuple):
@@ -605,6 +608,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
         records, (run_time, steps) = list(state.records), (state.counters["run_time"],
                                                           state.counters["steps"])
         counter.primal, counter.adjoint = state.counters["primal"], state.counters["adjoint"]
+        checked = state.counters.get("validation", 0)  # the validation solves' CG iterations
         network = network.replace_params(layers)
         for epoch in range(state.epoch + 1, epochs + 1):
             settings = control.settings()
@@ -635,7 +639,8 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
             if epoch == state.epoch + 1:  # compile outside the timed region
                 jax.block_until_ready(validate(network, problem, validation_set))
             start = time.perf_counter()
-            misfit, error = validate(network, problem, validation_set)
+            misfit, error, iterations = validate(network, problem, validation_set)
+            checked += int(iterations)  # CG iterations count everything that ran
             previous = control
             control = refinement.update(control, float(misfit))
             run_time += time.perf_counter() - start
@@ -650,7 +655,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
             record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
                                  float(previous.rtol), counter.primal, run_time,
                                  float(np.mean(losses)), float(misfit), float(error),
-                                 counter.adjoint, steps, test_error)
+                                 counter.adjoint, steps, test_error, checked)
             records.append(record)
             if callback is not None:
                 callback(record)
@@ -658,6 +663,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                 saved.save(TrainingState(epoch, layers, opt_state, control, rng.bit_generator.state,
                                          records, {"primal": counter.primal,
                                                    "adjoint": counter.adjoint,
+                                                   "validation": checked,
                                                    "steps": steps, "run_time": run_time}),
                            final=epoch == epochs)
     return Training(network, control, records)
@@ -692,5 +698,8 @@ def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,
             "target": target}
 
 
-def _total_iterations(record: EpochRecord) -> int:
-    return record.primal_iterations + record.adjoint_iterations_total
+def _total_iterations(record) -> int:
+    """Every CG iteration that ran: training (primal, adjoint) and validation solves (a heat
+    record's too; records written before validation solves were counted lack them)."""
+    return record.primal_iterations + record.adjoint_iterations_total + \
+        getattr(record, "validation_iterations", 0)

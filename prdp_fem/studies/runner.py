@@ -593,7 +593,9 @@ def _epoch_history(rows: list[dict], *, evaluations: str, misfit: str,
             step=r["epoch"], iterations=r["iterations"],
             adjoint_iterations=r["adjoint_iterations"], rtol=r["rtol"],
             refinements=refinements, primal_iterations=r["primal_iterations"],
-            adjoint_iterations_total=r["adjoint_iterations_total"], validation_iterations=0,
+            adjoint_iterations_total=r["adjoint_iterations_total"],
+            # records written before validation solves were counted lack them
+            validation_iterations=r.get("validation_iterations", 0),
             evaluations=r[evaluations], time=r["time"], compile_time=math.nan,
             loss=_finite(r["train_loss"]), misfit=_finite(r[misfit]),
             parameter_error=_finite(r[error]), state_error=math.nan))
@@ -674,7 +676,8 @@ def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
 
 
 def _iterations(record: StepRecord) -> int:
-    return record.primal_iterations + record.adjoint_iterations_total
+    """Every CG iteration that ran: training solves (primal, adjoint) and validation solves."""
+    return record.total_iterations
 
 
 def _learned_row(row: dict, history: History, metric: str) -> dict:
