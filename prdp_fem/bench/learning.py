@@ -212,8 +212,10 @@ def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: boo
         directory = Path(out) / f"seed-{seed}"
         result = run_study(variant, directory, resume=resume, progress=progress, client=client)
         histories = study_histories(variant, directory)
-        per_epoch = variant.learned.samples if variant.study.kind == "learned" \
-            else variant.heat.windows
+        spec = variant.learned if variant.study.kind == "learned" else variant.heat
+        available = spec.samples if variant.study.kind == "learned" else spec.windows
+        batch = min(spec.batch_size, available)
+        per_epoch = available // batch * batch  # the trainers drop a last, partial batch
         for row in learning_rows(scene.name, seed, scene.study.kind, result.summary):
             row = row._replace(samples_per_s=throughput(histories[row.run], per_epoch))
             if row.converged_run is not None:
