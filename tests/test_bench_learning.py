@@ -294,3 +294,53 @@ def test_bench_learning_bad_options_are_one_line_and_exit_2(argv, message, capsy
     assert main(["bench", "learning", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1
+
+
+TINY_LEARNED = """
+name = "tiny_learned"
+[mesh]
+n = 5
+[inverse]
+unknown = "source"
+[learned]
+samples = 8
+validation_samples = 4
+test_samples = 3
+hidden = [4]
+epochs = 3
+batch_size = 3
+[optimizer]
+name = "adam"
+learning_rate = 3e-3
+[[study.runs]]
+name = "prdp"
+[[study.runs]]
+name = "converged"
+refinement = { kind = "converged", rtol = 1e-10 }
+"""
+
+
+def test_bench_learning_reads_a_learned_study_against_its_own_converged_run(tmp_path, capsys):
+    """A learned scene: the PRDP run's partner is the converged run of its optimiser and
+    batch (the learned summary's reference), the test error its final error, and the
+    throughput counts the samples trained (two batches of 3 of the 8 an epoch)."""
+    scene = tmp_path / "tiny_learned.toml"
+    scene.write_text(TINY_LEARNED)
+    out = tmp_path / "bench"
+    assert main(["bench", "learning", "--scene", str(scene), "--seeds", "3", "--out",
+                 str(out)]) == 0
+    rows = {r["run"]: r for r in _csv(out / "learning.csv")}
+    study = {r["run"]: r for r in _csv(out / "tiny_learned" / "seed-3" / "summary.csv")}
+    assert rows["prdp"]["converged_run"] == "converged" == study["prdp"]["reference"]
+    assert rows["converged"]["converged_run"] == ""
+    for run, row in rows.items():
+        assert float(row["test_error"]) == float(study[run]["final_error"])
+        assert row["seed"] == "3"
+    assert float(rows["prdp"]["error_gap"]) == pytest.approx(
+        float(study["prdp"]["final_error"]) / float(study["converged"]["final_error"]) - 1)
+    histories = study_histories(seeded_scene(load_scene(scene), 3),
+                                out / "tiny_learned" / "seed-3")
+    assert histories["prdp"][-1].validation_iterations > 0  # every solve that ran counts
+    assert int(rows["prdp"]["cg_iterations"]) == histories["prdp"][-1].total_iterations
+    assert float(rows["prdp"]["samples_per_s"]) == pytest.approx(
+        6 * 3 / histories["prdp"][-1].time, rel=1e-12)
