@@ -289,7 +289,7 @@ def test_bench_learning_runs_a_study_per_seed_and_reports_its_own_figures(tiny_h
     (["--seeds", "1", "1"], "--seeds 1 1: expected distinct integers >= 0"),
     (["--seeds", "-1"], "--seeds -1: expected distinct integers >= 0"),
     (["--resume"], "--resume: expected --out DIR"),
-    (["--scene", "heat_emulator", "heat_emulator"], "expected distinct names"),
+    (["--scene", "heat_emulator", "heat_emulator"], "expected scenes of distinct names"),
 ])
 def test_bench_learning_bad_options_are_one_line_and_exit_2(argv, message, capsys):
     assert main(["bench", "learning", *argv]) == 2

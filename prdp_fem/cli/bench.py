@@ -339,29 +339,37 @@ def _saving_instances(args) -> tuple[list, list]:
         raise SolverConfigError(f"--steps {args.steps}: expected an integer >= 1")
     if args.repeats < 1:
         raise SolverConfigError(f"--repeats {args.repeats}: expected an integer >= 1")
+    scenes = bench_scenes(args, SAVING_SCENES, (BENCH_MANIFEST, SAVING_TABLE, SEED_TABLE))
+    instances = []
+    for scene in scenes:
+        saving_configurations(scene)
+        instances += seed_variants(scene, args.seeds)
+    return scenes, instances
+
+
+def bench_scenes(args, defaults, files) -> list:
+    """A seeded benchmark's scenes (``--scene``, else ``defaults``), its ``--seeds`` and
+    ``--resume`` checked first, and each scene named so that it can be a directory of
+    ``--out`` beside the benchmark's ``files``."""
     if args.seeds is not None and (min(args.seeds) < 0 or len(set(args.seeds)) < len(args.seeds)):
         raise SolverConfigError(f"--seeds {' '.join(map(str, args.seeds))}: expected distinct "
                                 "integers >= 0")
     if args.resume and args.out is None:
         raise SolverConfigError("--resume: expected --out DIR, the directory of the run to "
                                 "continue")
-    scenes = [scene_for(name, args.steps) for name in (args.scene or SAVING_SCENES)]
+    scenes = [scene_for(name, args.steps) for name in (args.scene or defaults)]
     names = [scene.name for scene in scenes]
+    reserved = (".", "..", *files)
     for name in names:  # each names a directory of the output
-        if name in (".", "..", BENCH_MANIFEST, SAVING_TABLE, SEED_TABLE) or "/" in name \
-                or "\\" in name:
+        if name in reserved or "/" in name or "\\" in name:
             raise SolverConfigError(f"--scene: a scene named {name!r}; expected a name that "
-                                    "can be a directory of --out (no '/' or '\\', not '.', "
-                                    f"'..', {BENCH_MANIFEST}, {SAVING_TABLE} or {SEED_TABLE})")
+                                    "can be a directory of --out (no '/' or '\\', not one of "
+                                    f"{', '.join(reserved)})")
     # the rows, the summary and the directories go by the scene's name (whatever the case)
     if len({name.casefold() for name in names}) < len(names):
         raise SolverConfigError(f"--scene {' '.join(args.scene)}: scenes named {names}; "
                                 "expected scenes of distinct names")
-    instances = []
-    for scene in scenes:
-        saving_configurations(scene)
-        instances += seed_variants(scene, args.seeds)
-    return scenes, instances
+    return scenes
 
 
 def _bench_directory(args) -> Path:

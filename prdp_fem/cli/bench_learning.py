@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import shlex
 
-from ..errors import SolverConfigError
-from ._shared import Bars, interrupt_kept, percent, print_table, scene_for
-from .bench import bench_directory
+from ._shared import Bars, interrupt_kept, percent, print_table
+from .bench import bench_directory, bench_scenes
 
 #: What ``bench learning`` writes beside its scenes' directories (and its bench.json).
 LEARNING_TABLE, LEARNING_SEED_TABLE, RANKING_TABLE = "learning.csv", "seeds.csv", "ranking.csv"
@@ -16,22 +15,8 @@ def _scenes(args) -> list:
     """The scenes, each a learned or heat scene of a distinct name that can be a directory."""
     from ..bench.learning import LEARNING_SCENES, seeded_scene
 
-    if len(set(args.seeds)) < len(args.seeds) or min(args.seeds) < 0:
-        raise SolverConfigError(f"--seeds {' '.join(map(str, args.seeds))}: expected distinct "
-                                "integers >= 0")
-    if args.resume and args.out is None:
-        raise SolverConfigError("--resume: expected --out DIR, the directory of the run to "
-                                "continue")
-    scenes = [scene_for(name, args.steps) for name in (args.scene or LEARNING_SCENES)]
-    reserved = (".", "..", "bench.json", LEARNING_TABLE, LEARNING_SEED_TABLE, RANKING_TABLE)
-    names = [scene.name for scene in scenes]
-    for name in names:
-        if name in reserved or "/" in name or "\\" in name:
-            raise SolverConfigError(f"--scene: a scene named {name!r}; expected a name that "
-                                    "can be a directory of --out (no '/' or '\\', not one of "
-                                    f"{', '.join(reserved)})")
-    if len({name.casefold() for name in names}) < len(names):
-        raise SolverConfigError(f"--scene: scenes named {names}; expected distinct names")
+    scenes = bench_scenes(args, LEARNING_SCENES,
+                          ("bench.json", LEARNING_TABLE, LEARNING_SEED_TABLE, RANKING_TABLE))
     for scene in scenes:
         seeded_scene(scene, args.seeds[0])  # a learned or heat scene, or a one-line error
     return scenes
