@@ -116,16 +116,17 @@ class Ranking(NamedTuple):
     instances: int
 
 
-def seeded_scene(scene, seed: int):
-    """``scene`` (a learned or heat scene) with its data and network drawn from ``seed``."""
+def seeded_scene(scene, seed: int, label: str | None = None):
+    """``scene`` (a learned or heat scene) with its data and network drawn from ``seed``;
+    ``label`` (e.g. ``"--seed 3"``) opens the errors in place of the scene's file or seed."""
     from ..scene.spec import with_overrides
 
     kind = scene.study.kind
     if kind not in ("learned", "heat"):
-        raise SolverConfigError(f"{scene.source}: study.kind = {kind!r}; expected a learned "
-                                "or heat scene (a network trained through the solver)")
+        raise SolverConfigError(f"{label or scene.source}: study.kind = {kind!r}; expected a "
+                                "learned or heat scene (its data and network's seed)")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
-        raise SolverConfigError(f"seed={seed!r}: expected an integer >= 0")
+        raise SolverConfigError(f"{label or f'seed={seed!r}'}: expected an integer >= 0")
     return with_overrides(scene, {kind: {"seed": int(seed)}})
 
 

@@ -78,13 +78,9 @@ def scene_for(name_or_path: str, steps: int | None, seed: int | None = None):
 
     scene = load_scene(name_or_path)
     if seed is not None:
-        kind = scene.study.kind
-        if kind not in ("learned", "heat"):
-            raise SolverConfigError(f"--seed {seed}: study.kind = {kind!r}; expected a learned or "
-                                    "heat scene (its data and network's seed)")
-        if seed < 0:
-            raise SolverConfigError(f"--seed {seed}: expected an integer >= 0")
-        scene = with_overrides(scene, {kind: {"seed": seed}})
+        from ..bench.learning import seeded_scene
+
+        scene = seeded_scene(scene, seed, f"--seed {seed}")
     if steps is not None:
         if steps < 0:
             raise SolverConfigError(f"--steps {steps}: expected an integer >= 0")

@@ -91,8 +91,7 @@ def headline(scene, summary: list[dict]) -> str | None:
 
 def study_command(args) -> None:
     run_study_command(scene_for(args.scene, args.steps, args.seed), args.out, args.resume,
-                      "study",
-                      args.executor)
+                      "study", args.executor)
 
 
 def invert_command(args) -> None:

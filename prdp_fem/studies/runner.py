@@ -651,7 +651,7 @@ def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
                "test_error": last.parameter_error, "validation_error": last.misfit,
                "final_K": ("tol" if last.rtol > 0 else last.iterations) if solves else "",
                "final_rtol": last.rtol if solves and last.rtol > 0 else math.nan,
-               "cg_iterations": _iterations(last), "time_s": last.time, "converged_run": "",
+               "cg_iterations": last.total_iterations, "time_s": last.time, "converged_run": "",
                "reached_epoch": "", "time_saving": math.nan, "iteration_saving": math.nan,
                "equal_epochs_time_ratio": math.nan,
                "equal_epochs_iteration_ratio": math.nan}
@@ -667,17 +667,12 @@ def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
                 converged_run=partner, reached_epoch=hit.step if hit else "",
                 time_saving=_saving(hit.time if hit else math.nan,
                                     base_hit.time if base_hit else math.nan),
-                iteration_saving=_saving(_iterations(hit) if hit else math.nan,
-                                         _iterations(base_hit) if base_hit else math.nan),
+                iteration_saving=_saving(hit.total_iterations if hit else math.nan,
+                                         base_hit.total_iterations if base_hit else math.nan),
                 equal_epochs_time_ratio=last.time / base.time,
-                equal_epochs_iteration_ratio=_iterations(last) / _iterations(base))
+                equal_epochs_iteration_ratio=last.total_iterations / base.total_iterations)
         rows.append(row)
     return rows
-
-
-def _iterations(record: StepRecord) -> int:
-    """Every CG iteration that ran: training solves (primal, adjoint) and validation solves."""
-    return record.total_iterations
 
 
 def _learned_row(row: dict, history: History, metric: str) -> dict:
@@ -742,8 +737,12 @@ def metric_of(histories: dict[str, History]) -> str:
 
 def inverse_histories(scene: Scene, out: str | Path) -> dict[str, History]:
     """The step records of every finished configuration of an inverse study in ``out``."""
+    return _read_histories(scene, out, _history)
+
+
+def _read_histories(scene: Scene, out: str | Path, read) -> dict[str, History]:
     by_run = _finished_records(scene, ResultsLog(Path(out) / RESULTS).records())
-    return {name: _history(rows) for name, rows in by_run.items()}
+    return {name: read(rows) for name, rows in by_run.items()}
 
 
 def study_histories(scene: Scene, out: str | Path) -> dict[str, History]:
@@ -754,8 +753,7 @@ def study_histories(scene: Scene, out: str | Path) -> dict[str, History]:
     if scene.study.kind not in read:
         raise StudyError(f"{scene.source}: study.kind = {scene.study.kind!r}; expected an "
                          "inverse, learned or heat study")
-    by_run = _finished_records(scene, ResultsLog(Path(out) / RESULTS).records())
-    return {name: read[scene.study.kind](rows) for name, rows in by_run.items()}
+    return _read_histories(scene, out, read[scene.study.kind])
 
 
 def learned_reference(scene: Scene, name: str) -> str | None:
