@@ -13,6 +13,7 @@ from prdp_fem.bench.learning import (
     LearningRow,
     coarse_ceiling,
     learning_rows,
+    learning_saving,
     learning_summary,
     rankings,
     seeded_scene,
@@ -282,6 +283,35 @@ def test_bench_learning_runs_a_study_per_seed_and_reports_its_own_figures(tiny_h
     assert main(["bench", "learning", "--scene", str(tiny_heat), "--seeds", "0",
                  "--out", str(out), "--resume"]) == 2  # other options: not this run
     assert "was run with other --seeds" in capsys.readouterr().err
+
+
+def test_a_stop_asked_for_during_a_seeds_study_lands_before_the_next_seed(tiny_heat,
+                                                                          tmp_path):
+    """A Ctrl-C that arrives while a seed's study finishes (its summary, figures) stops the
+    benchmark before the next seed draws its data: its directory is never made."""
+    class StopAfterFirstStudy:
+        def __init__(self):
+            self.finished, self.stop = [], False
+
+        def run_started(self, name, steps):
+            self.stop_if_requested()
+
+        def step(self):
+            pass
+
+        def run_finished(self, name, skipped):
+            self.finished.append(name)
+            self.stop = len(self.finished) == 3  # the seed's last run: the request lands
+
+        def stop_if_requested(self):
+            if self.stop:
+                raise KeyboardInterrupt
+
+    progress, out = StopAfterFirstStudy(), tmp_path / "bench"
+    with pytest.raises(KeyboardInterrupt):
+        learning_saving(load_scene(tiny_heat), [0, 1], out, progress=progress)
+    assert progress.finished == ["nog prdp", "nog converged", "prediction"]
+    assert (out / "seed-0" / "summary.csv").exists() and not (out / "seed-1").exists()
 
 
 @pytest.mark.parametrize(("argv", "message"), [

@@ -167,6 +167,22 @@ def test_first_ctrl_c_stops_between_steps_and_a_second_at_once():
     bars.close()
 
 
+def test_a_ctrl_c_between_two_runs_stops_before_the_next_one_starts():
+    """The stop asked for after a run finished (a study writing its summary, a benchmark
+    between two seeds' studies) lands before the next run builds anything, not at the end
+    of its first step."""
+    bars = Bars(total=2)
+    with stop_between_steps(bars):
+        bars.run_started("first", steps=1)
+        bars.step()
+        bars.run_finished("first", skipped=False)
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        assert bars.stop_requested
+        assert _interrupts(lambda: bars.run_started("second", steps=1))
+    bars.close()
+
+
 BAD_INPUT = [
     (["study", "nope.toml"], "nope.toml: scene file does not exist"),
     (["study", "torus"], "expected a .toml file or a built-in scene"),

@@ -28,7 +28,8 @@ class Bars:
     (:class:`prdp_fem.studies.runner.Progress`).
 
     Also where a requested stop (:func:`stop_between_steps`) takes effect: after a step's
-    record is written, in the main thread, outside any JAX computation.
+    record is written, when a run finishes, and before the next one starts (a benchmark's
+    next study included), in the main thread, outside any JAX computation.
     """
 
     def __init__(self, total: int):
@@ -43,6 +44,7 @@ class Bars:
         self.skipped = 0  # runs found done already (a resumed study), not run again
 
     def run_started(self, name: str, steps: int) -> None:
+        self.stop_if_requested()  # a stop asked for between two runs: before this one builds
         self._inner = self._tqdm(total=steps, desc=name[:28], position=1, leave=False,
                                  disable=self._quiet)
 

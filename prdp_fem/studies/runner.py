@@ -110,6 +110,7 @@ class Progress(Protocol):
     def run_started(self, name: str, steps: int) -> None: ...
     def step(self) -> None: ...
     def run_finished(self, name: str, skipped: bool) -> None: ...
+    def stop_if_requested(self) -> None: ...  # between two studies of a benchmark
 
 
 class _Silent:
@@ -120,6 +121,9 @@ class _Silent:
         pass
 
     def run_finished(self, name: str, skipped: bool) -> None:
+        pass
+
+    def stop_if_requested(self) -> None:
         pass
 
 
@@ -288,8 +292,8 @@ def _epoch_logger(name: str, attempt: int, log: ResultsLog, progress: Progress):
 
 
 def _run_inverse(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
+    progress.run_started(name, variant.optimizer.steps)  # before the build: a stop lands here
     setup = setups(variant)
-    progress.run_started(name, variant.optimizer.steps)
 
     def record_step(record: StepRecord, params) -> None:
         log.append({"type": "step", "run": name, "attempt": attempt, **record._asdict()})
@@ -343,16 +347,16 @@ def run_checkpoints(out: Path, name: str, variant: Scene, split: dict) -> Checkp
 
 
 def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
+    progress.run_started(name, variant.learned.epochs)  # before the data: a stop lands here
     setup = setups(variant)
-    progress.run_started(name, variant.learned.epochs)
     train(setup.problem, setup.network, setup.train_set, setup.validation_set,
           test_set=setup.test_set, checkpoints=run_checkpoints(out, name, variant, setup.split),
           callback=_epoch_logger(name, attempt, log, progress), **train_options(variant))
 
 
 def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
+    progress.run_started(name, variant.heat.epochs)  # before the data: a stop lands here
     setup = setups(variant)
-    progress.run_started(name, variant.heat.epochs)
     heat.train(setup.problem, setup.network, setup.train_set, setup.validation_set,
                test_set=setup.test_set, checkpoints=run_checkpoints(out, name, variant,
                                                                     setup.split),
@@ -361,12 +365,12 @@ def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -
 
 
 def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setups) -> None:
+    iterations = variant.solver.iterations or DEFAULT_FORWARD_ITERATIONS
+    progress.run_started(name, len(iterations))  # before the build: a stop lands here
     disc = build_discretization(variant)
     dim = disc.mesh.dim()
     source = disc.interpolate(field_function(variant, "pde.source", variant.pde.source, dim))
     scene = ForwardScene(disc, coefficient(variant, disc), source)
-    iterations = variant.solver.iterations or DEFAULT_FORWARD_ITERATIONS
-    progress.run_started(name, len(iterations))
 
     def record(r) -> None:
         log.append({"type": "forward", "run": name, "attempt": attempt,
