@@ -733,6 +733,9 @@ def test_a_resumed_saving_reads_its_finished_runs_back(tmp_path):
             if name == self.stop_after:
                 raise KeyboardInterrupt
 
+        def stop_if_requested(self):
+            pass
+
     first = StopAfter(stop_after="converged")
     with pytest.raises(KeyboardInterrupt):
         prdp_saving(scene, out=out, progress=first)

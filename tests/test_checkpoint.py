@@ -164,6 +164,9 @@ class DiesAfter:
     def run_finished(self, name, skipped):
         pass
 
+    def stop_if_requested(self):
+        pass
+
 
 STUDY = """
 name = "resumable"

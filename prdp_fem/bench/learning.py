@@ -210,8 +210,6 @@ def learning_saving(scene, seeds: Iterable[int], out: str | Path, *, resume: boo
     variants = [(seed, seeded_scene(scene, seed)) for seed in seeds]  # all checked first
     rows = []
     for seed, variant in variants:
-        if progress is not None:  # a Ctrl-C between two seeds: before the next one's data
-            progress.stop_if_requested()
         directory = Path(out) / f"seed-{seed}"
         result = run_study(variant, directory, resume=resume, progress=progress, client=client)
         histories = study_histories(variant, directory)

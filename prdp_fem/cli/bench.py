@@ -314,7 +314,6 @@ def _bench_prdp(args) -> None:
                                    f"{_bench_prdp_command(args, out)})"):
             with clients as client:
                 for seed, scene in instances:
-                    bars.stop_if_requested()  # a Ctrl-C between two studies
                     rows += prdp_saving(scene, repeats=args.repeats,
                                         out=out / _instance_name(scene.name, seed),
                                         resume=args.resume, progress=bars, client=client)

@@ -110,7 +110,7 @@ class Progress(Protocol):
     def run_started(self, name: str, steps: int) -> None: ...
     def step(self) -> None: ...
     def run_finished(self, name: str, skipped: bool) -> None: ...
-    def stop_if_requested(self) -> None: ...  # between two studies of a benchmark
+    def stop_if_requested(self) -> None: ...  # a requested stop lands here (before a study)
 
 
 class _Silent:
@@ -444,6 +444,7 @@ def run_study(scene: Scene, out: str | Path, *, resume: bool = False,
     """
     out = Path(out)
     progress = _Silent() if progress is None else progress
+    progress.stop_if_requested()  # a stop asked for before this study: nothing built yet
     if scene.study.kind == "h" and scene.pde.exact is None:
         raise StudyError(f"{scene.source}: study.kind = 'h' needs pde.exact (the exact "
                          "solution to measure the error against)")
