@@ -58,6 +58,7 @@ from .inverse import (
     laplace_posterior,
     prdp,
     taylor_test,
+    truncation_gap,
 )
 from .linalg import (
     ConvergedCG,
@@ -99,7 +100,8 @@ __all__ = [  # noqa: RUF022 (grouped by concept, as the guide presents them)
     "SparseMatrix", "IterationCounter", "amg_preconditioner", "RebuiltAMG", "rebuild_policy",
     # inversion and refinement
     "inverse_problem", "InverseProblem", "invert", "Inversion", "History", "Refinement", "prdp",
-    "fixed", "converged", "adaptive_tolerance", "compare", "taylor_test", "laplace_posterior",
+    "fixed", "converged", "adaptive_tolerance", "truncation_gap", "compare", "taylor_test",
+    "laplace_posterior",
     # optimisers
     "lbfgs", "newton_cg", "gauss_newton", "hig",
     # errors (all of them: prdp_fem.errors)

@@ -4,12 +4,13 @@ arguments, except where a difference is deliberate and named here."""
 import dataclasses
 import inspect
 
-from prdp_fem.inverse import adaptive_tolerance, converged, fixed, prdp
+from prdp_fem.inverse import adaptive_tolerance, converged, fixed, prdp, truncation_gap
 from prdp_fem.scene.spec import (
     REFINEMENT_SPECS,
     AdaptiveSpec,
     ConvergedSpec,
     FixedSpec,
+    GapSpec,
     PrdpSpec,
     RefinementSpec,
 )
@@ -43,6 +44,12 @@ def test_scene_adaptive_defaults_are_the_controller_s():
     spec, api = AdaptiveSpec(), _defaults(adaptive_tolerance)
     assert (spec.rtol0, spec.power, spec.failure_factor, spec.rtol_min) == (
         api["rtol0"], api["power"], api["failure_factor"], api["rtol_min"])
+
+
+def test_scene_gap_defaults_are_the_controller_s():
+    spec, api = GapSpec(), _defaults(truncation_gap)
+    assert (spec.rtol, spec.max_gap, spec.rtol_factor, spec.rtol_min) == (
+        api["rtol"], api["max_gap"], api["rtol_factor"], api["rtol_min"])
 
 
 def test_scene_converged_and_fixed_defaults_are_the_controllers_():

@@ -32,6 +32,7 @@ from .refinement import (
     prdp,
     state_from_dict,
     state_to_dict,
+    truncation_gap,
 )
 from .taylor import TaylorResult, taylor_test
 
@@ -81,4 +82,5 @@ __all__ = [
     "state_from_dict",
     "state_to_dict",
     "taylor_test",
+    "truncation_gap",
 ]

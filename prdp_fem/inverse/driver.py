@@ -763,6 +763,11 @@ def _monitor_for(refinement: Refinement, monitor):
     wanted = getattr(refinement, "monitor", None)
     if wanted is None:
         return "loss" if monitor is None else monitor
+    if wanted != "gradient":  # truncation_gap(): a training's validation rollouts feed it
+        raise SolverConfigError(
+            f"refinement: this controller is fed the {wanted!r} of a training's validation "
+            "pass; an inversion cannot feed it (expected prdp(), fixed(K), converged(rtol) or "
+            "adaptive_tolerance())")
     if monitor is not None and monitor != wanted:
         raise SolverConfigError(
             f"monitor={monitor!r}: this controller is fed the {wanted!r} norm of each step; "

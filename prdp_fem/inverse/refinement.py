@@ -74,6 +74,7 @@ __all__ = [
     "prdp",
     "state_from_dict",
     "state_to_dict",
+    "truncation_gap",
 ]
 
 
@@ -388,6 +389,78 @@ def adaptive_tolerance(rtol0: float = 1e-2, *, power: float = 1.0, rtol_min: flo
             refinements=state.refinements + tightened.astype(state.refinements.dtype))
 
     return Refinement(init, update, tolerance_mode=True, monitor="gradient")
+
+
+def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: float = 0.1,
+                   rtol_min: float = 1e-10, max_iterations: int = 100_000) -> Refinement:
+    r"""Refine a training's solves while they still change what is measured: every solve
+    runs to ``rtol``, and after each epoch the trainer feeds the *truncation gap*
+
+    .. math::
+
+        \gamma = \left| e_\text{rtol} / e_\text{converged} - 1 \right|,
+
+    the relative change of the validation error when the validation rollouts (or solves) run
+    at the training's ``rtol`` instead of converged. ``rtol`` is multiplied by ``rtol_factor``
+    (down to ``rtol_min``) each time ``gamma > max_gap``, and never loosened.
+
+    Why not :func:`prdp`'s rule: PRDP refines at a stall of the validation error when the
+    last refinement bought ``1 - tau_stop`` of it. Under a decaying learning rate the error
+    keeps falling whatever the solves, so every stall reads as a paying refinement and the
+    solves are driven to near convergence long after truncation stopped mattering. The gap
+    measures the truncation itself: early on, a coarse solve's error is small beside the
+    network's; as the network improves the same truncation becomes visible and the solves
+    tighten; once a level changes the validation error by less than ``max_gap`` they stay.
+
+    It must be fed the gap (``monitor = "truncation_gap"``): the trainers of
+    :mod:`prdp_fem.learning` (``heat.train``, ``learned.train``) compute it from one extra
+    validation pass at the training's tolerance, counted with the validation solves; an
+    inversion (:func:`~prdp_fem.inverse.driver.invert`) refuses it. ``state.rtol`` is the
+    tolerance, ``state.iterations`` the cap ``max_iterations``, ``state.checkpoint`` the last
+    gap fed.
+
+    >>> controller = truncation_gap(1e-2, max_gap=0.01)
+    >>> state = controller.init()
+    >>> for gap in [0.002, 0.03, 0.004, 0.02]:
+    ...     state = controller.update(state, gap)
+    ...     print(f"{float(state.rtol):.0e}")
+    1e-02
+    1e-03
+    1e-03
+    1e-04
+    """
+    if not (0 < rtol_min <= rtol < 1 and 0 < rtol_factor < 1):
+        raise SolverConfigError(
+            f"rtol={rtol!r}, rtol_factor={rtol_factor!r}, rtol_min={rtol_min!r}: expected "
+            "0 < rtol_min <= rtol < 1 and 0 < rtol_factor < 1")
+    if isinstance(max_gap, bool) or not isinstance(max_gap, int | float) or not (
+            math.isfinite(max_gap) and max_gap > 0):
+        raise SolverConfigError(f"max_gap={max_gap!r}: expected a finite number > 0 (the "
+                                "relative change of the validation error truncation may make)")
+    if not (_is_count(max_iterations) and max_iterations > 0):
+        raise SolverConfigError(
+            f"max_iterations={max_iterations!r}: expected a positive integer cap")
+
+    def init() -> RefinementState:
+        return _initial_state(max_iterations, max_iterations, rtol, 2)
+
+    def update(state: RefinementState, value, failed=False) -> RefinementState:
+        del failed  # the gap, not the optimiser's step, decides
+        xp = array_module(*state, value)
+        value = xp.asarray(value, np.float64)
+        finite = xp.isfinite(value)
+        # a non-finite gap (a truncated rollout that blew up) is the largest gap there is
+        refine = ~finite | (value > max_gap)
+        tightened = xp.where(refine, xp.maximum(state.rtol * rtol_factor, rtol_min),
+                             state.rtol)
+        refined = tightened < state.rtol
+        return state._replace(
+            rtol=tightened, checkpoint=value,
+            count=state.count + finite.astype(state.count.dtype),
+            refinements=state.refinements + refined.astype(state.refinements.dtype),
+            stopped=~refine)
+
+    return Refinement(init, update, tolerance_mode=True, monitor="truncation_gap")
 
 
 def _is_count(value) -> bool:

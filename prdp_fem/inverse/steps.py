@@ -195,12 +195,13 @@ def cycle_argument(preconditioner) -> tuple:
 
 def check_training_refinement(refinement, gradient: str) -> None:
     """Refuse a controller a training loop cannot feed: one that watches an inversion step's
-    gradient (training feeds a validation error), or a tolerance-mode controller with
+    gradient (training feeds a validation error, or the truncation gap of
+    :func:`~prdp_fem.inverse.refinement.truncation_gap`), or a tolerance-mode controller with
     unrolled gradients (a loop of unknown length)."""
-    if getattr(refinement, "monitor", None) is not None:
+    if getattr(refinement, "monitor", None) not in (None, "truncation_gap"):
         raise SolverConfigError(
             f"refinement: this controller is fed the {refinement.monitor!r} norm of an "
             "inversion step; training feeds its controller a validation error (expected "
-            "prdp(), fixed(K) or converged(rtol))")
+            "prdp(), fixed(K), converged(rtol) or truncation_gap())")
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit'")

@@ -99,6 +99,8 @@ from ..inverse.steps import (
 from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
+from ._gap import first_level
+from ._gap import gap as truncation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .learned import Network, Training, mlp_init
 from .model import Model, check_model
@@ -418,6 +420,8 @@ class HeatRecord(NamedTuple):
     adjoint_iterations_total: int = 0  # cumulative adjoint CG iterations (WIG; else 0)
     test_error: float = math.nan       # held-out rollout error (``test_set``), untimed
     validation_iterations: int = 0     # cumulative CG iterations of the validation rollouts
+    truncation_gap: float = math.nan   # |validation error at the epoch's rtol / converged - 1|
+    #                                    (a truncation_gap() controller's input; else NaN)
 
 
 def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
@@ -544,6 +548,13 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
         net, prob, val, validation_solver, setup=setup, step=step))
+    # a truncation_gap() controller is fed the change of the validation error when its
+    # rollouts run at the training's tolerance: one more rollout an epoch, counted and timed
+    # with the validation (K and rtol traced: one program for every level)
+    gap_fed = solves and refinement.monitor == "truncation_gap"
+    validate_at = jax.jit(lambda net, prob, val, K, rtol: rollout_error(
+        net, prob, val, ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner),
+        setup=setup, step=step))
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "heat") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
@@ -553,6 +564,11 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
         primal, run_time = state.counters["primal"], state.counters["run_time"]
         counter.adjoint = state.counters["adjoint"]
         checked = state.counters.get("validation", 0)  # the validation solves' CG iterations
+        if gap_fed and state.epoch == 0:  # the first level, settled on the untrained model
+            control, iterations, seconds = first_level(
+                refinement, control, lambda: validate(network, problem, validation_set),
+                lambda K, rtol: validate_at(network, problem, validation_set, K, rtol))
+            checked, run_time = checked + iterations, run_time + seconds
         for epoch in range(state.epoch + 1, epochs + 1):
             # no solver: one compile, nothing to refine
             settings = control.settings() if solves else (0, 0, 0.0)
@@ -578,12 +594,19 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 primal += int(iterations)
             if epoch == state.epoch + 1:  # compile outside the timed region
                 jax.block_until_ready(validate(network, problem, validation_set))
+                if gap_fed:
+                    jax.block_until_ready(validate_at(network, problem, validation_set, K, rtol))
             start = time.perf_counter()
             error, iterations = validate(network, problem, validation_set)
             checked += int(iterations)  # CG iterations count everything that ran
+            gap = math.nan
+            if gap_fed:
+                truncated, iterations = validate_at(network, problem, validation_set, K, rtol)
+                checked += int(iterations)
+                gap = truncation_gap(error, truncated)
             previous = control
             if solves:
-                control = refinement.update(control, float(error))
+                control = refinement.update(control, gap if gap_fed else float(error))
             run_time += time.perf_counter() - start
             test_error = math.nan if test_set is None else float(
                 validate(network, problem, test_set)[0])
@@ -591,7 +614,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 epoch, int(previous.iterations) if solves else 0,
                 int(previous.adjoint_iterations) if solves else 0,
                 float(previous.rtol) if solves else 0.0, primal, run_time,
-                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked)
+                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked, gap)
             records.append(record)
             if callback is not None:
                 callback(record)

@@ -65,6 +65,8 @@ from ..inverse.steps import (
 from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
+from ._gap import first_level
+from ._gap import gap as truncation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .model import Model, check_model
 
@@ -416,11 +418,12 @@ def _stacked(jacobian) -> jax.Array:
 
 
 def validation(network: Model | Network, problem: LearnedInverse, samples: SourceSamples,
-               rtol: float = 1e-10, preconditioner: Any = "jacobi"):
-    """Mean observation misfit of held-out samples with a *converged* solve, the mean
-    relative source error, and the CG iterations of those solves (jit it: ``rtol`` is the
-    only static choice)."""
-    solver = step_solver("implicit", True, 100_000, 100_000, rtol, preconditioner)
+               rtol: float = 1e-10, preconditioner: Any = "jacobi",
+               max_iterations: int = 100_000):
+    """Mean observation misfit of held-out samples with a *converged* solve (to ``rtol``,
+    at most ``max_iterations``), the mean relative source error, and the CG iterations of
+    those solves (jit it; ``rtol`` and ``max_iterations`` may be traced)."""
+    solver = step_solver("implicit", True, max_iterations, max_iterations, rtol, preconditioner)
 
     def one(f_true, d):
         f = network(d)
@@ -450,6 +453,8 @@ class EpochRecord(NamedTuple):
     steps: int = 0            # cumulative optimiser steps
     test_error: float = math.nan  # mean relative L2 source error of ``test_set``, untimed
     validation_iterations: int = 0  # cumulative CG iterations of the validation solves
+    truncation_gap: float = math.nan  # |validation misfit at the epoch's rtol / converged - 1|
+    #                                   (a truncation_gap() controller's input; else NaN)
 
 
 class Training(NamedTuple):
@@ -600,6 +605,12 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
     counter = IterationCounter()
     validate = jax.jit(partial(validation, rtol=validation_rtol,
                                preconditioner=preconditioner))
+    # a truncation_gap() controller is fed the change of the validation misfit when its
+    # solves run at the training's tolerance: one more pass an epoch, counted and timed with
+    # the validation (K and rtol traced: one program for every level)
+    gap_fed = refinement.monitor == "truncation_gap"
+    validate_at = jax.jit(lambda net, prob, samples, K, rtol: validation(
+        net, prob, samples, rtol=rtol, preconditioner=preconditioner, max_iterations=K))
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "learned") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
@@ -610,6 +621,11 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
         counter.primal, counter.adjoint = state.counters["primal"], state.counters["adjoint"]
         checked = state.counters.get("validation", 0)  # the validation solves' CG iterations
         network = network.replace_params(layers)
+        if gap_fed and state.epoch == 0:  # the first level, settled on the untrained model
+            control, iterations, seconds = first_level(
+                refinement, control, lambda: _misfit(validate(network, problem, validation_set)),
+                lambda K, rtol: _misfit(validate_at(network, problem, validation_set, K, rtol)))
+            checked, run_time = checked + iterations, run_time + seconds
         for epoch in range(state.epoch + 1, epochs + 1):
             settings = control.settings()
             K, K_adj, rtol = device_settings(settings)
@@ -638,11 +654,18 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
             network = network.replace_params(layers)
             if epoch == state.epoch + 1:  # compile outside the timed region
                 jax.block_until_ready(validate(network, problem, validation_set))
+                if gap_fed:
+                    jax.block_until_ready(validate_at(network, problem, validation_set, K, rtol))
             start = time.perf_counter()
             misfit, error, iterations = validate(network, problem, validation_set)
             checked += int(iterations)  # CG iterations count everything that ran
+            gap = math.nan
+            if gap_fed:
+                truncated, _, iterations = validate_at(network, problem, validation_set, K, rtol)
+                checked += int(iterations)
+                gap = truncation_gap(misfit, truncated)
             previous = control
-            control = refinement.update(control, float(misfit))
+            control = refinement.update(control, gap if gap_fed else float(misfit))
             run_time += time.perf_counter() - start
             if uses_stored_value(opt_state) and previous.settings() != control.settings():
                 # the stored value/gradient belong to the old solver: recompute them next step
@@ -655,7 +678,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
             record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
                                  float(previous.rtol), counter.primal, run_time,
                                  float(np.mean(losses)), float(misfit), float(error),
-                                 counter.adjoint, steps, test_error, checked)
+                                 counter.adjoint, steps, test_error, checked, gap)
             records.append(record)
             if callback is not None:
                 callback(record)
@@ -667,6 +690,12 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                                                    "steps": steps, "run_time": run_time}),
                            final=epoch == epochs)
     return Training(network, control, records)
+
+
+def _misfit(validated):
+    """``(misfit, CG iterations)`` of a :func:`validation` pass."""
+    misfit, _, iterations = validated
+    return misfit, iterations
 
 
 def training_saving(records: list[EpochRecord], converged: list[EpochRecord], *,

@@ -42,7 +42,14 @@ from ..fem.parameters import Parameterization, Simp
 from ..fem.priors import GaussianPrior, bilaplacian_prior
 from ..fem.reference import amg_solve, direct_solve
 from ..inverse.driver import InverseProblem, Validation, inverse_problem
-from ..inverse.refinement import Refinement, adaptive_tolerance, converged, fixed, prdp
+from ..inverse.refinement import (
+    Refinement,
+    adaptive_tolerance,
+    converged,
+    fixed,
+    prdp,
+    truncation_gap,
+)
 from ..learning import heat
 from ..learning.learned import (
     LearnedInverse,
@@ -439,6 +446,9 @@ def controller(scene: Scene) -> Refinement:
         return fixed(spec.K, spec.K_adj)
     if spec.kind == "converged":
         return converged(spec.rtol)
+    if spec.kind == "gap":
+        return truncation_gap(spec.rtol, max_gap=spec.max_gap, rtol_factor=spec.rtol_factor,
+                              rtol_min=spec.rtol_min)
     if spec.kind == "adaptive":
         return adaptive_tolerance(spec.rtol0, power=spec.power, rtol_min=spec.rtol_min,
                                   failure_factor=spec.failure_factor)

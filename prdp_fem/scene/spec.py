@@ -20,7 +20,7 @@ takes the default written in the dataclass below):
 ``[solver]``
     ``preconditioner``, ``gradient``, ``iterations``, ``rtol``
 ``[refinement]``
-    ``kind`` (prdp | fixed | converged | adaptive) and that kind's settings, ``monitor``;
+    ``kind`` (prdp | fixed | converged | adaptive | gap) and that kind's settings, ``monitor``;
     ``ema_window`` unset is 2 for an inversion's loss under a line-search
     optimiser, else 6 (:func:`default_ema_window`)
 ``[optimizer]``
@@ -439,7 +439,7 @@ class RefinementSpec:
     :mod:`prdp_fem.inverse.refinement`): what every kind has. One subclass per ``kind``
     holds that controller's settings, with the controller's own defaults (checked by the
     test suite against its signature): :class:`PrdpSpec`, :class:`FixedSpec`,
-    :class:`ConvergedSpec`, :class:`AdaptiveSpec`.
+    :class:`ConvergedSpec`, :class:`AdaptiveSpec`, :class:`GapSpec`.
 
     ``monitor``: what the controller watches, ``"loss"``, ``"gradient"`` or
     ``"validation"`` (a converged solve every ``validation_every`` steps, to
@@ -515,9 +515,24 @@ class AdaptiveSpec(RefinementSpec):
     failure_factor: float = 0.1
 
 
+@dataclasses.dataclass(frozen=True)
+class GapSpec(RefinementSpec):
+    """``kind = "gap"``: :func:`prdp_fem.inverse.truncation_gap`, a training's solves to
+    ``rtol``, multiplied by ``rtol_factor`` (down to ``rtol_min``) while running the validation
+    at that tolerance changes its error by more than ``max_gap`` (learned and heat scenes)."""
+
+    kind: str = dataclasses.field(default="gap", init=False)
+    monitor: str = "truncation_gap"
+    rtol: float = 1e-2
+    max_gap: float = 0.01
+    rtol_factor: float = 0.1
+    rtol_min: float = 1e-10
+
+
 #: The spec class of each ``refinement.kind``.
 REFINEMENT_SPECS: dict[str, type[RefinementSpec]] = {
-    "prdp": PrdpSpec, "fixed": FixedSpec, "converged": ConvergedSpec, "adaptive": AdaptiveSpec}
+    "prdp": PrdpSpec, "fixed": FixedSpec, "converged": ConvergedSpec, "adaptive": AdaptiveSpec,
+    "gap": GapSpec}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -900,15 +915,17 @@ def _refinement(t: _Table) -> RefinementSpec:
         "power": lambda k: t.number(k, defaults.power, low=0.0, open_low=True),
         "failure_factor": lambda k: t.number(k, defaults.failure_factor, low=0.0, high=1.0,
                                              open_low=True),
+        "max_gap": lambda k: t.number(k, defaults.max_gap, low=0.0, open_low=True),
         "K": lambda k: t.integer(k, defaults.K, 0),
         "K_adj": lambda k: t.integer(k, defaults.K_adj, 0),
     }
     for key in _REFINEMENT_KEYS[kind]:
         values[key] = readers[key](key)
     # the adaptive controller is fed the gradient norm (prdp.adaptive_tolerance)
-    values["monitor"] = t.choice("monitor", defaults.monitor, ("gradient",)) \
-        if kind == "adaptive" else t.choice("monitor", defaults.monitor,
-                                            ("loss", "gradient", "validation"))
+    # and the gap controller the truncation gap of a training's validation (truncation_gap)
+    values["monitor"] = t.choice("monitor", defaults.monitor, {
+        "adaptive": ("gradient",), "gap": ("truncation_gap",)}.get(
+            kind, ("loss", "gradient", "validation")))
     values["validation_every"] = t.integer("validation_every", defaults.validation_every, 1)
     values["validation_rtol"] = t.number("validation_rtol", defaults.validation_rtol, low=0.0,
                                          high=0.5, open_low=True)
@@ -917,6 +934,9 @@ def _refinement(t: _Table) -> RefinementSpec:
     if kind == "adaptive" and spec.rtol_min > spec.rtol0:
         raise SceneSolverConfigError(f"{t.source}: refinement.rtol_min = {spec.rtol_min} "
                                      f"exceeds rtol0 = {spec.rtol0}; expected rtol_min <= rtol0")
+    if kind == "gap" and spec.rtol_min > spec.rtol:
+        raise SceneSolverConfigError(f"{t.source}: refinement.rtol_min = {spec.rtol_min} "
+                                     f"exceeds rtol = {spec.rtol}; expected rtol_min <= rtol")
     if kind == "prdp" and spec.K0 > spec.K_max:
         raise SceneSolverConfigError(f"{t.source}: refinement.K0 = {spec.K0} exceeds K_max = "
                                      f"{spec.K_max}; expected K0 <= K_max")
@@ -1186,6 +1206,11 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: refinement.kind = 'adaptive' with study.kind = {kind!r}: expected "
             "'prdp', 'fixed' or 'converged' (the adaptive controller follows an inversion's "
             "gradient)")
+    if kind not in ("learned", "heat") and scene.refinement.kind == "gap":
+        raise SceneSolverConfigError(
+            f"{source}: refinement.kind = 'gap' with study.kind = {kind!r}: expected a "
+            "learned or heat study (the truncation gap is measured on a training's "
+            "validation set)")
     if kind in ("learned", "heat") and scene.solver.preconditioner == "amg":
         raise SceneSolverConfigError(
             f"{source}: solver.preconditioner = 'amg' with study.kind = {kind!r}: expected "

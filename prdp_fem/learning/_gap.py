@@ -1,0 +1,52 @@
+"""The truncation gap a trainer feeds :func:`~prdp_fem.inverse.refinement.truncation_gap`.
+
+Both trainers measure it the same way: their validation pass with converged solves and the
+same pass with the training's own tolerance. :func:`first_level` also feeds the controller the
+untrained model's gap before epoch 1, so that no epoch trains at a level the model can see
+from the start. It cannot see a level that becomes visible during the first epoch: an
+untrained model's error is large, a truncation's change of it small.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import jax
+
+from ..inverse.refinement import Refinement, RefinementState
+from ..inverse.steps import device_settings
+
+#: ``pass(K, rtol) -> (monitored value, CG iterations)`` at a tolerance (K: the cap).
+Pass = Callable[..., tuple]
+
+
+def gap(converged_value, truncated_value) -> float:
+    """``|truncated / converged - 1|``: the relative change of a validation value that the
+    truncation makes (NaN where it is undefined, which the controller treats as large)."""
+    converged_value, truncated_value = float(converged_value), float(truncated_value)
+    if not (math.isfinite(converged_value) and converged_value != 0):
+        return math.nan
+    return abs(truncated_value / converged_value - 1.0)
+
+
+def first_level(refinement: Refinement, control: RefinementState, converged: Callable[[], tuple],
+                truncated: Pass) -> tuple[RefinementState, int, float]:
+    """Feed the controller the untrained model's gap until it stops tightening: returns the
+    state, the CG iterations of those passes and their seconds (compilation excluded)."""
+    jax.block_until_ready(converged())  # compile outside the timed region
+    K, _, rtol = device_settings(control.settings())
+    jax.block_until_ready(truncated(K, rtol))
+    start = time.perf_counter()
+    value, iterations = converged()
+    total = int(iterations)
+    while True:
+        K, _, rtol = device_settings(control.settings())
+        truncated_value, iterations = truncated(K, rtol)
+        total += int(iterations)
+        before = float(control.rtol)
+        control = refinement.update(control, gap(value, truncated_value))
+        if not float(control.rtol) < before:
+            break
+    return control, total, time.perf_counter() - start
