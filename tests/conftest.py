@@ -114,6 +114,18 @@ def manufactured_3d():
     return Manufactured(3)
 
 
+def small_heat_case(dt: float = 0.02):
+    """6x6 P1 (25 free dofs), 12 training and 4 validation trajectories of 6 steps of the
+    heat equation: (disc, problem, train_set, validation_set)."""
+    from prdp_fem.learning import heat
+
+    disc = pf.discretize(pf.unit_square(6), dirichlet=0.0)
+    problem = heat.heat_problem(disc, dt)
+    initial = heat.random_initial_states(disc, 16, seed=0, width=0.2)
+    trajectories = heat.reference_trajectories(disc, initial, dt=dt, steps=6)
+    return disc, problem, trajectories.take(np.arange(12)), trajectories.take(np.arange(12, 16))
+
+
 @pytest.fixture
 def small_problem():
     """P1 on an 8x8 square, P0 kappa, non-zero Dirichlet data, a source: (disc, kappa, f)."""

@@ -87,16 +87,17 @@ def test_resumed_learned_training_equals_an_uninterrupted_one(inverse, tmp_path,
     assert epoch == 7 and leaves_equal(params, whole.network.params)
 
 
-def test_heat_training_resumes_bit_for_bit(tmp_path):
+def heat_whole_and_resumed(tmp_path, **options):
+    """A small heat training run whole, and stopped after epoch 4 of 5 (checkpoints every 3)
+    then resumed: both runs' trainings."""
     disc = pf.discretize(pf.unit_square(4), dirichlet=0.0)
     problem = heat.heat_problem(disc, 0.02)
     data = heat.reference_trajectories(disc, heat.random_initial_states(disc, 12, seed=0),
                                        dt=0.02, steps=4, substeps=2)
     train_set, validation_set = data.take(np.arange(8)), data.take(np.arange(8, 10))
-    test_set = data.take(np.arange(10, 12))
     network = heat.initial_network(problem, train_set, "correction", (16,))
-    options = dict(setup="correction", mode="wig", unroll=2, epochs=5, batch_size=8,
-                   optimizer=optax.adam(1e-3), refinement=EAGER_PRDP, test_set=test_set)
+    options = dict(setup="correction", unroll=2, epochs=5, batch_size=8,
+                   optimizer=optax.adam(1e-3), test_set=data.take(np.arange(10, 12)), **options)
     whole = heat.train(problem, network, train_set, validation_set, **options)
     with pytest.raises(Stop):
         heat.train(problem, network, train_set, validation_set, callback=stop_after(4, []),
@@ -105,6 +106,11 @@ def test_heat_training_resumes_bit_for_bit(tmp_path):
                          checkpoints=Checkpoints(tmp_path, every=3, resume=True), **options)
     assert untimed(resumed.records) == untimed(whole.records)
     assert leaves_equal(resumed.network.params, whole.network.params)
+    return whole, resumed
+
+
+def test_heat_training_resumes_bit_for_bit(tmp_path):
+    whole, resumed = heat_whole_and_resumed(tmp_path, mode="wig", refinement=EAGER_PRDP)
     assert len({r.iterations for r in whole.records}) > 1
     assert resumed.records[-1].adjoint_iterations_total == \
         whole.records[-1].adjoint_iterations_total > 0
@@ -113,23 +119,8 @@ def test_heat_training_resumes_bit_for_bit(tmp_path):
 def test_a_gap_refined_heat_training_resumes_bit_for_bit(tmp_path):
     """The first level is settled once, before epoch 1; a resumed run's tolerances, gaps and
     validation tally are the uninterrupted run's."""
-    disc = pf.discretize(pf.unit_square(4), dirichlet=0.0)
-    problem = heat.heat_problem(disc, 0.02)
-    data = heat.reference_trajectories(disc, heat.random_initial_states(disc, 10, seed=0),
-                                       dt=0.02, steps=4, substeps=2)
-    train_set, validation_set = data.take(np.arange(8)), data.take(np.arange(8, 10))
-    network = heat.initial_network(problem, train_set, "correction", (16,))
-    options = dict(setup="correction", mode="nog", unroll=2, epochs=5, batch_size=8,
-                   optimizer=optax.adam(1e-3),
-                   refinement=pf.truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-9))
-    whole = heat.train(problem, network, train_set, validation_set, **options)
-    with pytest.raises(Stop):
-        heat.train(problem, network, train_set, validation_set, callback=stop_after(4, []),
-                   checkpoints=Checkpoints(tmp_path, every=3), **options)
-    resumed = heat.train(problem, network, train_set, validation_set,
-                         checkpoints=Checkpoints(tmp_path, every=3, resume=True), **options)
-    assert untimed(resumed.records) == untimed(whole.records)
-    assert leaves_equal(resumed.network.params, whole.network.params)
+    whole, _ = heat_whole_and_resumed(
+        tmp_path, mode="nog", refinement=pf.truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-9))
     assert whole.records[0].rtol < 0.3  # settled before epoch 1
     assert all(0 <= r.truncation_gap <= 1e-4 for r in whole.records)
 

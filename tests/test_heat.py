@@ -10,7 +10,7 @@ import pytest
 import scipy.linalg
 import scipy.sparse.linalg as spla
 import skfem
-from conftest import shared_compiles_made
+from conftest import shared_compiles_made, small_heat_case
 
 import prdp_fem as pf
 from prdp_fem.errors import ShapeError, SolverConfigError
@@ -23,11 +23,7 @@ DT = 0.02
 @pytest.fixture(scope="module")
 def small():
     """6x6 P1 (25 free dofs), 12 training and 4 validation trajectories of 6 steps."""
-    disc = pf.discretize(pf.unit_square(6), dirichlet=0.0)
-    problem = heat.heat_problem(disc, DT)
-    initial = heat.random_initial_states(disc, 16, seed=0, width=0.2)
-    trajectories = heat.reference_trajectories(disc, initial, dt=DT, steps=6)
-    return disc, problem, trajectories.take(np.arange(12)), trajectories.take(np.arange(12, 16))
+    return small_heat_case(DT)
 
 
 def network_for(problem, hidden=32, seed=0, output_scale=0.05):

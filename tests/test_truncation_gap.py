@@ -9,6 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from conftest import small_heat_case
 
 import prdp_fem as pf
 from prdp_fem.errors import SceneError, SolverConfigError
@@ -78,11 +79,7 @@ def test_an_inversion_refuses_it():
 @pytest.fixture(scope="module")
 def small_heat():
     """6x6 P1 (25 free dofs), 12 training and 4 validation trajectories of 6 steps."""
-    disc = pf.discretize(pf.unit_square(6), dirichlet=0.0)
-    problem = heat.heat_problem(disc, DT)
-    initial = heat.random_initial_states(disc, 16, seed=0, width=0.2)
-    trajectories = heat.reference_trajectories(disc, initial, dt=DT, steps=6)
-    return problem, trajectories.take(np.arange(12)), trajectories.take(np.arange(12, 16))
+    return small_heat_case(DT)[1:]
 
 
 def heat_network(problem, hidden=16):

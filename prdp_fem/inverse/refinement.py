@@ -361,9 +361,7 @@ def adaptive_tolerance(rtol0: float = 1e-2, *, power: float = 1.0, rtol_min: flo
             f"rtol0={rtol0!r}, rtol_min={rtol_min!r}, failure_factor={failure_factor!r}, "
             f"power={power!r}: expected 0 < rtol_min <= rtol0 < 1, 0 < failure_factor < 1 "
             "and power > 0")
-    if not (_is_count(max_iterations) and max_iterations > 0):
-        raise SolverConfigError(
-            f"max_iterations={max_iterations!r}: expected a positive integer cap")
+    _check_cap(max_iterations)
 
     def init() -> RefinementState:
         return _initial_state(max_iterations, max_iterations, rtol0, 2)
@@ -437,9 +435,7 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
             math.isfinite(max_gap) and max_gap > 0):
         raise SolverConfigError(f"max_gap={max_gap!r}: expected a finite number > 0 (the "
                                 "relative change of the validation error truncation may make)")
-    if not (_is_count(max_iterations) and max_iterations > 0):
-        raise SolverConfigError(
-            f"max_iterations={max_iterations!r}: expected a positive integer cap")
+    _check_cap(max_iterations)
 
     def init() -> RefinementState:
         return _initial_state(max_iterations, max_iterations, rtol, 2)
@@ -465,6 +461,13 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
 
 def _is_count(value) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _check_cap(max_iterations) -> None:
+    """A tolerance-mode controller's iteration cap: a positive integer."""
+    if not (_is_count(max_iterations) and max_iterations > 0):
+        raise SolverConfigError(
+            f"max_iterations={max_iterations!r}: expected a positive integer cap")
 
 
 def _count_only(state: RefinementState, value, failed=False) -> RefinementState:
