@@ -100,7 +100,7 @@ from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
 from ._gap import first_level
-from ._gap import gap as truncation_gap
+from ._gap import gap as validation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .learned import Network, Training, mlp_init
 from .model import Model, check_model
@@ -603,7 +603,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
             if gap_fed:
                 truncated, iterations = validate_at(network, problem, validation_set, K, rtol)
                 checked += int(iterations)
-                gap = truncation_gap(error, truncated)
+                gap = validation_gap(error, truncated)
             previous = control
             if solves:
                 control = refinement.update(control, gap if gap_fed else float(error))

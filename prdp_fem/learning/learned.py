@@ -66,7 +66,7 @@ from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
 from ._gap import first_level
-from ._gap import gap as truncation_gap
+from ._gap import gap as validation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .model import Model, check_model
 
@@ -663,7 +663,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
             if gap_fed:
                 truncated, _, iterations = validate_at(network, problem, validation_set, K, rtol)
                 checked += int(iterations)
-                gap = truncation_gap(misfit, truncated)
+                gap = validation_gap(misfit, truncated)
             previous = control
             control = refinement.update(control, gap if gap_fed else float(misfit))
             run_time += time.perf_counter() - start
