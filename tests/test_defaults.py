@@ -48,8 +48,8 @@ def test_scene_adaptive_defaults_are_the_controller_s():
 
 def test_scene_gap_defaults_are_the_controller_s():
     spec, api = GapSpec(), _defaults(truncation_gap)
-    assert (spec.rtol, spec.max_gap, spec.rtol_factor, spec.rtol_min) == (
-        api["rtol"], api["max_gap"], api["rtol_factor"], api["rtol_min"])
+    assert (spec.rtol, spec.max_gap, spec.rtol_factor, spec.rtol_min, spec.redo) == (
+        api["rtol"], api["max_gap"], api["rtol_factor"], api["rtol_min"], api["redo"])
 
 
 def test_scene_converged_and_fixed_defaults_are_the_controllers_():

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import optax
 import pytest
 from conftest import small_heat_case
 
@@ -59,6 +60,7 @@ def test_the_state_round_trips_through_json_and_jit():
     (dict(rtol=0.0), "rtol"), (dict(rtol=1e-12, rtol_min=1e-10), "rtol_min"),
     (dict(rtol_factor=1.0), "rtol_factor"), (dict(max_gap=0.0), "max_gap"),
     (dict(max_gap=math.inf), "max_gap"), (dict(max_gap=True), "max_gap"),
+    (dict(redo=1), "redo"),
     (dict(max_iterations=0), "max_iterations")])
 def test_bad_settings_are_refused_with_their_names(options, match):
     with pytest.raises(SolverConfigError, match=match):
@@ -123,7 +125,7 @@ def test_heat_training_feeds_the_gap_of_its_own_rollouts_and_counts_them(small_h
     converged one, recomputed here; the rollout at that rtol adds its iterations to the
     validation tally; a gap above max_gap tightens the next epoch's rtol."""
     problem, train_set, validation = small_heat
-    control = truncation_gap(0.3, max_gap=1e-4, rtol_factor=0.1, rtol_min=1e-9)
+    control = truncation_gap(0.3, max_gap=1e-4, rtol_factor=0.1, rtol_min=1e-9, redo=False)
     training = heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
                           refinement=control, epochs=4, batch_size=12)
     records = training.records
@@ -145,7 +147,9 @@ def test_a_training_without_the_gap_controller_records_no_gap(small_heat):
     assert math.isnan(training.records[0].truncation_gap)
 
 
-def test_learned_training_feeds_the_gap_of_its_validation_misfit():
+def small_learned():
+    """A 6x6 learned inverse, 16 training and 8 validation samples, an MLP [36, 8, 36]:
+    (disc, problem, train_set, validation, network)."""
     disc = pf.discretize(pf.unit_square(6), dirichlet=0.0)
     problem = learned.learned_inverse(disc, pf.full_field(disc, data=np.zeros(disc.n_dofs)),
                                       supervised=1e-2)
@@ -155,7 +159,12 @@ def test_learned_training_feeds_the_gap_of_its_validation_misfit():
     network = learned.mlp_init(jax.random.PRNGKey(0), [disc.n_dofs, 8, disc.n_dofs],
                                input_scale=float(np.std(np.asarray(samples.observations))),
                                output_scale=float(np.std(np.asarray(samples.sources))))
-    control = truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-8)
+    return disc, problem, train_set, validation, network
+
+
+def test_learned_training_feeds_the_gap_of_its_validation_misfit():
+    _, problem, train_set, validation, network = small_learned()
+    control = truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-8, redo=False)
     training = learned.train(problem, network, train_set, validation, refinement=control,
                              epochs=2, batch_size=8)
     first, last = training.records
@@ -179,6 +188,81 @@ def test_learned_training_feeds_the_gap_of_its_validation_misfit():
         first.rtol * 10)
 
 
+# --- redo: the epoch that tightened the solves is trained again --------------------------
+
+
+def scheduled(rtols):
+    """A tolerance-mode controller that trains epoch ``i`` at ``rtols[i]`` whatever it is fed."""
+    base = truncation_gap(rtols[0], rtol_min=min(rtols), redo=False)
+
+    def update(state, value, failed=False):
+        epoch = int(state.count) + 1
+        return state._replace(count=state.count + 1,
+                              rtol=np.float64(rtols[min(epoch, len(rtols) - 1)]))
+
+    return pf.Refinement(base.init, update, tolerance_mode=True)
+
+
+def check_redo(train, records, max_gap):
+    """A redo run (``records``) equals a run at its accepted levels, epoch by epoch, plus the
+    work of the epochs it discarded: the same epoch from the same start at the level before."""
+    rtols = [r.rtol for r in records]
+    redone = [r.epoch - 1 for r in records if r.redone]
+    assert redone and all(records[i].redone == 1 for i in redone)
+    # a kept epoch's gap passed, or its level could not tighten further
+    assert all(r.truncation_gap <= max_gap for r in records)
+    replay = train(scheduled(rtols), len(records))
+    assert [r.validation_error for r in replay.records] == [r.validation_error for r in records]
+    discarded = 0
+    for i in redone:
+        tried = train(scheduled([*rtols[:i], rtols[i] * 10]), i + 1).records
+        discarded += tried[i].primal_iterations - (tried[i - 1].primal_iterations if i else 0)
+    assert discarded > 0
+    assert records[-1].primal_iterations == replay.records[-1].primal_iterations + discarded
+    return replay
+
+
+def test_heat_training_redoes_the_epoch_that_tightened_its_solves(small_heat):
+    """The untrained network passes rtol 3e-4; one epoch at lr 1e-2 later it does not (gap
+    2.4e-4): epoch 1 is trained again at 3e-5 from where it started, and its first try's
+    CG iterations stay counted."""
+    problem, train_set, validation = small_heat
+
+    def train(refinement, epochs):
+        return heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
+                          optimizer=optax.adam(1e-2), refinement=refinement, epochs=epochs,
+                          batch_size=6)
+
+    training = train(truncation_gap(0.3, max_gap=1.2e-4, rtol_min=1e-9), 3)
+    replay = check_redo(train, training.records, 1.2e-4)
+    assert [r.redone for r in training.records] == [1, 0, 0]
+    assert all(np.array_equal(a, b) for a, b in zip(
+        jax.tree.leaves(training.network.params), jax.tree.leaves(replay.network.params),
+        strict=True))
+
+
+def test_learned_training_redoes_the_epoch_that_tightened_its_solves():
+    _, problem, train_set, validation, network = small_learned()
+
+    def train(refinement, epochs):
+        return learned.train(problem, network, train_set, validation, refinement=refinement,
+                             optimizer=optax.adam(1e-2), epochs=epochs, batch_size=8)
+
+    training = train(truncation_gap(0.3, max_gap=1e-3, rtol_min=1e-8), 3)
+    check_redo(train, training.records, 1e-3)
+    assert training.records[-1].steps == 4 * 2  # the discarded try's steps ran too
+
+
+def test_without_redo_the_epoch_that_tightened_is_kept(small_heat):
+    problem, train_set, validation = small_heat
+    training = heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
+                          optimizer=optax.adam(1e-2), epochs=2, batch_size=6,
+                          refinement=truncation_gap(0.3, max_gap=1.2e-4, redo=False))
+    first, second = training.records
+    assert first.redone == second.redone == 0
+    assert first.truncation_gap > 1.2e-4 and second.rtol == pytest.approx(first.rtol / 10)
+
+
 # --- the scene kind ---------------------------------------------------------------------
 
 
@@ -195,11 +279,13 @@ def test_a_gap_scene_builds_the_controller_with_its_settings():
     control = controller(scene)
     state = control.update(control.init(), 0.03)
     assert control.monitor == "truncation_gap" and float(state.rtol) == pytest.approx(1e-4)
+    assert control.redo and not controller(parse_scene(heat_table(redo=False),
+                                                       source="g.toml")).redo
 
 
 @pytest.mark.parametrize("refinement, match", [
     (dict(max_gap=0), "max_gap"), (dict(rtol=1e-3, rtol_min=1e-2), "rtol_min"),
-    (dict(K0=3), "K0")])
+    (dict(K0=3), "K0"), (dict(redo="yes"), "redo")])
 def test_bad_gap_tables_name_the_key(refinement, match):
     with pytest.raises(SceneError, match=match):  # K0 belongs to another kind
         parse_scene(heat_table(**refinement), source="g.toml")
@@ -217,15 +303,22 @@ def test_an_inverse_scene_refuses_the_gap_kind():
 GAP_SCENE = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "heat_emulator_gap.toml"
 
 
-def test_the_gap_example_is_heat_emulator_with_gap_runs_beside_converged_partners():
-    gap, base = load_scene(GAP_SCENE), load_scene("heat_emulator")
+@pytest.mark.parametrize("example, base, pairs", [
+    (GAP_SCENE, "heat_emulator", {"correction nog gap": "correction nog converged",
+                                  "correction wig gap": "correction wig converged"}),
+    (GAP_SCENE.with_name("reaction_diffusion_gap.toml"), "reaction_diffusion",
+     {"wig gap": "wig converged"})])
+def test_the_gap_examples_are_their_scenes_with_gap_runs_beside_converged_partners(
+        example, base, pairs):
+    gap, base = load_scene(example), load_scene(base)
     assert (gap.mesh, gap.pde, gap.heat, gap.optimizer, gap.study.band) == (
         base.mesh, base.pde, base.heat, base.optimizer, base.study.band)
     runs = dict(gap.runs())
-    for mode in ("nog", "wig"):
-        assert runs[f"correction {mode} gap"].refinement == GapSpec(rtol=1e-3)
-        partner = runs[f"correction {mode} converged"]
-        assert partner.refinement.kind == "converged" and partner.heat.mode == mode
+    assert set(runs) == set(pairs) | set(pairs.values())
+    for name, partner in pairs.items():
+        assert runs[name].refinement == GapSpec()  # the API's defaults, redo included
+        assert runs[partner].refinement.kind == "converged"
+        assert runs[partner].heat == runs[name].heat
 
 
 def test_a_shrunk_gap_study_pairs_the_gap_run_and_records_its_gaps(tmp_path):

@@ -118,6 +118,11 @@ class Refinement(NamedTuple):
     ``tolerance_mode`` tells the solve loop to read ``state.rtol`` (a converged solve capped at
     ``state.iterations``) instead of a fixed ``K``.
 
+    ``redo`` asks the trainers to discard an epoch whose ``update`` tightened the solves and
+    to train it again at the new setting, from the parameters, optimiser state and batch
+    order it started with (the discarded work stays counted). A refinement then never leaves
+    behind an epoch trained at a level the controller found too coarse.
+
     The run loops (:func:`~prdp_fem.inverse.driver.invert`, the trainers, ``reduced_cg``) call
     ``update`` eagerly on the host with the state ``init`` returned and a Python float. A
     controller of your own written with ``jnp`` works there too, one JAX operation at a time;
@@ -130,6 +135,7 @@ class Refinement(NamedTuple):
     #: what the controller must be fed (``"gradient"``: the norm of the step's gradient), or
     #: ``None``: whatever the run loop's ``monitor`` says
     monitor: str | None = None
+    redo: bool = False
 
 
 def _check_schedule(schedule: Schedule, name: str) -> Schedule:
@@ -390,7 +396,8 @@ def adaptive_tolerance(rtol0: float = 1e-2, *, power: float = 1.0, rtol_min: flo
 
 
 def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: float = 0.1,
-                   rtol_min: float = 1e-10, max_iterations: int = 100_000) -> Refinement:
+                   rtol_min: float = 1e-10, max_iterations: int = 100_000,
+                   redo: bool = True) -> Refinement:
     r"""Refine a training's solves while they still change what is measured: every solve
     runs to ``rtol``, and after each epoch the trainer feeds the *truncation gap*
 
@@ -409,6 +416,13 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
     measures the truncation itself: early on, a coarse solve's error is small beside the
     network's; as the network improves the same truncation becomes visible and the solves
     tighten; once a level changes the validation error by less than ``max_gap`` they stay.
+
+    ``redo`` (default): an epoch whose gap tightened the solves is trained again at the new
+    level (:class:`Refinement`'s ``redo``). The gap grows fastest in the first epoch -- an
+    untrained network cannot see a level it sees one epoch later -- and an epoch trained at
+    a level the network can see leaves the trained network off the converged run's, so the
+    first level finds itself at the cost of the discarded epoch. ``redo=False`` keeps the
+    epoch and refines from the next.
 
     It must be fed the gap (``monitor = "truncation_gap"``): the trainers of
     :mod:`prdp_fem.learning` (``heat.train``, ``learned.train``) compute it from one extra
@@ -436,6 +450,8 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
         raise SolverConfigError(f"max_gap={max_gap!r}: expected a finite number > 0 (the "
                                 "relative change of the validation error truncation may make)")
     _check_cap(max_iterations)
+    if not isinstance(redo, bool):
+        raise SolverConfigError(f"redo={redo!r}: expected True or False")
 
     def init() -> RefinementState:
         return _initial_state(max_iterations, max_iterations, rtol, 2)
@@ -456,7 +472,7 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
             refinements=state.refinements + refined.astype(state.refinements.dtype),
             stopped=~refine)
 
-    return Refinement(init, update, tolerance_mode=True, monitor="truncation_gap")
+    return Refinement(init, update, tolerance_mode=True, monitor="truncation_gap", redo=redo)
 
 
 def _is_count(value) -> bool:

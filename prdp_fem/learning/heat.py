@@ -422,6 +422,8 @@ class HeatRecord(NamedTuple):
     validation_iterations: int = 0     # cumulative CG iterations of the validation rollouts
     truncation_gap: float = math.nan   # |validation error at the epoch's rtol / converged - 1|
     #                                    (a truncation_gap() controller's input; else NaN)
+    redone: int = 0                    # tries of this epoch discarded (a controller's redo),
+    #                                    their work counted in the totals above
 
 
 def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
@@ -569,52 +571,67 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 refinement, control, lambda: validate(network, problem, validation_set),
                 lambda K, rtol: validate_at(network, problem, validation_set, K, rtol))
             checked, run_time = checked + iterations, run_time + seconds
+        compiled = False  # the validation programs (compiled outside the timed region)
         for epoch in range(state.epoch + 1, epochs + 1):
-            # no solver: one compile, nothing to refine
-            settings = control.settings() if solves else (0, 0, 0.0)
-            K, K_adj, rtol = device_settings(settings)
-            # read on the host, not the device
-            scan_length = step_scan_length(gradient, settings[0])
-            order = rng.permutation(n)
-            losses = []
-            for i in range(0, n - batch_size + 1, batch_size):
-                batch = data[order[i:i + batch_size]]
-                compile_before = step_fn.seconds  # compilation is timed apart from the run
+            # a controller with redo trains an epoch again when it tightened the solves:
+            # from the parameters, optimiser state and batch order the epoch started with
+            started = (network, opt_state, rng.bit_generator.state)
+            redone = 0
+            while True:
+                # no solver: one compile, nothing to refine
+                settings = control.settings() if solves else (0, 0, 0.0)
+                K, K_adj, rtol = device_settings(settings)
+                # read on the host, not the device
+                scan_length = step_scan_length(gradient, settings[0])
+                order = rng.permutation(n)
+                losses = []
+                for i in range(0, n - batch_size + 1, batch_size):
+                    batch = data[order[i:i + batch_size]]
+                    compile_before = step_fn.seconds  # compilation is timed apart from the run
+                    start = time.perf_counter()
+                    network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
+                        step_fn(network, opt_state, problem, batch, counter, scan_length, K,
+                                K_adj, rtol, *cycle_argument(preconditioner)))
+                    run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
+                    if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
+                        raise InversionError(
+                            f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
+                            f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try "
+                            "a smaller learning rate or more CG iterations")
+                    losses.append(float(loss))
+                    primal += int(iterations)
+                if not compiled:
+                    jax.block_until_ready(validate(network, problem, validation_set))
+                    if gap_fed:
+                        jax.block_until_ready(
+                            validate_at(network, problem, validation_set, K, rtol))
+                    compiled = True
                 start = time.perf_counter()
-                network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                    step_fn(network, opt_state, problem, batch, counter, scan_length, K, K_adj,
-                            rtol, *cycle_argument(preconditioner)))
-                run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
-                if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
-                    raise InversionError(
-                        f"epoch {epoch}: non-finite loss or gradient (loss {float(loss)!r}, "
-                        f"setup={setup!r}, mode={mode!r}, K={int(control.iterations)}); try a "
-                        "smaller learning rate or more CG iterations")
-                losses.append(float(loss))
-                primal += int(iterations)
-            if epoch == state.epoch + 1:  # compile outside the timed region
-                jax.block_until_ready(validate(network, problem, validation_set))
+                error, iterations = validate(network, problem, validation_set)
+                checked += int(iterations)  # CG iterations count everything that ran
+                gap = math.nan
                 if gap_fed:
-                    jax.block_until_ready(validate_at(network, problem, validation_set, K, rtol))
-            start = time.perf_counter()
-            error, iterations = validate(network, problem, validation_set)
-            checked += int(iterations)  # CG iterations count everything that ran
-            gap = math.nan
-            if gap_fed:
-                truncated, iterations = validate_at(network, problem, validation_set, K, rtol)
-                checked += int(iterations)
-                gap = validation_gap(error, truncated)
-            previous = control
-            if solves:
-                control = refinement.update(control, gap if gap_fed else float(error))
-            run_time += time.perf_counter() - start
+                    truncated, iterations = validate_at(network, problem, validation_set, K,
+                                                        rtol)
+                    checked += int(iterations)
+                    gap = validation_gap(error, truncated)
+                previous = control
+                if solves:
+                    control = refinement.update(control, gap if gap_fed else float(error))
+                run_time += time.perf_counter() - start
+                if not (refinement.redo and solves
+                        and control.settings() != previous.settings()):
+                    break
+                network, opt_state, rng.bit_generator.state = started
+                redone += 1
             test_error = math.nan if test_set is None else float(
                 validate(network, problem, test_set)[0])
             record = HeatRecord(
                 epoch, int(previous.iterations) if solves else 0,
                 int(previous.adjoint_iterations) if solves else 0,
                 float(previous.rtol) if solves else 0.0, primal, run_time,
-                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked, gap)
+                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked, gap,
+                redone)
             records.append(record)
             if callback is not None:
                 callback(record)

@@ -455,6 +455,8 @@ class EpochRecord(NamedTuple):
     validation_iterations: int = 0  # cumulative CG iterations of the validation solves
     truncation_gap: float = math.nan  # |validation misfit at the epoch's rtol / converged - 1|
     #                                   (a truncation_gap() controller's input; else NaN)
+    redone: int = 0                   # tries of this epoch discarded (a controller's redo),
+    #                                   their work counted in the totals above
 
 
 class Training(NamedTuple):
@@ -626,59 +628,78 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                 refinement, control, lambda: _misfit(validate(network, problem, validation_set)),
                 lambda K, rtol: _misfit(validate_at(network, problem, validation_set, K, rtol)))
             checked, run_time = checked + iterations, run_time + seconds
+        compiled = False  # the validation programs (compiled outside the timed region)
         for epoch in range(state.epoch + 1, epochs + 1):
-            settings = control.settings()
-            K, K_adj, rtol = device_settings(settings)
-            # read on the host, not the device
-            scan_length = step_scan_length(gradient, settings[0])
-            order = rng.permutation(n) if batch_size < n else np.arange(n)
-            batches = [order[i:i + batch_size] for i in range(0, n - batch_size + 1, batch_size)]
-            losses = []
-            for index in batches:
-                batch = train_set.take(index)
-                compile_before = step.seconds  # compilation is timed apart from the run
+            # a controller with redo trains an epoch again when it tightened the solves:
+            # from the parameters, optimiser state and batch order the epoch started with
+            started = (layers, opt_state, rng.bit_generator.state)
+            redone = 0
+            while True:
+                settings = control.settings()
+                K, K_adj, rtol = device_settings(settings)
+                # read on the host, not the device
+                scan_length = step_scan_length(gradient, settings[0])
+                order = rng.permutation(n) if batch_size < n else np.arange(n)
+                batches = [order[i:i + batch_size]
+                           for i in range(0, n - batch_size + 1, batch_size)]
+                losses = []
+                for index in batches:
+                    batch = train_set.take(index)
+                    compile_before = step.seconds  # compilation is timed apart from the run
+                    start = time.perf_counter()
+                    result = jax.block_until_ready(
+                        step(layers, opt_state, network, problem, batch, counter, scan_length, K,
+                             K_adj, rtol, *cycle_argument(preconditioner)))
+                    run_time += time.perf_counter() - start - (step.seconds - compile_before)
+                    if not (math.isfinite(float(result.loss))
+                            and math.isfinite(float(result.grad_norm))):
+                        raise InversionError(
+                            f"epoch {epoch}: non-finite loss or gradient (loss "
+                            f"{float(result.loss)!r}, K={int(control.iterations)}, "
+                            f"rtol={float(rtol)!r}); try a smaller learning rate or more CG "
+                            "iterations")
+                    layers, opt_state = result.layers, result.opt_state
+                    losses.append(float(result.loss))
+                    steps += 1
+                network = network.replace_params(layers)
+                if not compiled:
+                    jax.block_until_ready(validate(network, problem, validation_set))
+                    if gap_fed:
+                        jax.block_until_ready(
+                            validate_at(network, problem, validation_set, K, rtol))
+                    compiled = True
                 start = time.perf_counter()
-                result = jax.block_until_ready(
-                    step(layers, opt_state, network, problem, batch, counter, scan_length, K, K_adj,
-                         rtol, *cycle_argument(preconditioner)))
-                run_time += time.perf_counter() - start - (step.seconds - compile_before)
-                if not (math.isfinite(float(result.loss))
-                        and math.isfinite(float(result.grad_norm))):
-                    raise InversionError(
-                        f"epoch {epoch}: non-finite loss or gradient (loss {float(result.loss)!r}, "
-                        f"K={int(control.iterations)}, rtol={float(rtol)!r}); try a smaller "
-                        "learning rate or more CG iterations")
-                layers, opt_state = result.layers, result.opt_state
-                losses.append(float(result.loss))
-                steps += 1
-            network = network.replace_params(layers)
-            if epoch == state.epoch + 1:  # compile outside the timed region
-                jax.block_until_ready(validate(network, problem, validation_set))
+                misfit, error, iterations = validate(network, problem, validation_set)
+                checked += int(iterations)  # CG iterations count everything that ran
+                gap = math.nan
                 if gap_fed:
-                    jax.block_until_ready(validate_at(network, problem, validation_set, K, rtol))
-            start = time.perf_counter()
-            misfit, error, iterations = validate(network, problem, validation_set)
-            checked += int(iterations)  # CG iterations count everything that ran
-            gap = math.nan
-            if gap_fed:
-                truncated, _, iterations = validate_at(network, problem, validation_set, K, rtol)
-                checked += int(iterations)
-                gap = validation_gap(misfit, truncated)
-            previous = control
-            control = refinement.update(control, gap if gap_fed else float(misfit))
-            run_time += time.perf_counter() - start
-            if uses_stored_value(opt_state) and previous.settings() != control.settings():
-                # the stored value/gradient belong to the old solver: recompute them next step
-                # (same shape and dtype as stored: the step is compiled per argument type)
-                stored = optax.tree_utils.tree_get(opt_state, "value")
-                opt_state = optax.tree_utils.tree_set(opt_state,
-                                                      value=jax.lax.full_like(stored, jnp.inf))
+                    truncated, _, iterations = validate_at(network, problem, validation_set, K,
+                                                           rtol)
+                    checked += int(iterations)
+                    gap = validation_gap(misfit, truncated)
+                previous = control
+                control = refinement.update(control, gap if gap_fed else float(misfit))
+                run_time += time.perf_counter() - start
+                redo = refinement.redo and previous.settings() != control.settings()
+                if redo:
+                    layers, opt_state, rng.bit_generator.state = started
+                    network = network.replace_params(layers)
+                    redone += 1
+                if uses_stored_value(opt_state) and previous.settings() != control.settings():
+                    # the stored value/gradient belong to the old solver: recompute them next
+                    # step (same shape and dtype as stored: the step is compiled per argument
+                    # type)
+                    stored = optax.tree_utils.tree_get(opt_state, "value")
+                    opt_state = optax.tree_utils.tree_set(
+                        opt_state, value=jax.lax.full_like(stored, jnp.inf))
+                if not redo:
+                    break
             test_error = math.nan if test_set is None else float(
                 validate(network, problem, test_set)[1])
             record = EpochRecord(epoch, int(previous.iterations), int(previous.adjoint_iterations),
                                  float(previous.rtol), counter.primal, run_time,
                                  float(np.mean(losses)), float(misfit), float(error),
-                                 counter.adjoint, steps, test_error, checked, gap)
+                                 counter.adjoint, steps, test_error, checked, gap, redone)
             records.append(record)
             if callback is not None:
                 callback(record)

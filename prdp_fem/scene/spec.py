@@ -519,7 +519,8 @@ class AdaptiveSpec(RefinementSpec):
 class GapSpec(RefinementSpec):
     """``kind = "gap"``: :func:`prdp_fem.inverse.truncation_gap`, a training's solves to
     ``rtol``, multiplied by ``rtol_factor`` (down to ``rtol_min``) while running the validation
-    at that tolerance changes its error by more than ``max_gap`` (learned and heat scenes)."""
+    at that tolerance changes its error by more than ``max_gap`` (learned and heat scenes);
+    ``redo``: the epoch that tightened them is trained again."""
 
     kind: str = dataclasses.field(default="gap", init=False)
     monitor: str = "truncation_gap"
@@ -527,6 +528,7 @@ class GapSpec(RefinementSpec):
     max_gap: float = 0.01
     rtol_factor: float = 0.1
     rtol_min: float = 1e-10
+    redo: bool = True
 
 
 #: The spec class of each ``refinement.kind``.
@@ -916,6 +918,7 @@ def _refinement(t: _Table) -> RefinementSpec:
         "failure_factor": lambda k: t.number(k, defaults.failure_factor, low=0.0, high=1.0,
                                              open_low=True),
         "max_gap": lambda k: t.number(k, defaults.max_gap, low=0.0, open_low=True),
+        "redo": lambda k: t.boolean(k, defaults.redo),
         "K": lambda k: t.integer(k, defaults.K, 0),
         "K_adj": lambda k: t.integer(k, defaults.K_adj, 0),
     }
