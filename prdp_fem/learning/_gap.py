@@ -31,13 +31,20 @@ def gap(converged_value, truncated_value) -> float:
     return abs(truncated_value / converged_value - 1.0)
 
 
+def compile_passes(converged: Callable[[], tuple], truncated: Pass | None, K, rtol) -> None:
+    """Run the converged validation pass and (``truncated`` given) the pass at ``(K, rtol)``
+    once, untimed: their compilation stays outside the timed region."""
+    jax.block_until_ready(converged())
+    if truncated is not None:
+        jax.block_until_ready(truncated(K, rtol))
+
+
 def first_level(refinement: Refinement, control: RefinementState, converged: Callable[[], tuple],
                 truncated: Pass) -> tuple[RefinementState, int, float]:
     """Feed the controller the untrained model's gap until it stops tightening: returns the
     state, the CG iterations of those passes and their seconds (compilation excluded)."""
-    jax.block_until_ready(converged())  # compile outside the timed region
     K, _, rtol = device_settings(control.settings())
-    jax.block_until_ready(truncated(K, rtol))
+    compile_passes(converged, truncated, K, rtol)
     start = time.perf_counter()
     value, iterations = converged()
     total = int(iterations)

@@ -99,7 +99,7 @@ from ..inverse.steps import (
 from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
-from ._gap import first_level
+from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .learned import Network, Training, mlp_init
@@ -601,10 +601,9 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                     losses.append(float(loss))
                     primal += int(iterations)
                 if not compiled:
-                    jax.block_until_ready(validate(network, problem, validation_set))
-                    if gap_fed:
-                        jax.block_until_ready(
-                            validate_at(network, problem, validation_set, K, rtol))
+                    compile_passes(partial(validate, network, problem, validation_set),
+                                   partial(validate_at, network, problem, validation_set)
+                                   if gap_fed else None, K, rtol)
                     compiled = True
                 start = time.perf_counter()
                 error, iterations = validate(network, problem, validation_set)

@@ -65,7 +65,7 @@ from ..inverse.steps import (
 from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
-from ._gap import first_level
+from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .model import Model, check_model
@@ -663,10 +663,9 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                     steps += 1
                 network = network.replace_params(layers)
                 if not compiled:
-                    jax.block_until_ready(validate(network, problem, validation_set))
-                    if gap_fed:
-                        jax.block_until_ready(
-                            validate_at(network, problem, validation_set, K, rtol))
+                    compile_passes(partial(validate, network, problem, validation_set),
+                                   partial(validate_at, network, problem, validation_set)
+                                   if gap_fed else None, K, rtol)
                     compiled = True
                 start = time.perf_counter()
                 misfit, error, iterations = validate(network, problem, validation_set)
