@@ -172,7 +172,8 @@ def test_heat_study_records_every_epoch_matches_train_and_resumes(tiny, tmp_path
     variant = dict(tiny.runs())["wig prdp"]
     setup = build_heat(variant)
     direct = heat.train(setup.problem, setup.network, setup.train_set, setup.validation_set,
-                        test_set=setup.test_set, **heat_train_options(variant)).records
+                        test_set=setup.test_set,
+                        **heat_train_options(variant, setup.problem)).records
     mine = epochs["wig prdp"]
     for key in ("validation_error", "test_error", "train_loss"):
         np.testing.assert_allclose([r[key] for r in mine], [getattr(r, key) for r in direct],
@@ -239,7 +240,8 @@ def test_the_example_heat_scene_pairs_every_correction_mode_with_a_converged_run
     assert {(s, m) for s, m, _ in grid} == {(s, m) for s in heat.SETUPS for m in heat.MODES}
     for mode in heat.MODES:
         assert {("correction", mode, "prdp"), ("correction", mode, "converged")} <= grid
-    options = heat_train_options(runs["correction wig prdp"])
+    variant = runs["correction wig prdp"]
+    options = heat_train_options(variant, build_heat(variant).problem)
     assert options["mode"] == "wig" and options["unroll"] == 3
     assert isinstance(options["optimizer"], optax.GradientTransformation)
     assert options["refinement"].tolerance_mode

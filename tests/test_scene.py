@@ -271,8 +271,8 @@ def test_a_refinement_spec_built_by_hand_gets_the_default_window():
      "solver.rebuild_factor = 1: expected 0 (never) or a finite number > 1"),
     ("[solver]\npreconditioner = 'amg'\namg_kind = 'ml'", "solver.amg_kind = 'ml': expected one "
      "of ['sa', 'rs']"),
-    ("[inverse]\nunknown = 'source'\n[learned]\n[solver]\npreconditioner = 'amg'",
-     "solver.preconditioner = 'amg' with study.kind = 'learned'"),
+    ("[inverse]\nunknown = 'source'\n[learned]\n[solver]\npreconditioner = 'amg'\n"
+     "rebuild_factor = 2", "solver.rebuild_every / rebuild_factor with study.kind = 'learned'"),
     ("[solver]\npreconditioner = 'amg'\nrebuild_every = 5",
      "solver.rebuild_every / rebuild_factor with study.kind = 'forward': expected 0"),
     ("[solver]\npreconditioner = 'amg'\nrebuild_factor = 3\n[study]\nkind = 'h'",

@@ -244,7 +244,7 @@ def test_learned_study_records_every_epoch_resumes_and_matches_train(tmp_path, m
     variant = dict(scene.runs())["prdp"]
     setup = build_learned(variant)
     direct = train(setup.problem, setup.network, setup.train_set, setup.validation_set,
-                   **train_options(variant)).records
+                   **train_options(variant, setup.problem)).records
     mine = [r for r in epochs if r["run"] == "prdp"]
     np.testing.assert_allclose([r["validation_misfit"] for r in mine],
                                [r.validation_misfit for r in direct], rtol=1e-10)
@@ -338,6 +338,6 @@ def test_learned_scene_runs_each_lower_the_validation_misfit():
         setup = build_learned(variant)
         start = float(validation(setup.network, setup.problem, setup.validation_set)[0])
         records = train(setup.problem, setup.network, setup.train_set, setup.validation_set,
-                        **train_options(variant)).records
+                        **train_options(variant, setup.problem)).records
         misfits = np.array([r.validation_misfit for r in records])
         assert np.all(np.isfinite(misfits)) and misfits[-1] < start, (run, start, misfits)

@@ -13,7 +13,8 @@
 * :func:`controller`, :func:`optimizer`, :func:`invert_options`, :func:`train_options`,
   :func:`heat_train_options`: the refinement controller, the optax optimiser and the keyword
   arguments of :func:`~prdp_fem.inverse.driver.invert`, :func:`~prdp_fem.learning.learned.train` and
-  :func:`~prdp_fem.learning.heat.train`.
+  :func:`~prdp_fem.learning.heat.train` (:func:`training_preconditioner`: a training's
+  preconditioner, an AMG hierarchy built once from the fixed operator).
 """
 
 from __future__ import annotations
@@ -97,6 +98,7 @@ __all__ = [
     "optimizer",
     "parameterization_of",
     "train_options",
+    "training_preconditioner",
 ]
 
 # free dofs up to which synthetic data use SuperLU (else pyamg), per dimension: LU fill grows
@@ -369,14 +371,30 @@ def data_split(train: int, validation: int, test: int) -> dict[str, list[int]]:
             "test": list(range(second, second + test))}
 
 
-def train_options(scene: Scene) -> dict[str, Any]:
-    """Keyword arguments of :func:`~prdp_fem.learning.learned.train` for this scene."""
+def train_options(scene: Scene, problem: LearnedInverse) -> dict[str, Any]:
+    """Keyword arguments of :func:`~prdp_fem.learning.learned.train` for this scene and its
+    ``problem`` (:attr:`LearnedSetup.problem`, whose operator an AMG hierarchy is built
+    from)."""
     spec = scene.learned
     updates = spec.epochs * (spec.samples // spec.batch_size)
     return dict(optimizer=optimizer(scene, updates), refinement=controller(scene),
                 epochs=scene.learned.epochs, batch_size=scene.learned.batch_size,
-                gradient=scene.solver.gradient, preconditioner=scene.solver.preconditioner,
+                gradient=scene.solver.gradient,
+                preconditioner=training_preconditioner(scene, problem),
                 seed=scene.learned.seed, validation_rtol=scene.refinement.validation_rtol)
+
+
+def training_preconditioner(scene: Scene, problem: LearnedInverse | heat.HeatProblem
+                            ) -> str | AMGCycle | PyamgCycle:
+    """The preconditioner of a training's solves: the scene's name, or for ``"amg"`` the
+    hierarchy of the problem's fixed operator (``K`` at the frozen coefficient of a learned
+    inverse, ``M + dt A`` of a heat step), built once: every training and validation solve
+    shares it."""
+    if scene.solver.preconditioner != "amg":
+        return scene.solver.preconditioner
+    matrix = problem.matrix if isinstance(problem, heat.HeatProblem) else \
+        problem.system.operator(problem.kappa)
+    return solver_preconditioner(scene, matrix)
 
 
 def initial_field(scene: Scene, disc: Discretization) -> np.ndarray | None:
@@ -429,14 +447,16 @@ def build_heat(scene: Scene) -> HeatSetup:
                      data.take(np.arange(second, sum(counts))), network, data_split(*counts))
 
 
-def heat_train_options(scene: Scene) -> dict[str, Any]:
-    """Keyword arguments of :func:`~prdp_fem.learning.heat.train` for this scene."""
+def heat_train_options(scene: Scene, problem: heat.HeatProblem) -> dict[str, Any]:
+    """Keyword arguments of :func:`~prdp_fem.learning.heat.train` for this scene and its
+    ``problem`` (:attr:`HeatSetup.problem`, whose ``M + dt A`` an AMG hierarchy is built
+    from)."""
     spec = scene.heat
     updates = spec.epochs * (spec.windows // spec.batch_size)
     return dict(setup=spec.setup, mode=spec.mode, unroll=spec.unroll,
                 optimizer=optimizer(scene, updates), refinement=controller(scene),
                 epochs=spec.epochs, batch_size=spec.batch_size, gradient=scene.solver.gradient,
-                preconditioner=scene.solver.preconditioner, seed=spec.seed,
+                preconditioner=training_preconditioner(scene, problem), seed=spec.seed,
                 validation_rtol=scene.refinement.validation_rtol)
 
 

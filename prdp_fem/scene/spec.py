@@ -417,7 +417,8 @@ class SolverSpec:
     pyamg hierarchy (``amg_kind``, ``amg_implementation``) built from the run's operator; an
     inversion builds it at its initial coefficient and rebuilds it every ``rebuild_every``
     steps or once kappa moved by more than ``rebuild_factor`` (:class:`prdp_fem.RebuiltAMG`;
-    0: never, the default, so that a run can switch off what its scene sets).
+    0: never, the default, so that a run can switch off what its scene sets); a training
+    (``study.kind = "learned"`` or ``"heat"``) builds it once, from its fixed operator.
     ``warm_start``: an inversion's solves start from the previous evaluation's solutions
     (:func:`prdp_fem.invert`'s ``warm_start``), moved every ``warm_start_every`` steps."""
 
@@ -1214,21 +1215,17 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: refinement.kind = 'gap' with study.kind = {kind!r}: expected a "
             "learned or heat study (the truncation gap is measured on a training's "
             "validation set)")
-    if kind in ("learned", "heat") and scene.solver.preconditioner == "amg":
-        raise SceneSolverConfigError(
-            f"{source}: solver.preconditioner = 'amg' with study.kind = {kind!r}: expected "
-            "'jacobi' or 'identity' (an AMG hierarchy is built for one operator: forward "
-            "solves and inversions)")
     if kind != "inverse" and scene.solver.warm_start:
         raise SceneSolverConfigError(
             f"{source}: solver.warm_start = true with study.kind = {kind!r}: expected false "
             "or no value (warm starts carry an inversion's solves from step to step)")
     rebuilds = scene.solver.rebuild_every or scene.solver.rebuild_factor
-    if kind in ("forward", "h") and rebuilds:
+    if kind in ("forward", "h", "learned", "heat") and rebuilds:
         raise SceneSolverConfigError(
             f"{source}: solver.rebuild_every / rebuild_factor with study.kind = {kind!r}: "
             "expected 0 or no value (a hierarchy is rebuilt between the optimiser steps of "
-            "an inversion; a forward solve builds it once for its operator)")
+            "an inversion; a forward solve or a training builds it once for its fixed "
+            "operator)")
     if heat and scene.optimizer.name not in ("adam", "sgd"):
         raise SceneSolverConfigError(
             f"{source}: optimizer.name = {scene.optimizer.name!r} with study.kind = 'heat': "

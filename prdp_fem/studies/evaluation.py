@@ -26,6 +26,7 @@ from ..learning.evaluation import (
     write_rollouts,
     write_source_predictions,
 )
+from ..scene.build import training_preconditioner
 from ..scene.spec import Scene
 from .runner import MANIFEST, StudyError, run_checkpoints, run_file_name, shared_setups
 
@@ -88,7 +89,7 @@ def _evaluate_run(kind: str, name: str, variant: Scene, setup, checkpoints, out:
     model = setup.network.replace_params(params)
     target = out / EVALUATION / run_file_name(name)
     options = dict(rtol=variant.refinement.validation_rtol,
-                   preconditioner=variant.solver.preconditioner)
+                   preconditioner=training_preconditioner(variant, setup.problem))
     if kind == "learned":
         evaluation = evaluate_learned(setup.problem, model, setup.test_set, **options)
         write_source_predictions(target, setup.disc, setup.test_set, evaluation, samples)
@@ -98,5 +99,6 @@ def _evaluate_run(kind: str, name: str, variant: Scene, setup, checkpoints, out:
         write_rollouts(target, setup.disc, setup.test_set, evaluation, variant.heat.dt,
                        samples)
     metrics = {"run": name, "epoch": epoch, **evaluation.metrics()}
+    target.mkdir(parents=True, exist_ok=True)  # no predictions written (samples = 0): no folder yet
     write_text_atomic(target / "metrics.json", json.dumps(metrics, indent=2) + "\n")
     return {k: v for k, v in metrics.items() if not isinstance(v, list)}

@@ -351,7 +351,8 @@ def _run_learned(name, variant: Scene, attempt, log, progress, out: Path, setups
     setup = setups(variant)
     train(setup.problem, setup.network, setup.train_set, setup.validation_set,
           test_set=setup.test_set, checkpoints=run_checkpoints(out, name, variant, setup.split),
-          callback=_epoch_logger(name, attempt, log, progress), **train_options(variant))
+          callback=_epoch_logger(name, attempt, log, progress),
+          **train_options(variant, setup.problem))
 
 
 def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -> None:
@@ -361,7 +362,7 @@ def _run_heat(name, variant: Scene, attempt, log, progress, out: Path, setups) -
                test_set=setup.test_set, checkpoints=run_checkpoints(out, name, variant,
                                                                     setup.split),
                callback=_epoch_logger(name, attempt, log, progress),
-               **heat_train_options(variant))
+               **heat_train_options(variant, setup.problem))
 
 
 def _run_forward(name, variant: Scene, attempt, log, progress, out: Path, _setups) -> None:
