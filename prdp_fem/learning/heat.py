@@ -25,10 +25,19 @@ is then applied as it is (:func:`correction` with ``homogeneous=False``).
 Learned time steppers (List, Chen, Bali, Thuerey, arXiv 2402.12971). The reference is a *fine*
 solver (:func:`reference_trajectories`: ``substeps`` direct solves of step ``dt / substeps`` per
 step ``dt``); the *coarse* solver :math:`S_K` is one step of size ``dt`` with ``K`` PCG
-iterations. Two setups of a stepper :math:`G`:
+iterations. Three setups of a stepper :math:`G`:
 
 * ``"correction"``: :math:`G(u) = S_K(u) + N_\theta(S_K(u))` (solver plus network);
-* ``"prediction"``: :math:`G(u) = u + N_\theta(u)` (network alone; no solver).
+* ``"prediction"``: :math:`G(u) = u + N_\theta(u)` (network alone; no solver);
+* ``"mixed"``: the prediction stepper (an emulator, deployed alone) trained *through the
+  solver* in a mixed chain, as the PRDP paper's heat emulators are: over a window the network
+  takes the first step, :math:`s_1 = u^*_t + N_\theta(u^*_t)`, and the *fine* solver the
+  others, :math:`s_{k+1} = F_K(s_k)`, with :math:`F_K` the reference's ``substeps`` implicit
+  steps of ``dt / substeps``, each a PCG solve of ``K`` iterations (or to ``rtol``) warm-started
+  from its input. The gradient flows through the solver (mode ``"wig"`` only), so the later
+  terms of the loss teach the network where the physics takes its step. Validation and test
+  rollouts are the emulator's alone: they run no solver, and PRDP's signal costs no CG
+  iteration.
 
 :math:`N_\theta` is the MLP of :mod:`prdp_fem.learning.learned`, applied *homogeneously*:
 :math:`N_\theta(u) = \rho(u)\, \mathrm{MLP}(u / \rho(u))` with :math:`\rho` the RMS of ``u``
@@ -125,7 +134,7 @@ __all__ = [
     "windows",
 ]
 
-SETUPS = ("correction", "prediction")
+SETUPS = ("correction", "prediction", "mixed")
 MODES = ("one", "nog", "wig")
 
 # a heat step: (problem, u, solver) -> (u_next, iterations); tests pass stand-ins
@@ -330,7 +339,7 @@ def stepper(setup: str, network: Model | Network | None, problem: HeatProblem, u
     at the solver's input and output (NOG: the solver is never differentiated)."""
     _check_choice(setup, "setup", SETUPS)
     homogeneous = not problem.reaction  # the heat step is linear in u (f = 0, g = 0)
-    if setup == "prediction":
+    if setup in ("prediction", "mixed"):  # mixed: trained through the solver, deployed alone
         return u + correction(network, u, homogeneous=homogeneous), jnp.zeros((), jnp.int32)
     if stop_solver:
         u = jax.lax.stop_gradient(u)
@@ -347,10 +356,13 @@ def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> ja
 
 
 def window_loss(network: Model | Network, problem: HeatProblem, window: jax.Array, solver, *,
-                setup: str, mode: str, step: Step = heat_step):
+                setup: str, mode: str, step: Step = heat_step, substeps: int = 1):
     """The loss of one window ``(m + 1, n_free)`` (see the module docstring) and its CG
-    iterations."""
+    iterations. ``substeps``: steps of ``problem`` per solver step of the mixed chain."""
     _check_choice(mode, "mode", MODES)
+    if setup == "mixed":
+        _check_mixed(mode, window.shape[0] - 1)
+        return _chain_loss(network, problem, window, solver, substeps, step)
     m = window.shape[0] - 1
     s, total, iterations = window[0], 0.0, jnp.zeros((), jnp.int32)
     for k in range(m):
@@ -364,20 +376,46 @@ def window_loss(network: Model | Network, problem: HeatProblem, window: jax.Arra
     return total / m, iterations
 
 
+def _check_mixed(mode: str, unroll: int) -> None:
+    if mode != "wig":
+        raise SolverConfigError(f"mode={mode!r} with setup='mixed': expected 'wig' (the mixed "
+                                "chain trains the network through the solver's steps)")
+    if unroll < 2:
+        raise SolverConfigError(f"unroll={unroll} with setup='mixed': expected at least 2 (a "
+                                "network step and a solver step)")
+
+
+def _chain_loss(network, problem: HeatProblem, window: jax.Array, solver, substeps: int,
+                step: Step):
+    """The mixed chain over ``window``: the network's step from ``window[0]``, then solver
+    steps of ``substeps`` solves each, differentiated; the loss of the module docstring and
+    the CG iterations."""
+    m = window.shape[0] - 1
+    s, _ = stepper("prediction", network, problem, window[0], solver, step=step)
+    total, iterations = _relative_error2(problem, s, window[1]), jnp.zeros((), jnp.int32)
+    for k in range(1, m):
+        for _ in range(substeps):
+            s, its = step(problem, s, solver)
+            iterations = iterations + its
+        total = total + _relative_error2(problem, s, window[k + 1])
+    return total / m, iterations
+
+
 def batch_loss(network: Model | Network, problem: HeatProblem, batch: jax.Array, solver, *,
-               setup: str, mode: str, step: Step = heat_step):
+               setup: str, mode: str, step: Step = heat_step, substeps: int = 1):
     """Mean :func:`window_loss` over ``batch`` (``(B, m + 1, n_free)``, solves under ``vmap``)
     and the total CG iterations of its forward solves."""
     losses, iterations = jax.vmap(
         lambda w: window_loss(network, problem, w, solver, setup=setup, mode=mode,
-                              step=step))(batch)
+                              step=step, substeps=substeps))(batch)
     return jnp.mean(losses), jnp.sum(iterations)
 
 
 def rollout(network: Model | Network | None, problem: HeatProblem, u0: jax.Array, steps: int,
             solver, *, setup: str = "correction", step: Step = heat_step):
     """``steps`` steps of ``G`` from ``u0``: the states ``(steps + 1, n_free)`` and the CG
-    iterations. ``network=None`` with ``setup="correction"`` is the coarse solver alone."""
+    iterations. ``network=None`` with ``setup="correction"`` is the coarse solver alone; the
+    mixed setup rolls out its emulator alone (as the prediction setup)."""
     def body(u, _):
         u_next, iterations = stepper(setup, network, problem, u, solver, step=step)
         return u_next, (u_next, iterations)
@@ -430,7 +468,7 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
                     hidden: tuple[int, ...] = (128,), seed: int = 0) -> Network:
     """An untrained MLP ``[n_free, *hidden, n_free]`` whose output scale is the spread of its
     targets relative to its (RMS-normalised) inputs over ``train_set``'s one-step pairs: the
-    converged coarse step's error (correction) or the step itself (prediction)."""
+    converged coarse step's error (correction) or the step itself (prediction, mixed)."""
     _check_choice(setup, "setup", SETUPS)
     pairs = windows(train_set, 1)
     u, target = pairs[:, 0], pairs[:, 1]
@@ -446,7 +484,7 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
 
 
 def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn,
-               counted: bool):
+               counted: bool, substeps: int):
     """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so trainings that
     differ only in them run one compiled program (per scan length in unrolled mode).
     ``counted``: ``step_fn`` is :func:`heat_step` and takes the counter."""
@@ -459,7 +497,7 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
 
         def loss_of(params):  # the model's params train; the rest (an MLP's scales) is fixed
             return batch_loss(network.replace_params(params), problem, batch, solver,
-                              setup=setup, mode=mode, step=stepper)
+                              setup=setup, mode=mode, step=stepper, substeps=substeps)
 
         (loss, iterations), grads = jax.value_and_grad(loss_of, has_aux=True)(network.params)
         updates, opt_state = optimizer.update(grads, opt_state, network.params)
@@ -471,14 +509,14 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
 
 
 def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
-                      step, counted) -> SharedCompile:
+                      step, counted, substeps) -> SharedCompile:
     return SharedCompile(_make_step(optimizer, setup, mode, gradient, tolerance_mode,
-                                    preconditioner, step, counted),
+                                    preconditioner, step, counted, substeps),
                          static_argnum=5)
 
 
 #: The compiled step per settings (optimizer object, setup, mode, gradient, tolerance mode,
-#: preconditioner, step function, counted), kept for the process: a study's PRDP and
+#: preconditioner, step function, counted, substeps), kept for the process: a study's PRDP and
 #: converged runs of one mode trace and lower it once (about 0.8 s for the heat scene's
 #: correction step).
 _step_program = kept_programs(_new_step_program)
@@ -489,7 +527,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
           unroll: int = 3, optimizer: optax.GradientTransformation | None = None,
           refinement: Refinement | None = None, epochs: int = 30, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
-          validation_rtol: float = 1e-10, step: Step = heat_step,
+          validation_rtol: float = 1e-10, step: Step = heat_step, substeps: int = 1,
           test_set: Trajectories | None = None, checkpoints: Checkpoints | None = None,
           callback: Callable[[HeatRecord], None] | None = None) -> Training:
     """Train ``network`` (any model, :mod:`prdp_fem.learning.model`, from the free dofs to
@@ -499,6 +537,10 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     once per epoch by ``refinement`` (default :func:`~prdp_fem.inverse.prdp` with ``K0=1, dK=1``,
     the reference's heat schedule) from the validation rollout error. ``step`` replaces
     :func:`heat_step` (a stand-in solver). The prediction setup runs no solver (``K`` = 0).
+    The mixed setup (``mode="wig"``, ``unroll >= 2``) trains through ``problem``'s solves, each
+    solver step of its chain ``substeps`` steps of ``problem`` (pass the reference's fine step,
+    ``dt / substeps``, and its ``substeps``); its validation and test rollouts are the network's
+    alone.
 
     WIG's adjoint solves are tallied on the host (:class:`~prdp_fem.linalg.cg.IterationCounter`;
     ONE and NOG run none). ``test_set``: held-out trajectories whose rollout error (converged
@@ -520,6 +562,14 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     if gradient not in ("implicit", "unrolled"):
         raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
     epochs, batch_size = _count(epochs, "epochs"), _count(batch_size, "batch_size")
+    substeps = _count(substeps, "substeps")
+    if setup == "mixed":
+        _check_mixed(mode, _count(unroll, "unroll"))
+        if getattr(refinement, "monitor", None) == "truncation_gap":
+            raise SolverConfigError("a truncation_gap() controller with setup='mixed': expected "
+                                    "prdp(), fixed(K) or converged(rtol) (the gap is measured "
+                                    "on rollouts that run the solver; a mixed run's rollouts "
+                                    "run the network alone)")
     for name, data in (("train_set", train_set), ("validation_set", validation_set),
                        ("test_set", test_set)):
         if data is None:
@@ -538,14 +588,14 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                                 f"{train_set.steps - unroll + 1} starts)")
     refinement = prdp(K0=1, dK=1) if refinement is None else refinement
     check_training_refinement(refinement, gradient)
-    solves = setup == "correction"
+    solves = setup != "prediction"
     optimizer = optax.adam(1e-3) if optimizer is None else optimizer
     counter = IterationCounter()
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
     key = preconditioner_key(preconditioner)
     step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
-                            step, counted, keep=keeps_program(key))
+                            step, counted, substeps, keep=keeps_program(key))
     validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
                                     preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(

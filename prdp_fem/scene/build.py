@@ -422,7 +422,8 @@ class HeatSetup(NamedTuple):
 
 
 def build_heat(scene: Scene) -> HeatSetup:
-    """The heat stepper of the scene: implicit Euler of ``heat.dt`` with ``[pde]``'s
+    """The heat stepper of the scene: implicit Euler of ``heat.dt`` (the mixed setup:
+    ``heat.dt / heat.substeps``, the reference's step its chain solves) with ``[pde]``'s
     ``kappa``, ``source`` and Dirichlet data; reference trajectories from seeded initial fields
     (train, validation and test, in that order, from one draw); an untrained network
     (:func:`~prdp_fem.learning.heat.initial_network`)."""
@@ -433,7 +434,10 @@ def build_heat(scene: Scene) -> HeatSetup:
     kappa = coefficient(scene, disc)
     source = disc.interpolate(field_function(scene, "pde.source", scene.pde.source,
                                              disc.mesh.dim()))
-    problem = heat.heat_problem(disc, spec.dt, kappa=kappa, source=source,
+    # the mixed setup trains through the reference's own fine step (its chain runs
+    # substeps of it per step): the data's scheme, so a converged chain has no bias
+    problem = heat.heat_problem(disc, spec.dt / spec.substeps if spec.setup == "mixed"
+                                else spec.dt, kappa=kappa, source=source,
                                 reaction=spec.reaction)
     counts = (spec.trajectories, spec.validation_trajectories, spec.test_trajectories)
     initial = heat.random_initial_states(disc, sum(counts), seed=spec.seed, width=spec.width)
@@ -457,7 +461,8 @@ def heat_train_options(scene: Scene, problem: heat.HeatProblem) -> dict[str, Any
                 optimizer=optimizer(scene, updates), refinement=controller(scene),
                 epochs=spec.epochs, batch_size=spec.batch_size, gradient=scene.solver.gradient,
                 preconditioner=training_preconditioner(scene, problem), seed=spec.seed,
-                validation_rtol=scene.refinement.validation_rtol)
+                validation_rtol=scene.refinement.validation_rtol,
+                substeps=spec.substeps if spec.setup == "mixed" else 1)
 
 
 def controller(scene: Scene) -> Refinement:

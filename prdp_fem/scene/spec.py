@@ -43,7 +43,7 @@ takes the default written in the dataclass below):
     a learned heat stepper (:mod:`prdp_fem.learning.heat`, :class:`HeatSpec`): ``dt``,
     ``steps``, ``substeps``, ``trajectories``, ``validation_trajectories``,
     ``test_trajectories``, ``width``, ``hidden``, ``setup`` (correction |
-    prediction), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
+    prediction | mixed), ``mode`` (one | nog | wig), ``unroll``, ``epochs``,
     ``batch_size``, ``seed``, ``checkpoint_every``, ``reaction`` (a Fisher-KPP rate
     ``r``: ``r u (1 - u)`` added, explicitly; 0, the default: the heat equation);
     ``[pde]`` gives ``kappa``, ``source`` and the Dirichlet data, ``[optimizer]`` is adam
@@ -600,9 +600,10 @@ class HeatSpec:
     ``test_trajectories`` (held out, reported) reference trajectories of ``steps`` steps, each
     made of ``substeps`` direct solves of ``dt / substeps``, from seeded initial fields (three
     positive Gaussian bumps of width ``width`` times the mesh diameter). An MLP
-    ``[n_free, *hidden, n_free]`` trained as the ``setup`` stepper (``correction`` or
-    ``prediction``) with ``mode`` (``one``, ``nog``, ``wig``) over windows of ``unroll`` steps,
-    ``epochs`` epochs of mini-batches of ``batch_size`` windows. ``reaction``: the rate ``r`` of
+    ``[n_free, *hidden, n_free]`` trained as the ``setup`` stepper (``correction``,
+    ``prediction`` or ``mixed``: the emulator trained through the fine solver, mode ``wig``)
+    with ``mode`` (``one``, ``nog``, ``wig``) over windows of ``unroll`` steps, ``epochs``
+    epochs of mini-batches of ``batch_size`` windows. ``reaction``: the rate ``r`` of
     a Fisher-KPP reaction ``r u (1 - u)`` (nonlinear; 0: the heat equation).
     """
 
@@ -726,13 +727,13 @@ class Scene:
     def runs(self) -> list[tuple[str, Scene]]:
         """The study's configurations as scenes.
 
-        With no ``[[study.runs]]``: an inverse study (and a heat study of the correction setup)
+        With no ``[[study.runs]]``: an inverse study (and a heat study whose setup solves)
         runs the scene's own configuration and a ``"converged"`` baseline (``rtol = 1e-10``);
         other studies run the scene as it is.
         """
         if not self.study.runs:
             baseline_kind = self.study.kind == "inverse" or (
-                self.study.kind == "heat" and self.heat.setup == "correction")
+                self.study.kind == "heat" and self.heat.setup != "prediction")
             if not baseline_kind or self.refinement.kind == "converged":
                 return [(self.name, self)]
             baseline = _variant(self, {"refinement": {"kind": "converged"}}, "converged")
@@ -1103,13 +1104,20 @@ def _heat(t: _Table) -> HeatSpec:
         t.number("width", d.width, low=0.0, open_low=True),
         tuple(t.get("hidden", list(d.hidden), lambda v: isinstance(v, list) and all(
             _is_int(n) and n >= 1 for n in v), "a list of hidden layer sizes (integers >= 1)")),
-        t.choice("setup", d.setup, ("correction", "prediction")),
+        t.choice("setup", d.setup, ("correction", "prediction", "mixed")),
         t.choice("mode", d.mode, ("one", "nog", "wig")),
         t.get("unroll", d.unroll, lambda v: _is_int(v) and 1 <= v <= steps,
               f"an integer from 1 to heat.steps = {steps}"),
         t.integer("epochs", d.epochs, 1), t.integer("batch_size", d.batch_size, 1),
         t.integer("seed", d.seed, 0), t.integer("checkpoint_every", d.checkpoint_every, 1),
         t.number("reaction", d.reaction, low=0.0))
+    if spec.setup == "mixed" and spec.mode != "wig":
+        raise t.error(f"{t.source}: heat.mode = {spec.mode!r} with heat.setup = 'mixed': "
+                      "expected 'wig' (the mixed chain trains the network through the "
+                      "solver's steps)")
+    if spec.setup == "mixed" and spec.unroll < 2:
+        raise t.error(f"{t.source}: heat.unroll = {spec.unroll} with heat.setup = 'mixed': "
+                      "expected at least 2 (a network step and a solver step)")
     if spec.batch_size > spec.windows:
         raise t.fail("batch_size", f"at most the {spec.windows} training windows (heat."
                      f"trajectories = {spec.trajectories} x {spec.steps - spec.unroll + 1} "
@@ -1215,6 +1223,11 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: refinement.kind = 'gap' with study.kind = {kind!r}: expected a "
             "learned or heat study (the truncation gap is measured on a training's "
             "validation set)")
+    if heat and scene.heat.setup == "mixed" and scene.refinement.kind == "gap":
+        raise SceneSolverConfigError(
+            f"{source}: refinement.kind = 'gap' with heat.setup = 'mixed': expected 'prdp', "
+            "'fixed' or 'converged' (the gap is measured on rollouts that run the solver; a "
+            "mixed run's rollouts run the network alone)")
     if kind != "inverse" and scene.solver.warm_start:
         raise SceneSolverConfigError(
             f"{source}: solver.warm_start = true with study.kind = {kind!r}: expected false "

@@ -1,0 +1,210 @@
+"""The mixed setup: an emulator trained through the fine solver (the PRDP paper's heat chain)."""
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+import scipy.sparse.linalg as spla
+from conftest import small_heat_case
+
+import prdp_fem as pf
+from prdp_fem.errors import SolverConfigError
+from prdp_fem.inverse import converged, prdp, truncation_gap
+from prdp_fem.learning import Model, heat, learned
+from prdp_fem.scene import SceneError, load_scene, parse_scene
+from prdp_fem.scene.build import build_heat, heat_train_options
+from prdp_fem.studies import run_study
+from prdp_fem.studies.evaluation import evaluate_study
+from prdp_fem.studies.runner import ResultsLog
+
+SCENES = Path(__file__).resolve().parent.parent / "examples" / "scenes"
+
+DT, SUBSTEPS = 0.02, 4
+
+
+@pytest.fixture(scope="module")
+def small():
+    """The 25-dof heat case, its reference data (4 substeps of dt / 4) and the fine problem."""
+    disc, _, trajectories, validation = small_heat_case(DT)
+    return disc, heat.heat_problem(disc, DT / SUBSTEPS), trajectories, validation
+
+
+def _exact_increment(params, u):
+    return params @ u
+
+
+def exact_emulator(disc, problem):
+    """The reference's step as a linear model: u + W u with W = F^4 - I, F the fine step's
+    matrix (dense, 25 dofs); homogeneous, as the emulator's scaling assumes."""
+    fine = spla.spsolve(problem.matrix.to_scipy().tocsc(), problem.mass.to_scipy().toarray())
+    step = np.linalg.matrix_power(fine, SUBSTEPS)
+    return Model(_exact_increment, jnp.asarray(step - np.eye(problem.n_free)))
+
+
+def chain_loss(network, problem, batch, solver):
+    return heat.batch_loss(network, problem, batch, solver, setup="mixed", mode="wig",
+                           substeps=SUBSTEPS)
+
+
+def test_the_exact_emulator_has_zero_mixed_loss_only_with_converged_solves(small):
+    """The chain is the reference's own scheme: the exact step (network) followed by converged
+    fine steps reproduces the data to round-off; truncated solves do not (their error is what
+    a truncated run trains against), and a chain of coarse steps of dt would not either."""
+    disc, problem, trajectories, _ = small
+    batch = heat.windows(trajectories, 3)[:8]
+    emulator = exact_emulator(disc, problem)
+    loss, iterations = chain_loss(emulator, problem, batch, pf.ConvergedCG(rtol=1e-13))
+    assert float(loss) < 1e-20 and int(iterations) > 0
+    truncated, few = chain_loss(emulator, problem, batch, pf.TruncatedCG(1))
+    assert float(truncated) > 1e-8 and int(few) == 8 * 2 * SUBSTEPS  # 2 solver steps of 4
+    coarse = heat.heat_problem(disc, DT)
+    wrong = heat.batch_loss(emulator, coarse, batch, pf.ConvergedCG(rtol=1e-13),
+                            setup="mixed", mode="wig")[0]
+    assert float(wrong) > 1e-8
+
+
+@pytest.mark.parametrize("solver", [
+    pytest.param(pf.TruncatedCG(3, gradient="unrolled"), marks=pytest.mark.slow),  # 13 s
+    pf.ConvergedCG(rtol=1e-13)], ids=["unrolled-K3", "converged"])
+def test_the_mixed_gradient_passes_a_taylor_test_and_flows_through_the_solver(small, solver):
+    _, problem, trajectories, _ = small
+    network = learned.mlp_init(jax.random.PRNGKey(0), [problem.n_free, 16, problem.n_free],
+                               output_scale=0.3)
+    batch = heat.windows(trajectories, 3)[:4]
+
+    def loss(layers):
+        return chain_loss(network._replace(layers=layers), problem, batch, solver)[0]
+
+    gradient = jax.jit(jax.grad(loss))(network.layers)
+    result = pf.taylor_test(jax.jit(loss), network.layers, gradient=gradient, h0=1e-2)
+    assert result.passed(), result.rates
+
+    def first_step_only(layers):  # the one-step term alone: what a chain without solver gives
+        net = network._replace(layers=layers)
+        s = jax.vmap(lambda w: heat.stepper("prediction", net, problem, w[0], solver)[0])(batch)
+        e = s - batch[:, 1]
+        return jnp.mean(jax.vmap(lambda x, t: jnp.vdot(x, problem.mass(x))
+                                 / jnp.vdot(t, problem.mass(t)))(e, batch[:, 1])) / 3
+
+    alone = jax.jit(jax.grad(first_step_only))(network.layers)
+    difference = optax.tree.norm(jax.tree_util.tree_map(jnp.subtract, gradient, alone))
+    assert float(difference) > 0.1 * float(optax.tree.norm(gradient))
+
+
+def test_mixed_training_validates_the_emulator_alone_and_prdp_saves_iterations(small):
+    """PRDP and converged mixed runs: the validation rollouts run no solver (the emulator
+    alone, equal to the prediction setup's rollout error), both runs lower it, and the PRDP
+    run's solves cost fewer CG iterations while ending within 2 % of the converged run."""
+    _, problem, trajectories, validation = small
+    network = heat.initial_network(problem, trajectories, "mixed", (32,), seed=0)
+    start = heat.rollout_error(network, problem, validation, None, setup="prediction")[0]
+    options = dict(setup="mixed", mode="wig", unroll=3, optimizer=optax.adam(3e-3),
+                   epochs=30, batch_size=12, substeps=SUBSTEPS, seed=1)
+    runs = {name: heat.train(problem, network, trajectories, validation, refinement=control,
+                             **options)
+            for name, control in (("prdp", prdp(rtol=1e-2, rtol_factor=0.1, rtol_min=1e-10)),
+                                  ("converged", converged(1e-10)))}
+    for training in runs.values():
+        last = training.records[-1]
+        assert last.validation_iterations == 0
+        assert last.validation_error < 0.5 * float(start)
+        again = heat.rollout_error(training.network, problem, validation, None,
+                                   setup="prediction")[0]
+        assert last.validation_error == pytest.approx(float(again), rel=1e-12)
+    truncated, exact = runs["prdp"].records[-1], runs["converged"].records[-1]
+    assert truncated.primal_iterations < 0.7 * exact.primal_iterations
+    assert truncated.adjoint_iterations_total < 0.7 * exact.adjoint_iterations_total
+    assert truncated.adjoint_iterations_total > 0
+    assert abs(truncated.validation_error / exact.validation_error - 1) < 0.02
+
+
+def test_bad_mixed_options_are_refused(small):
+    _, problem, trajectories, validation = small
+    network = heat.initial_network(problem, trajectories, "mixed", (8,))
+    base = dict(setup="mixed", epochs=1, batch_size=4, substeps=SUBSTEPS)
+    with pytest.raises(SolverConfigError, match="mode='nog' with setup='mixed'"):
+        heat.train(problem, network, trajectories, validation, mode="nog", **base)
+    with pytest.raises(SolverConfigError, match="unroll=1 with setup='mixed'"):
+        heat.train(problem, network, trajectories, validation, mode="wig", unroll=1, **base)
+    with pytest.raises(SolverConfigError, match="truncation_gap"):
+        heat.train(problem, network, trajectories, validation, mode="wig",
+                   refinement=truncation_gap(1e-2), **base)
+    with pytest.raises(SolverConfigError, match="substeps=0"):
+        heat.train(problem, network, trajectories, validation, mode="wig",
+                   **{**base, "substeps": 0})
+
+
+# --------------------------------------------------------------------------------------
+# scenes
+# --------------------------------------------------------------------------------------
+
+TINY_MIXED = {
+    "name": "tiny_mixed", "mesh": {"n": 4}, "pde": {"source": 0.0},
+    "heat": {"dt": 0.02, "steps": 4, "substeps": 2, "trajectories": 6,
+             "validation_trajectories": 3, "test_trajectories": 2, "hidden": [8],
+             "setup": "mixed", "mode": "wig", "unroll": 2, "epochs": 3, "batch_size": 6},
+    "refinement": {"kind": "prdp", "rtol": 1e-2, "rtol_min": 1e-10},
+    "optimizer": {"name": "adam", "learning_rate": 3e-3},
+    "study": {"runs": [{"name": "mixed prdp"},
+                       {"name": "mixed converged",
+                        "refinement": {"kind": "converged", "rtol": 1e-10}}]},
+}
+
+
+@pytest.mark.parametrize(("heat_table", "refinement", "match"), [
+    ({"setup": "mixed"}, {}, r"bad.toml: heat.mode = 'nog' with heat.setup = 'mixed': "
+                             r"expected 'wig'"),
+    ({"setup": "mixed", "mode": "wig", "unroll": 1}, {},
+     r"heat.unroll = 1 with heat.setup = 'mixed': expected at least 2"),
+    ({"setup": "mixed", "mode": "wig"}, {"kind": "gap"},
+     r"refinement.kind = 'gap' with heat.setup = 'mixed'"),
+])
+def test_bad_mixed_scenes_name_the_key_and_the_expectation(heat_table, refinement, match):
+    with pytest.raises(SceneError, match=match):
+        parse_scene({"name": "bad", "heat": heat_table, "refinement": refinement},
+                    source="bad.toml")
+
+
+def test_a_mixed_study_trains_through_the_fine_step_pairs_and_evaluates(tmp_path):
+    scene = parse_scene(TINY_MIXED, source="mixed.toml")
+    assert [n for n, _ in parse_scene({"heat": {"setup": "mixed", "mode": "wig"}}).runs()] \
+        == ["converged", "scene"]  # a bare mixed scene gets its converged baseline
+    variant = dict(scene.runs())["mixed prdp"]
+    setup = build_heat(variant)
+    options = heat_train_options(variant, setup.problem)
+    assert float(setup.problem.dt) == pytest.approx(0.01) and options["substeps"] == 2
+    out = tmp_path / "study"
+    result = run_study(scene, out)
+    epochs = [r for r in ResultsLog(out / "results.jsonl").records() if r["type"] == "epoch"]
+    direct = heat.train(setup.problem, setup.network, setup.train_set, setup.validation_set,
+                        test_set=setup.test_set, **options).records
+    mine = [r for r in epochs if r["run"] == "mixed prdp"]
+    np.testing.assert_allclose([r["test_error"] for r in mine],
+                               [r.test_error for r in direct], rtol=1e-9)
+    assert [r["primal_iterations"] for r in mine] == [r.primal_iterations for r in direct]
+    assert all(r["validation_iterations"] == 0 for r in epochs)
+    rows = {row["run"]: row for row in result.summary}
+    assert rows["mixed prdp"]["converged_run"] == "mixed converged"
+    assert rows["mixed prdp"]["cg_iterations"] < rows["mixed converged"]["cg_iterations"]
+    last = {r["run"]: r for r in epochs}
+    evaluated = {row["run"]: row for row in evaluate_study(scene, out, samples=0)}
+    for run in ("mixed prdp", "mixed converged"):  # the emulator alone, from the checkpoint
+        assert evaluated[run]["test_error"] == pytest.approx(last[run]["test_error"],
+                                                             rel=1e-10)
+
+
+def test_the_example_mixed_scene_trains_the_heat_emulators_network_through_the_solver():
+    scene = load_scene(SCENES / "heat_emulator_mixed.toml")
+    emulator = load_scene(SCENES / "heat_emulator.toml")
+    runs = dict(scene.runs())
+    assert {n: (v.heat.setup, v.heat.mode, v.refinement.kind) for n, v in runs.items()} == {
+        "mixed prdp": ("mixed", "wig", "prdp"), "mixed converged": ("mixed", "wig", "converged"),
+        "emulator": ("prediction", "nog", "prdp")}
+    assert scene.mesh == emulator.mesh and scene.pde == emulator.pde
+    for key in ("dt", "steps", "substeps", "trajectories", "validation_trajectories",
+                "test_trajectories", "width", "hidden", "unroll", "epochs", "batch_size"):
+        assert getattr(scene.heat, key) == getattr(emulator.heat, key), key
+    assert scene.refinement == emulator.refinement and scene.optimizer == emulator.optimizer
