@@ -436,9 +436,8 @@ def build_heat(scene: Scene) -> HeatSetup:
                                              disc.mesh.dim()))
     # the mixed setup trains through the reference's own fine step (its chain runs
     # substeps of it per step): the data's scheme, so a converged chain has no bias
-    problem = heat.heat_problem(disc, spec.dt / spec.substeps if spec.setup == "mixed"
-                                else spec.dt, kappa=kappa, source=source,
-                                reaction=spec.reaction)
+    problem = heat.heat_problem(disc, spec.dt / spec.chain_substeps, kappa=kappa,
+                                source=source, reaction=spec.reaction)
     counts = (spec.trajectories, spec.validation_trajectories, spec.test_trajectories)
     initial = heat.random_initial_states(disc, sum(counts), seed=spec.seed, width=spec.width)
     data = heat.reference_trajectories(disc, initial, dt=spec.dt, steps=spec.steps,
@@ -462,7 +461,7 @@ def heat_train_options(scene: Scene, problem: heat.HeatProblem) -> dict[str, Any
                 epochs=spec.epochs, batch_size=spec.batch_size, gradient=scene.solver.gradient,
                 preconditioner=training_preconditioner(scene, problem), seed=spec.seed,
                 validation_rtol=scene.refinement.validation_rtol,
-                substeps=spec.substeps if spec.setup == "mixed" else 1)
+                substeps=spec.chain_substeps)
 
 
 def controller(scene: Scene) -> Refinement:

@@ -629,6 +629,17 @@ class HeatSpec:
         """Training windows of ``unroll + 1`` states."""
         return self.trajectories * (self.steps - self.unroll + 1)
 
+    @property
+    def solves(self) -> bool:
+        """Whether training runs the solver (correction, mixed): what PRDP can refine."""
+        return self.setup != "prediction"
+
+    @property
+    def chain_substeps(self) -> int:
+        """Solves per solver step of the training's chain: the reference's ``substeps`` for
+        the mixed setup (it trains through the fine step), else 1 (one step of ``dt``)."""
+        return self.substeps if self.setup == "mixed" else 1
+
 
 @dataclasses.dataclass(frozen=True)
 class StudySpec:
@@ -733,7 +744,7 @@ class Scene:
         """
         if not self.study.runs:
             baseline_kind = self.study.kind == "inverse" or (
-                self.study.kind == "heat" and self.heat.setup != "prediction")
+                self.study.kind == "heat" and self.heat.solves)
             if not baseline_kind or self.refinement.kind == "converged":
                 return [(self.name, self)]
             baseline = _variant(self, {"refinement": {"kind": "converged"}}, "converged")

@@ -646,7 +646,7 @@ def _heat_summary(scene: Scene, histories: dict[str, History]) -> list[dict]:
         if not len(history):
             continue
         spec, kind = variants[name].heat, variants[name].refinement.kind
-        solves = spec.setup != "prediction"  # correction and mixed train through solves
+        solves = spec.solves
         partner = next((other for other, v in variants.items()
                         if other != name and other in histories and len(histories[other])
                         and v.refinement.kind == "converged" and v.heat.setup == spec.setup
