@@ -1,9 +1,10 @@
 """One linear system over several devices (prdp_fem.linalg.sharding, linalg.halo).
 
 Several devices need JAX started with them (host devices forced by ``XLA_FLAGS``), so those
-checks run in processes of their own: the shipped example on a 2-D and a 3-D mesh file, the
-internals (tests/sharded_checks.py) and two processes joined by ``jax.distributed``. This
-process has one device: the partition's bookkeeping and the refusals are checked here.
+checks run in processes of their own: the shipped example on a 2-D mesh file (its 3-D mesh
+file, the internals in tests/sharded_checks.py and two processes joined by
+``jax.distributed`` are slow-marked). This process has one device: the partition's
+bookkeeping and the refusals are checked here.
 """
 
 import json
@@ -40,9 +41,11 @@ def assert_equal_to_one_device(result: dict) -> None:
     assert result["iterations equal"]
 
 
-def test_sharded_solves_gradients_and_inversion_equal_one_device_on_mesh_files():
-    results = json_lines(str(EXAMPLE), "--refine", "0", "--json")
-    assert [r["mesh"] for r in results] == ["plate_hole.msh", "cube_tet.msh"]
+@pytest.mark.parametrize("mesh", ["plate_hole.msh",
+                                  pytest.param("cube_tet.msh", marks=pytest.mark.slow)])
+def test_sharded_solves_gradients_and_inversion_equal_one_device_on_mesh_files(mesh):
+    results = json_lines(str(EXAMPLE), str(ROOT / "meshes" / mesh), "--refine", "0", "--json")
+    assert [r["mesh"] for r in results] == [mesh]
     for result in results:
         assert result["devices"] == 4 and result["dofs"] > 4 * 16
         assert_equal_to_one_device(result)
