@@ -529,8 +529,22 @@ def test_formula_with_the_wrong_number_of_arguments_is_refused_at_load(tmp_path,
         np.testing.assert_array_equal(x, [[0.1, 0.2], [0.3, 0.4]])
 
 
+def _bare_packages(*names: str) -> str:
+    """Source that makes ``names`` bare packages of this checkout in a child process: it
+    imports the one module it needs without their ``__init__`` (which imports JAX and the
+    finite-element stack, seconds of a child's run)."""
+    lines = ["import sys, types"]
+    for name in names:
+        path = str(ROOT.joinpath(*name.split(".")))
+        lines += [f"sys.modules[{name!r}] = types.ModuleType({name!r})",
+                  f"sys.modules[{name!r}].__path__ = [{path!r}]"]
+    return "\n".join(lines) + "\n"
+
+
 def test_huge_integer_powers_are_evaluated_as_floats_not_for_ever():
-    code = ("from prdp_fem.scene.expressions import ExpressionError, compile_field\n"
+    # in a child process, which a hang cannot outlive
+    code = (_bare_packages("prdp_fem", "prdp_fem.scene") +
+            "from prdp_fem.scene.expressions import ExpressionError, compile_field\n"
             "import numpy as np\n"
             "try:\n"
             "    compile_field('10**10**10 + x', where='f')(np.zeros((2, 3)))\n"

@@ -80,9 +80,35 @@ def mother16():
     return problem, optimum, relative_l2(problem, optimum)
 
 
-def test_reduced_cg_converges_to_the_kkt_optimum(mother16):
-    problem, optimum, optimum_error = mother16
-    result = reduced_cg(problem, refinement=converged(1e-12), iterations=200, rtol=1e-10)
+def keep_iterate(step: int, fields: dict):
+    """A ``reduced_cg`` callback that keeps the field after outer iteration ``step`` in
+    ``fields`` and never stops the run: a shorter run's result, without compiling one."""
+    def callback(record, field):
+        if record.step == step:
+            fields[step] = field
+        return False
+    return callback
+
+
+@pytest.fixture(scope="module")
+def converged16(mother16):
+    """``(result, fields)``: Jacobi-preconditioned converged inner solves to the optimum, and
+    its iterate after 3 outer iterations."""
+    fields = {}
+    result = reduced_cg(mother16[0], refinement=converged(1e-12), iterations=200, rtol=1e-10,
+                        callback=keep_iterate(3, fields))
+    return result, fields
+
+
+@pytest.fixture(scope="module")
+def early16(mother16):
+    """The mother solve stopped at the optimum's error (one outer step)."""
+    return solve_mother(16, target=mother16[2], solver="reduced")
+
+
+def test_reduced_cg_converges_to_the_kkt_optimum(mother16, converged16):
+    _, optimum, optimum_error = mother16
+    result = converged16[0]
     assert result.residual_norm <= 1e-10 * result.initial_residual_norm
     assert np.linalg.norm(result.field - optimum) <= 1e-7 * np.linalg.norm(optimum)
     assert result.history[-1].parameter_error == pytest.approx(optimum_error, rel=1e-6)
@@ -111,24 +137,24 @@ def test_reduced_cg_scales_with_its_data_to_the_extremes(mother16):
                                                              rel=1e-10)
 
 
-def test_reduced_cg_with_an_amg_cycle_reaches_the_same_optimum(mother16):
+def test_reduced_cg_with_an_amg_cycle_reaches_the_same_optimum(mother16, converged16):
     """The JAX AMG cycle is an argument of the compiled gradient (not a constant in it)."""
     problem, optimum, _ = mother16
+    jacobi, jacobi_fields = converged16
     cycle = pf.amg_preconditioner(problem.system.operator(jnp.asarray(problem.known)))
+    fields = {}
     result = reduced_cg(problem, refinement=converged(1e-12), iterations=200, rtol=1e-10,
-                        preconditioner=cycle)
+                        preconditioner=cycle, callback=keep_iterate(3, fields))
     assert np.linalg.norm(result.field - optimum) <= 1e-7 * np.linalg.norm(optimum)
-    jacobi = reduced_cg(problem, refinement=converged(1e-12), iterations=3)
-    with_amg = reduced_cg(problem, refinement=converged(1e-12), iterations=3,
-                          preconditioner=cycle)
     # converged inner solves: the same outer iterates, with fewer inner iterations
-    np.testing.assert_allclose(with_amg.field, jacobi.field, rtol=1e-8, atol=1e-12)
-    assert with_amg.history[-1].primal_iterations < jacobi.history[-1].primal_iterations
+    np.testing.assert_allclose(fields[3], jacobi_fields[3], rtol=1e-8, atol=1e-12)
+    assert result.history[2].step == jacobi.history[2].step == 3
+    assert result.history[2].primal_iterations < jacobi.history[2].primal_iterations
 
 
-def test_mother_solve_reaches_the_discretisation_error_in_one_step(mother16):
+def test_mother_solve_reaches_the_discretisation_error_in_one_step(mother16, early16):
     _, _, optimum_error = mother16
-    solve = solve_mother(16, target=optimum_error, solver="reduced")
+    solve = early16
     assert solve.error <= optimum_error
     assert solve.outer_iterations == 1
     # K0 = 5 primal iterations of the Hessian product (the solve at f = 0 has b = 0), 2 x 5
@@ -294,7 +320,7 @@ def test_a_childs_exit_is_timed_from_its_last_print(monkeypatch):
     assert 0.4 <= shutdown <= whole
 
 
-def test_the_race_s_goals_and_its_target_the_discrete_optimum(mother16):
+def test_the_race_s_goals_and_its_target_the_discrete_optimum(mother16, early16):
     """The race is to the discrete optimum (a sparse LU of the KKT system here), not to an
     iterate passing an error on its way: a solve stops within 1 % of the optimum's error of
     the optimum itself."""
@@ -307,8 +333,7 @@ def test_the_race_s_goals_and_its_target_the_discrete_optimum(mother16):
     assert abs(solve.error - optimum_error) <= 0.01 * optimum_error
     assert solve.target == pytest.approx(TARGET_FACTOR * optimum_error, rel=1e-8)
     # the early-stopped iterate (one outer step) passes below the optimum's error: not a race
-    early = solve_mother(16, target=optimum_error, solver="reduced")
-    assert early.outer_iterations == 1 < solve.outer_iterations
+    assert early16.outer_iterations == 1 < solve.outer_iterations
     # the race's solver: MINRES on the KKT system, stopped by the same test, compiling nothing
     kkt = solve_mother(16)
     assert kkt.solver == "kkt" and abs(kkt.error - optimum_error) <= 0.01 * optimum_error

@@ -56,6 +56,7 @@ def test_mesh_report(capsys):
     assert "cell_type: triangle" in out
 
 
+@pytest.mark.slow  # test_bench's bench cg test checks the same table, dofs and nnz included
 def test_bench_cg_reports_the_operator(capsys):
     assert main(["bench", "cg", "--sides", "16", "--iterations", "5", "--repeats", "1"]) == 0
     row = capsys.readouterr().out.strip().splitlines()[-1].split()

@@ -1,6 +1,9 @@
-"""The prdp-fem commands through subprocesses: outputs, exit codes 0 / 2 / 130, kill and resume."""
+"""The prdp-fem commands: outputs, exit codes 0 / 2 / 130, kill and resume (in a fresh process
+where the test needs one: killed, interrupted, or exiting through the program)."""
 
+import contextlib
 import csv
+import io
 import json
 import os
 import signal
@@ -33,6 +36,15 @@ def cli(*args, cwd=None, timeout=300):
                           capture_output=True, text=True, timeout=timeout, env=ENV)
 
 
+def in_process(*args) -> subprocess.CompletedProcess:
+    """What ``cli(*args)`` gives, by main() in this process (its imports and the programs it
+    compiled are this process's: a second study of a scene compiles nothing new)."""
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in args])
+    return subprocess.CompletedProcess(args, code, out.getvalue(), err.getvalue())
+
+
 def start(*args, cwd=None):
     return subprocess.Popen([sys.executable, "-m", "prdp_fem.cli.main", *map(str, args)], cwd=cwd,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
@@ -47,12 +59,12 @@ def scene(tmp_path):
 
 @pytest.fixture(scope="module")
 def finished_study(tmp_path_factory):
-    """``(scene, out, process)``: the small study run to the end once, by the command (its
+    """``(scene, out, done)``: the small study run to the end once, by the command's main (its
     outputs are read, never written, by the tests that share it)."""
     root = tmp_path_factory.mktemp("finished")
     path = root / "small.toml"
     path.write_text(SMALL.replace("STEPS", "12"))
-    return path, root / "out", cli("study", path, "--out", root / "out")
+    return path, root / "out", in_process("study", path, "--out", root / "out")
 
 
 def summary(directory: Path) -> list[dict]:
@@ -95,7 +107,7 @@ def test_study_writes_every_output_and_they_parse(finished_study):
     else:
         assert "did not settle within +-1 %" in headline and "no saving" in headline
     # nothing is overwritten: a second study into the same directory is refused
-    again = cli("study", scene, "--out", out)
+    again = in_process("study", scene, "--out", out)
     assert again.returncode == 2 and "pass --resume" in again.stderr
     assert again.stderr.count("\n") == 1 and "Traceback" not in again.stderr
     assert summary(out) == rows
@@ -117,7 +129,7 @@ def test_killed_study_resumes_to_the_same_summary(finished_study, tmp_path):
     lines = results.read_text().splitlines()
     finished = [json.loads(x)["run"] for x in lines if '"type": "done"' in x]
     assert 1 <= len(finished) < 3, "the kill should land mid-study"
-    resumed = cli("study", scene, "--out", out, "--resume")
+    resumed = in_process("study", scene, "--out", out, "--resume")
     assert resumed.returncode == 0, resumed.stderr
     assert summary(out) == summary(reference_out)
     records = [json.loads(x) for x in results.read_text().splitlines() if x.startswith("{")]
@@ -231,7 +243,7 @@ def test_bad_input_through_the_program_is_one_line_and_exit_2(tmp_path):
 
 def test_solve_a_bare_mesh_file_writes_the_solution(tmp_path):
     out = tmp_path / "u.vtu"
-    done = cli("solve", ROOT / "meshes" / "plate_hole.msh", "--out", out, "--reference")
+    done = in_process("solve", ROOT / "meshes" / "plate_hole.msh", "--out", out, "--reference")
     assert done.returncode == 0, done.stderr
     error = float(done.stdout.split("relative l2 error against pyamg (rtol 1e-12): ")[1].split()[0])
     assert error < 1e-8
@@ -281,7 +293,7 @@ def test_progress_is_quiet_when_not_a_terminal(scene, tmp_path):
 
 
 def test_invert_a_builtin_scene_in_3d(tmp_path):
-    done = cli("invert", "cube", "--out", tmp_path / "cube", "--steps", "5")
+    done = in_process("invert", "cube", "--out", tmp_path / "cube", "--steps", "5")
     assert done.returncode == 0, done.stderr
     field = meshio.read(tmp_path / "cube" / "fields" / "cube.vtu")
     assert field.cells[0].type == "tetra"

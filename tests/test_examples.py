@@ -71,6 +71,7 @@ def test_coefficient_recovery_errors_are_pinned(load_example):
     assert _converged_error(on_mesh_file, 100) < 0.06  # measured 0.053 (60 sensors, 1 %)
 
 
+@pytest.mark.slow  # 5 s; test_amg's and test_scene's AMG inversions rebuild by default
 def test_amg_rebuild_example_pins_iterations_and_rebuilds(load_example):
     histories = load_example("amg_rebuild").run(n=16, steps=12)
     last = {name: history[-1] for name, history in histories.items()}
@@ -131,6 +132,7 @@ def test_bayesian_coefficient_posterior_is_pinned(load_example, tmp_path):
     assert (tmp_path / "posterior.vtu").exists()
 
 
+@pytest.mark.slow  # 5 s; test_kkt checks the KKT solve's optimum, V-cycles and mesh independence
 def test_kkt_source_example_is_mesh_independent_and_reaches_the_optimum(load_example):
     rows = load_example("kkt_source").main(["16", "32"])
     iterations = [row["kkt_iterations"] for row in rows]

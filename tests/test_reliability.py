@@ -33,8 +33,8 @@ def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path, capsys):
     line naming the directory and this pid, and writes nothing there. (flock locks belong to
     open files, not processes: the same command run in this process is refused alike.)"""
     from prdp_fem.cli.main import main
-    scene = tmp_path / "small.toml"
-    scene.write_text(SMALL_STUDY.replace("STEPS", "3"))
+    scene = tmp_path / "small.toml"  # a one-solve forward study: the lock is the same for all
+    scene.write_text('name = "small"\n[mesh]\nn = 4\n[solver]\niterations = [1]\n')
     out = tmp_path / "out"
     out.mkdir()
     # a bench prdp run to resume there, with the options the command below gives
@@ -58,8 +58,13 @@ def test_a_second_writer_is_refused_with_the_holders_pid(tmp_path, capsys):
 
 
 def test_the_lock_is_released_when_its_holder_is_killed(tmp_path):
+    # the lock's module alone: a bare package, not the __init__ that imports JAX (seconds)
+    package = str(ROOT / "prdp_fem")
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import sys, time; from prdp_fem._lock import directory_lock\n"
+        [sys.executable, "-c", "import sys, time, types\n"
+         "sys.modules['prdp_fem'] = types.ModuleType('prdp_fem')\n"
+         f"sys.modules['prdp_fem'].__path__ = [{package!r}]\n"
+         "from prdp_fem._lock import directory_lock\n"
          f"with directory_lock({str(tmp_path)!r}):\n print('held', flush=True); time.sleep(60)"],
         stdout=subprocess.PIPE, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:

@@ -21,14 +21,37 @@ from prdp_fem.studies.runner import ResultsLog
 
 
 @pytest.fixture
+def no_amg(monkeypatch):
+    """pyamg's hierarchy setup (used by every reference solve) raises if called."""
+    import pyamg
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("an AMG hierarchy was built")
+
+    monkeypatch.setattr(pyamg, "smoothed_aggregation_solver", forbidden)
+
+
+@pytest.fixture
+def no_kappa_map(monkeypatch):
+    """Building the map kappa -> A (Discretization.system, stiffness_matrix) raises."""
+    from prdp_fem.fem import discretization
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the map kappa -> A was built")
+
+    monkeypatch.setattr(discretization, "_assembly_maps", forbidden)
+
+
+@pytest.fixture
 def tiny(tmp_path):
     path = tmp_path / "tiny.toml"
     path.write_text(SMALL_STUDY.replace("STEPS", "12"))
     return load_scene(path)
 
 
-def test_inverse_study_records_every_step_and_matches_the_scripting_api(tiny, tmp_path):
-    result = run_study(tiny, tmp_path / "out")
+def test_inverse_study_records_every_step_and_matches_the_scripting_api(tiny, tmp_path,
+                                                                        no_amg):
+    result = run_study(tiny, tmp_path / "out")  # Jacobi runs: no AMG hierarchy is built
     records = ResultsLog(tmp_path / "out" / "results.jsonl").records()
     steps = [r for r in records if r["type"] == "step"]
     assert [r["run"] for r in records if r["type"] == "done"] == ["converged", "fixed K=3",
@@ -140,11 +163,12 @@ def test_h_study_measures_the_p1_and_p2_rates(tmp_path):
     assert all(r["algebraic_error"] < 1e-9 for r in rows)
 
 
-def test_the_built_in_h_study_keeps_p2_s_rate_with_a_variable_kappa(tmp_path):
+def test_the_built_in_h_study_keeps_p2_s_rate_with_a_variable_kappa(tmp_path, no_kappa_map):
     """poisson_h (kappa = 1 + x^2 y): the coefficient is assembled at the quadrature points,
-    so P2 converges at L2 rate 3 and P1 at 2 (a P1-interpolated kappa held P2 to 2)."""
+    so P2 converges at L2 rate 3 and P1 at 2 (a P1-interpolated kappa held P2 to 2). An
+    h-study never changes kappa: it assembles at it and builds no map kappa -> A."""
     table = tomllib.loads(builtin_scene_path("poisson_h").read_text())
-    table["study"]["levels"] = [4, 8, 16, 32]
+    table["study"]["levels"] = [16, 32]  # the rate is the last pair's
     scene = parse_scene(table)
     rows = run_study(scene, tmp_path / "h").summary
     rates = {e: [r["rate"] for r in rows if r["element"] == e][-1] for e in ("P1", "P2")}
@@ -174,8 +198,10 @@ def test_h_study_needs_an_exact_solution(tmp_path):
         run_study(parse_scene({"study": {"kind": "h"}}), tmp_path / "h")
 
 
-def test_forward_study_errors_fall_with_K(tmp_path):
-    scene = parse_scene({"mesh": {"n": 16}, "solver": {"iterations": [0, 10, 400]},
+def test_forward_study_errors_fall_with_K(tmp_path, no_kappa_map):
+    """A variable kappa, assembled at it: a forward study builds no map kappa -> A."""
+    scene = parse_scene({"mesh": {"n": 16}, "pde": {"kappa": "1 + x"},
+                         "solver": {"iterations": [0, 10, 400]},
                          "study": {"runs": [{"name": "jacobi"},
                                             {"name": "identity",
                                              "solver": {"preconditioner": "identity"}}]}})
