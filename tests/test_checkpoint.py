@@ -14,6 +14,9 @@ from prdp_fem.errors import CheckpointError, ShapeError
 from prdp_fem.inverse import prdp
 from prdp_fem.learning import Checkpoints, heat, learned, load_params, read_metadata
 
+# one object: the trainings of equal settings below share one compiled step
+ADAM = optax.adam(3e-3)
+
 # refines at every other epoch: the controller's state is part of what resumes
 EAGER_PRDP = prdp(K0=2, dK=2, tau_step=0.01, ema_window=1, delta=2, initial_checkpoint=100.0)
 
@@ -57,7 +60,7 @@ def leaves_equal(a, b) -> bool:
                zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
 
 
-@pytest.mark.parametrize("optimizer, batch_size", [(optax.adam(3e-3), 4), (optax.lbfgs(), 12)],
+@pytest.mark.parametrize("optimizer, batch_size", [(ADAM, 4), (optax.lbfgs(), 12)],
                          ids=["adam", "lbfgs"])
 def test_resumed_learned_training_equals_an_uninterrupted_one(inverse, tmp_path, optimizer,
                                                               batch_size):
@@ -87,17 +90,30 @@ def test_resumed_learned_training_equals_an_uninterrupted_one(inverse, tmp_path,
     assert epoch == 7 and leaves_equal(params, whole.network.params)
 
 
-def heat_whole_and_resumed(tmp_path, **options):
-    """A small heat training run whole, and stopped after epoch 4 of 5 (checkpoints every 3)
-    then resumed: both runs' trainings."""
+@pytest.fixture(scope="module")
+def heat_case():
+    """A 4x4 heat problem, 8 training, 2 validation and 2 test trajectories of 4 steps and
+    an untrained network: (problem, train_set, validation_set, test_set, network)."""
     disc = pf.discretize(pf.unit_square(4), dirichlet=0.0)
     problem = heat.heat_problem(disc, 0.02)
     data = heat.reference_trajectories(disc, heat.random_initial_states(disc, 12, seed=0),
                                        dt=0.02, steps=4, substeps=2)
-    train_set, validation_set = data.take(np.arange(8)), data.take(np.arange(8, 10))
-    network = heat.initial_network(problem, train_set, "correction", (16,))
+    train_set = data.take(np.arange(8))
+    # the scales as float64 arrays, as a trained network holds them: a gap-fed training
+    # validates the untrained network before its first step, and Python-float scales would
+    # compile its validation passes a second time for the trained one
+    network = jax.tree.map(np.asarray, heat.initial_network(problem, train_set, "correction",
+                                                            (16,)))
+    return (problem, train_set, data.take(np.arange(8, 10)), data.take(np.arange(10, 12)),
+            network)
+
+
+def heat_whole_and_resumed(heat_case, tmp_path, **options):
+    """A small heat training run whole, and stopped after epoch 4 of 5 (checkpoints every 3)
+    then resumed: both runs' trainings."""
+    problem, train_set, validation_set, test_set, network = heat_case
     options = dict(setup="correction", unroll=2, epochs=5, batch_size=8,
-                   optimizer=optax.adam(1e-3), test_set=data.take(np.arange(10, 12)), **options)
+                   optimizer=optax.adam(1e-3), test_set=test_set, **options)
     whole = heat.train(problem, network, train_set, validation_set, **options)
     with pytest.raises(Stop):
         heat.train(problem, network, train_set, validation_set, callback=stop_after(4, []),
@@ -109,25 +125,27 @@ def heat_whole_and_resumed(tmp_path, **options):
     return whole, resumed
 
 
-def test_heat_training_resumes_bit_for_bit(tmp_path):
-    whole, resumed = heat_whole_and_resumed(tmp_path, mode="wig", refinement=EAGER_PRDP)
+def test_heat_training_resumes_bit_for_bit(heat_case, tmp_path):
+    whole, resumed = heat_whole_and_resumed(heat_case, tmp_path, mode="wig",
+                                            refinement=EAGER_PRDP)
     assert len({r.iterations for r in whole.records}) > 1
     assert resumed.records[-1].adjoint_iterations_total == \
         whole.records[-1].adjoint_iterations_total > 0
 
 
-def test_a_gap_refined_heat_training_resumes_bit_for_bit(tmp_path):
+def test_a_gap_refined_heat_training_resumes_bit_for_bit(heat_case, tmp_path):
     """The first level is settled once, before epoch 1; a resumed run's tolerances, gaps and
     validation tally are the uninterrupted run's."""
     whole, _ = heat_whole_and_resumed(
-        tmp_path, mode="nog", refinement=pf.truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-9))
+        heat_case, tmp_path, mode="nog",
+        refinement=pf.truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-9))
     assert whole.records[0].rtol < 0.3  # settled before epoch 1
     assert all(0 <= r.truncation_gap <= 1e-4 for r in whole.records)
 
 
 def test_checkpoints_of_another_training_are_refused(inverse, tmp_path):
     problem, network, train_set, validation_set, _ = inverse
-    options = dict(optimizer=optax.adam(3e-3), epochs=2, batch_size=4)
+    options = dict(optimizer=ADAM, epochs=2, batch_size=4)
     learned.train(problem, network, train_set, validation_set,
                   checkpoints=Checkpoints(tmp_path, every=1, metadata={"scene": "a"}), **options)
     with pytest.raises(CheckpointError, match="holds checkpoints already"):

@@ -2,6 +2,8 @@
 ONE / NOG / WIG training modes (NOG provably never differentiates the solver, WIG's gradient
 passes a Taylor test), the exact iteration tally and bad options."""
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -27,8 +29,19 @@ def small():
 
 
 def network_for(problem, hidden=32, seed=0, output_scale=0.05):
-    return learned.mlp_init(jax.random.PRNGKey(seed), [problem.n_free, hidden, problem.n_free],
-                            output_scale=output_scale)
+    """An untrained MLP whose scales are float64 arrays, as a trained network holds them (a
+    program compiled for one serves the other; Python-float scales compile it anew)."""
+    return jax.tree.map(np.asarray, learned.mlp_init(
+        jax.random.PRNGKey(seed), [problem.n_free, hidden, problem.n_free],
+        output_scale=output_scale))
+
+
+@partial(jax.jit, static_argnames="setup")
+def converged_rollout_error(network, problem, trajectories, setup="correction"):
+    """The rollout error and iterations of converged solves (the trainer's validation), one
+    program per shape (run op by op, every rollout would compile its scan anew)."""
+    return heat.rollout_error(network, problem, trajectories,
+                              pf.ConvergedCG(rtol=1e-10, max_iterations=100_000), setup=setup)
 
 
 # --------------------------------------------------------------------------------------
@@ -156,18 +169,19 @@ def vjp_raising_step(problem, u, solver):
     return step(problem, u)
 
 
-def loss_gradient(problem, batch, mode, step):
+def loss_gradients(problem, batch, modes, step):
+    """The loss gradient of each mode, all in one program."""
     network, solver = network_for(problem), pf.TruncatedCG(3, gradient="implicit")
-    return jax.jit(jax.grad(lambda net: heat.batch_loss(
-        net, problem, batch, solver, setup="correction", mode=mode, step=step)[0]))(network)
+    return jax.jit(lambda net: {mode: jax.grad(lambda net, mode=mode: heat.batch_loss(
+        net, problem, batch, solver, setup="correction", mode=mode, step=step)[0])(net)
+        for mode in modes})(network)
 
 
 @pytest.fixture(scope="module")
 def real_gradients(small):
     _, problem, trajectories, _ = small
     batch = heat.windows(trajectories, 2)[:6]
-    return batch, {mode: loss_gradient(problem, batch, mode, heat.heat_step)
-                   for mode in ("nog", "one")}
+    return batch, loss_gradients(problem, batch, ("nog", "one"), heat.heat_step)
 
 
 @pytest.mark.parametrize("stand_in", [jvp_raising_step, vjp_raising_step])
@@ -177,17 +191,19 @@ def test_nog_and_one_never_differentiate_the_solver_and_wig_does(small, real_gra
     one (bit for bit), and makes WIG raise: the stand-in has teeth."""
     problem = small[1]
     batch, real = real_gradients
+    standin = loss_gradients(problem, batch, ("nog", "one"), stand_in)
     for mode in ("nog", "one"):
-        standin = loss_gradient(problem, batch, mode, stand_in)
         for a, b in zip(jax.tree_util.tree_leaves(real[mode]),
-                        jax.tree_util.tree_leaves(standin), strict=True):
+                        jax.tree_util.tree_leaves(standin[mode]), strict=True):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(SolverDifferentiated):
-        loss_gradient(problem, batch, "wig", stand_in)
+        loss_gradients(problem, batch, ("wig",), stand_in)
 
 
-@pytest.mark.parametrize("solver", [pf.TruncatedCG(3, gradient="unrolled"),
-                                    pf.ConvergedCG(rtol=1e-13)], ids=["unrolled-K3", "converged"])
+@pytest.mark.parametrize("solver", [
+    # test_reaction's Taylor test differentiates WIG through unrolled truncated solves
+    pytest.param(pf.TruncatedCG(3, gradient="unrolled"), marks=pytest.mark.slow),
+    pf.ConvergedCG(rtol=1e-13)], ids=["unrolled-K3", "converged"])
 def test_wig_gradient_over_a_two_step_unroll_passes_a_taylor_test(small, solver):
     _, problem, trajectories, _ = small
     network = network_for(problem)
@@ -197,11 +213,15 @@ def test_wig_gradient_over_a_two_step_unroll_passes_a_taylor_test(small, solver)
         return heat.batch_loss(network._replace(layers=layers), problem, batch, solver,
                                setup="correction", mode=mode)[0]
 
-    wig = jax.jit(jax.grad(loss))(network.layers)
-    result = pf.taylor_test(jax.jit(loss), network.layers, gradient=wig, h0=1e-2)
+    # the loss, WIG's gradient and NOG's in one program, which the Taylor test evaluates
+    # too (a separately jitted loss would compile the solves once more)
+    both = jax.jit(lambda layers: (jax.value_and_grad(loss)(layers),
+                                   jax.grad(lambda layers: loss(layers, "nog"))(layers)))
+    (_, wig), nog = both(network.layers)
+    result = pf.taylor_test(lambda layers: both(layers)[0][0], network.layers, gradient=wig,
+                            h0=1e-2)
     assert result.passed(), result.rates
     # the temporal path matters: NOG's gradient (no gradient between the steps) is another one
-    nog = jax.jit(jax.grad(lambda layers: loss(layers, "nog")))(network.layers)
     difference = jnp.sqrt(sum(jnp.sum((a - b) ** 2) for a, b in zip(
         jax.tree_util.tree_leaves(wig), jax.tree_util.tree_leaves(nog), strict=True)))
     assert float(difference) > 1e-3 * float(optax.tree.norm(wig))
@@ -218,8 +238,7 @@ def test_training_lowers_the_validation_rollout_error(small, setup, mode, fracti
     0.46, 0.46 and 0.25). NOG trains with the black-box stand-in: it needs no derivative."""
     _, problem, trajectories, validation = small
     network = network_for(problem, output_scale=0.05 if setup == "correction" else 0.3)
-    start = heat.rollout_error(network, problem, validation, pf.ConvergedCG(rtol=1e-10),
-                               setup=setup)[0]
+    start = converged_rollout_error(network, problem, validation, setup=setup)[0]
     training = heat.train(problem, network, trajectories, validation, setup=setup, mode=mode,
                           unroll=2, optimizer=optax.adam(3e-3), refinement=prdp(K0=1, dK=1),
                           epochs=40, batch_size=12,
@@ -236,26 +255,45 @@ def test_training_lowers_the_validation_rollout_error(small, setup, mode, fracti
         assert last.primal_iterations == sum(r.iterations * 2 * 60 for r in training.records)
 
 
+@pytest.fixture(scope="module")
+def fixed_k_training(small):
+    """``train(mode)``: the fixed K = 3, K_adj = 5 training of 2 epochs (unroll 2, batches of
+    12) with the first 2 validation trajectories as its test set, and the records its
+    callback saw; one per mode for the module (the test set changes no training number)."""
+    from prdp_fem.inverse import fixed
+
+    _, problem, trajectories, validation = small
+    trained = {}
+
+    def train(mode):
+        if mode not in trained:
+            seen = []
+            training = heat.train(problem, network_for(problem), trajectories, validation,
+                                  mode=mode, unroll=2, refinement=fixed(3, 5), epochs=2,
+                                  batch_size=12, test_set=validation.take(np.arange(2)),
+                                  callback=seen.append)
+            trained[mode] = training, seen
+        return trained[mode]
+
+    return train
+
+
 @pytest.mark.parametrize("mode", ["nog", "wig"])  # ONE stops the solver's gradient as NOG
-def test_the_adjoint_tally_counts_wig_solves_only_and_records_carry_the_test_error(small, mode):
+def test_the_adjoint_tally_counts_wig_solves_only_and_records_carry_the_test_error(
+        small, fixed_k_training, mode):
     """Fixed K = 3, K_adj = 5, unroll 2, 12 trajectories x 5 windows per epoch. Primal: K per
     solve, 2 solves per window. Adjoint: WIG alone differentiates the solver, and only its
     *second* solve depends on the parameters (the first starts from ground truth), so
     K_adj x 1 x 60 per epoch; ONE and NOG run none. Every record reaches ``callback`` with the
     held-out rollout error of the network at that epoch (converged solves)."""
-    from prdp_fem.inverse import fixed
-
-    _, problem, trajectories, validation = small
-    seen = []
-    training = heat.train(problem, network_for(problem), trajectories, validation, mode=mode,
-                          unroll=2, refinement=fixed(3, 5), epochs=2, batch_size=12,
-                          test_set=validation.take(np.arange(2)), callback=seen.append)
+    _, problem, _, validation = small
+    training, seen = fixed_k_training(mode)
     assert seen == training.records
     assert [r.primal_iterations for r in seen] == [3 * 2 * 60, 2 * 3 * 2 * 60]
     per_epoch = 5 * 60 if mode == "wig" else 0
     assert [r.adjoint_iterations_total for r in seen] == [per_epoch, 2 * per_epoch]
-    final = heat.rollout_error(training.network, problem, validation.take(np.arange(2)),
-                               pf.ConvergedCG(rtol=1e-10, max_iterations=100_000))[0]
+    final = converged_rollout_error(training.network, problem,
+                                    validation.take(np.arange(2)))[0]
     assert seen[-1].test_error == pytest.approx(float(final), rel=1e-10)
     assert seen[0].test_error != seen[-1].test_error
 
@@ -386,16 +424,12 @@ def test_bad_options_are_refused_with_their_names(small):
         heat.heat_problem(disc, 0.1, kappa=-1.0)
 
 
-def test_the_validation_rollouts_iterations_are_counted(small):
+def test_the_validation_rollouts_iterations_are_counted(small, fixed_k_training):
     """CG iterations count every solve that ran: each epoch's validation rollout (converged
     solves) adds its own iterations -- the last epoch's are the trained network's rollout's."""
-    from prdp_fem.inverse import fixed
-
-    _, problem, trajectories, validation = small
-    training = heat.train(problem, network_for(problem), trajectories, validation,
-                          unroll=2, refinement=fixed(3, 5), epochs=2, batch_size=12)
+    _, problem, _, validation = small
+    training, _ = fixed_k_training("nog")
     first, last = training.records
-    _, final = heat.rollout_error(training.network, problem, validation,
-                                  pf.ConvergedCG(rtol=1e-10, max_iterations=100_000))
+    _, final = converged_rollout_error(training.network, problem, validation)
     assert 0 < first.validation_iterations < last.validation_iterations
     assert last.validation_iterations - first.validation_iterations == int(final)

@@ -44,9 +44,17 @@ def exact_emulator(disc, problem):
     return Model(_exact_increment, jnp.asarray(step - np.eye(problem.n_free)))
 
 
-def chain_loss(network, problem, batch, solver):
+def chain_loss(network, problem, batch, solver, substeps=SUBSTEPS):
     return heat.batch_loss(network, problem, batch, solver, setup="mixed", mode="wig",
-                           substeps=SUBSTEPS)
+                           substeps=substeps)
+
+
+# one program per solver (run op by op, the batched chain compiles some 200 small programs)
+jitted_chain_loss = jax.jit(chain_loss, static_argnames=("solver", "substeps"))
+
+# the emulator's rollout alone (the mixed setup's validation), one program per shape
+emulator_rollout_error = jax.jit(lambda network, problem, trajectories: heat.rollout_error(
+    network, problem, trajectories, None, setup="prediction"))
 
 
 def test_the_exact_emulator_has_zero_mixed_loss_only_with_converged_solves(small):
@@ -56,13 +64,14 @@ def test_the_exact_emulator_has_zero_mixed_loss_only_with_converged_solves(small
     disc, problem, trajectories, _ = small
     batch = heat.windows(trajectories, 3)[:8]
     emulator = exact_emulator(disc, problem)
-    loss, iterations = chain_loss(emulator, problem, batch, pf.ConvergedCG(rtol=1e-13))
+    loss, iterations = jitted_chain_loss(emulator, problem, batch,
+                                         solver=pf.ConvergedCG(rtol=1e-13))
     assert float(loss) < 1e-20 and int(iterations) > 0
-    truncated, few = chain_loss(emulator, problem, batch, pf.TruncatedCG(1))
+    truncated, few = jitted_chain_loss(emulator, problem, batch, solver=pf.TruncatedCG(1))
     assert float(truncated) > 1e-8 and int(few) == 8 * 2 * SUBSTEPS  # 2 solver steps of 4
     coarse = heat.heat_problem(disc, DT)
-    wrong = heat.batch_loss(emulator, coarse, batch, pf.ConvergedCG(rtol=1e-13),
-                            setup="mixed", mode="wig")[0]
+    wrong = jitted_chain_loss(emulator, coarse, batch, solver=pf.ConvergedCG(rtol=1e-13),
+                              substeps=1)[0]
     assert float(wrong) > 1e-8
 
 
@@ -78,8 +87,12 @@ def test_the_mixed_gradient_passes_a_taylor_test_and_flows_through_the_solver(sm
     def loss(layers):
         return chain_loss(network._replace(layers=layers), problem, batch, solver)[0]
 
-    gradient = jax.jit(jax.grad(loss))(network.layers)
-    result = pf.taylor_test(jax.jit(loss), network.layers, gradient=gradient, h0=1e-2)
+    # the loss and its gradient in one program, which the Taylor test evaluates too (a
+    # separately jitted loss would compile the solves once more)
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    gradient = value_and_grad(network.layers)[1]
+    result = pf.taylor_test(lambda layers: value_and_grad(layers)[0], network.layers,
+                            gradient=gradient, h0=1e-2)
     assert result.passed(), result.rates
 
     def first_step_only(layers):  # the one-step term alone: what a chain without solver gives
@@ -99,9 +112,15 @@ def test_mixed_training_validates_the_emulator_alone_and_prdp_saves_iterations(s
     alone, equal to the prediction setup's rollout error), both runs lower it, and the PRDP
     run's solves cost fewer CG iterations while ending within 2 % of the converged run."""
     _, problem, trajectories, validation = small
-    network = heat.initial_network(problem, trajectories, "mixed", (32,), seed=0)
-    start = heat.rollout_error(network, problem, validation, None, setup="prediction")[0]
-    options = dict(setup="mixed", mode="wig", unroll=3, optimizer=optax.adam(3e-3),
+    # the scales as float64 arrays, as the trained networks hold them: one rollout program
+    network = jax.tree.map(np.asarray,
+                           heat.initial_network(problem, trajectories, "mixed", (32,), seed=0))
+    start = emulator_rollout_error(network, problem, validation)[0]
+    # windows of 2 steps: one solver step a window, half the step program of a chain of 3
+    # (whose compilation is half the test); measured: both runs end at 0.33 of the start, the
+    # PRDP run's solves cost 0.13 (primal) and 0.19 (adjoint) of the converged run's, 0.3 %
+    # apart
+    options = dict(setup="mixed", mode="wig", unroll=2, optimizer=optax.adam(3e-3),
                    epochs=30, batch_size=12, substeps=SUBSTEPS, seed=1)
     runs = {name: heat.train(problem, network, trajectories, validation, refinement=control,
                              **options)
@@ -111,8 +130,7 @@ def test_mixed_training_validates_the_emulator_alone_and_prdp_saves_iterations(s
         last = training.records[-1]
         assert last.validation_iterations == 0
         assert last.validation_error < 0.5 * float(start)
-        again = heat.rollout_error(training.network, problem, validation, None,
-                                   setup="prediction")[0]
+        again = emulator_rollout_error(training.network, problem, validation)[0]
         assert last.validation_error == pytest.approx(float(again), rel=1e-12)
     truncated, exact = runs["prdp"].records[-1], runs["converged"].records[-1]
     assert truncated.primal_iterations < 0.7 * exact.primal_iterations

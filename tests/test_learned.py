@@ -91,8 +91,11 @@ def test_training_gradient_passes_a_taylor_test(small, gradient):
     def loss(layers):
         return learned.batch_loss(network._replace(layers=layers), problem, batch, solver)[0]
 
-    result = pf.taylor_test(jax.jit(loss), network.layers,
-                            gradient=jax.jit(jax.grad(loss))(network.layers), h0=1e-2)
+    # the loss and its gradient in one program, which the Taylor test evaluates too (a
+    # separately jitted loss would compile the solves once more)
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    result = pf.taylor_test(lambda layers: value_and_grad(layers)[0], network.layers,
+                            gradient=value_and_grad(network.layers)[1], h0=1e-2)
     assert result.passed(), result.rates
 
 
@@ -399,9 +402,10 @@ def test_bad_optimiser_combinations_are_refused(tiny):
     objective = learned.BatchObjective(problem, network, train_set, pf.TruncatedCG(4))
     with pytest.raises(SolverConfigError, match="jacobian='sideways'"):
         objective.residual_jacobian(network.layers, "sideways")
-    with pytest.raises(SolverConfigError, match="with_residual"):
-        learned.BatchObjective(dataclasses.replace(problem, factors=None), network, train_set,
-                               pf.TruncatedCG(4)).residual(network.layers)
+    with pytest.raises(SolverConfigError, match="with_residual"):  # traced: raised before
+        # anything runs (run op by op, the network and a solve compile some 130 programs)
+        jax.jit(learned.BatchObjective(dataclasses.replace(problem, factors=None), network,
+                                       train_set, pf.TruncatedCG(4)).residual)(network.layers)
 
 
 @pytest.mark.slow  # compile sharing; test_executables keeps the inversion case

@@ -79,8 +79,11 @@ def test_wig_gradient_through_the_nonlinear_steps_passes_a_taylor_test(fisher):
         return heat.batch_loss(network._replace(layers=layers), problem, batch, solver,
                                setup="correction", mode="wig")[0]
 
-    result = pf.taylor_test(jax.jit(loss), network.layers,
-                            gradient=jax.jit(jax.grad(loss))(network.layers), h0=1e-2)
+    # the loss and its gradient in one program, which the Taylor test evaluates too (a
+    # separately jitted loss would compile the solves once more)
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    result = pf.taylor_test(lambda layers: value_and_grad(layers)[0], network.layers,
+                            gradient=value_and_grad(network.layers)[1], h0=1e-2)
     assert result.passed(), result.rates
 
 

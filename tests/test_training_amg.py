@@ -6,14 +6,12 @@ import numpy as np
 import pytest
 
 from prdp_fem.learning import heat
-from prdp_fem.learning.learned import train
 from prdp_fem.linalg import AMGCycle
 from prdp_fem.scene import parse_scene
 from prdp_fem.scene.build import (
     build_heat,
     build_learned,
     heat_train_options,
-    train_options,
     training_preconditioner,
 )
 from prdp_fem.scene.spec import SceneSolverConfigError
@@ -54,25 +52,33 @@ def _runs(table):
     return dict(parse_scene(table, source="amg.toml").runs())
 
 
-def test_learned_training_with_amg_matches_jacobi_in_fewer_iterations():
+def test_learned_amg_runs_match_jacobi_in_fewer_iterations_and_evaluate_with_their_hierarchy(
+        tmp_path):
+    """One study of the three runs (the trainings and the evaluation share its programs):
+    the converged AMG run trains as the converged Jacobi run with a fraction of the
+    iterations, and the AMG runs' checkpoints evaluate with the same hierarchy."""
     runs = _runs(LEARNED)
-    results = {}
-    for name in ("converged", "converged amg"):
-        setup = build_learned(runs[name])
-        options = train_options(runs[name], setup.problem)
-        results[name] = train(setup.problem, setup.network, setup.train_set,
-                              setup.validation_set, test_set=setup.test_set,
-                              **options).records
+    scene = parse_scene(LEARNED, source="amg.toml")
+    out = tmp_path / "study"
+    run_study(scene, out)
+    epochs = {}
+    for record in ResultsLog(out / "results.jsonl").records():
+        if record["type"] == "epoch":
+            epochs.setdefault(record["run"], []).append(record)
+    setup = build_learned(runs["converged amg"])
     assert isinstance(training_preconditioner(runs["converged amg"], setup.problem),
                       AMGCycle)
-    jacobi, amg = results["converged"], results["converged amg"]
+    jacobi, amg = epochs["converged"], epochs["converged amg"]
     # the same training: converged solves, whichever the preconditioner
     for key in ("train_loss", "validation_misfit", "test_error"):
-        np.testing.assert_allclose([getattr(r, key) for r in amg],
-                                   [getattr(r, key) for r in jacobi], rtol=1e-7)
+        np.testing.assert_allclose([r[key] for r in amg], [r[key] for r in jacobi], rtol=1e-7)
     # ... with a fraction of the iterations (121 dofs: Jacobi-PCG needs about 25 a solve)
-    assert amg[-1].primal_iterations < 0.5 * jacobi[-1].primal_iterations
-    assert amg[-1].validation_iterations < 0.5 * jacobi[-1].validation_iterations
+    assert amg[-1]["primal_iterations"] < 0.5 * jacobi[-1]["primal_iterations"]
+    assert amg[-1]["validation_iterations"] < 0.5 * jacobi[-1]["validation_iterations"]
+    rows = {row["run"]: row for row in evaluate_study(scene, out, samples=0)}
+    for run in ("converged amg", "prdp amg"):
+        assert rows[run]["test_error"] == pytest.approx(epochs[run][-1]["test_error"],
+                                                        rel=1e-10)
 
 
 def test_amg_prdp_run_is_measured_against_the_converged_amg_run():
@@ -83,9 +89,9 @@ def test_amg_prdp_run_is_measured_against_the_converged_amg_run():
 
 def test_heat_training_with_amg_matches_jacobi():
     runs = _runs(HEAT)
+    setup = build_heat(runs["jacobi"])  # the runs differ in their solver's preconditioner only
     records = {}
     for name in ("jacobi", "amg"):
-        setup = build_heat(runs[name])
         records[name] = heat.train(setup.problem, setup.network, setup.train_set,
                                    setup.validation_set, test_set=setup.test_set,
                                    **heat_train_options(runs[name], setup.problem)).records
@@ -93,19 +99,6 @@ def test_heat_training_with_amg_matches_jacobi():
         np.testing.assert_allclose([getattr(r, key) for r in records["amg"]],
                                    [getattr(r, key) for r in records["jacobi"]], rtol=1e-7)
     assert records["amg"][-1].primal_iterations < records["jacobi"][-1].primal_iterations
-
-
-def test_an_amg_study_evaluates_its_checkpoints_with_the_same_hierarchy(tmp_path):
-    table = dict(LEARNED, study=dict(LEARNED["study"], runs=LEARNED["study"]["runs"][1:],
-                                     reference="converged amg"))
-    scene = parse_scene(table, source="amg.toml")
-    out = tmp_path / "study"
-    run_study(scene, out)
-    last = {r["run"]: r for r in ResultsLog(out / "results.jsonl").records()
-            if r["type"] == "epoch"}
-    rows = {row["run"]: row for row in evaluate_study(scene, out, samples=0)}
-    for run in ("converged amg", "prdp amg"):
-        assert rows[run]["test_error"] == pytest.approx(last[run]["test_error"], rel=1e-10)
 
 
 @pytest.mark.parametrize("kind", ["learned", "heat"])

@@ -23,6 +23,10 @@ from prdp_fem.studies.runner import ResultsLog, run_study
 
 DT = 0.02
 
+# one optimizer object: the trainings of equal settings below share one compiled step (kept
+# per optimizer object), as a study's runs do
+ADAM = optax.adam(1e-2)
+
 # --- the rule ---------------------------------------------------------------------------
 
 
@@ -85,16 +89,23 @@ def small_heat():
 
 
 def heat_network(problem, hidden=16):
-    return learned.mlp_init(jax.random.PRNGKey(0), [problem.n_free, hidden, problem.n_free],
-                            output_scale=0.05)
+    """An untrained MLP whose scales are float64 arrays, as a trained network holds them: a
+    gap-fed training validates the untrained network before its first step, and Python-float
+    scales would compile its validation passes a second time for the trained one."""
+    return jax.tree.map(np.asarray, learned.mlp_init(
+        jax.random.PRNGKey(0), [problem.n_free, hidden, problem.n_free], output_scale=0.05))
+
+
+# a validation rollout at a tolerance, compiled once for every rtol (run op by op, each
+# rollout would compile its scan anew)
+rollout_error_at = jax.jit(lambda network, problem, trajectories, rtol: heat.rollout_error(
+    network, problem, trajectories, pf.ConvergedCG(rtol=rtol, max_iterations=100_000)))
 
 
 def heat_gap(network, problem, validation, rtol):
     """(gap, converged iterations, iterations at rtol) of a validation rollout."""
-    converged = pf.ConvergedCG(rtol=1e-10, max_iterations=100_000)
-    at_rtol = pf.ConvergedCG(rtol=rtol, max_iterations=100_000)
-    e_conv, its_conv = heat.rollout_error(network, problem, validation, converged)
-    e_rtol, its_rtol = heat.rollout_error(network, problem, validation, at_rtol)
+    e_conv, its_conv = rollout_error_at(network, problem, validation, 1e-10)
+    e_rtol, its_rtol = rollout_error_at(network, problem, validation, rtol)
     return abs(float(e_rtol) / float(e_conv) - 1), int(its_conv), int(its_rtol)
 
 
@@ -106,8 +117,8 @@ def test_the_first_level_is_settled_on_the_untrained_model_and_counted(small_hea
     network = heat_network(problem)
     max_gap = 1e-3
     control = truncation_gap(0.3, max_gap=max_gap, rtol_factor=0.1, rtol_min=1e-8)
-    training = heat.train(problem, network, train_set, validation, unroll=2,
-                          refinement=control, epochs=1, batch_size=12)
+    training = heat.train(problem, network, train_set, validation, unroll=2, optimizer=ADAM,
+                          refinement=control, epochs=1, batch_size=6)
     (record,) = training.records
     first = record.rtol
     assert first < 0.3  # 0.3 is visible to the untrained network of a 25-dof rollout
@@ -127,7 +138,7 @@ def test_heat_training_feeds_the_gap_of_its_own_rollouts_and_counts_them(small_h
     problem, train_set, validation = small_heat
     control = truncation_gap(0.3, max_gap=1e-4, rtol_factor=0.1, rtol_min=1e-9, redo=False)
     training = heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
-                          refinement=control, epochs=4, batch_size=12)
+                          optimizer=ADAM, refinement=control, epochs=4, batch_size=6)
     records = training.records
     last, previous = records[-1], records[-2]
     gap, its_conv, its_rtol = heat_gap(training.network, problem, validation, last.rtol)
@@ -141,12 +152,16 @@ def test_heat_training_feeds_the_gap_of_its_own_rollouts_and_counts_them(small_h
 
 
 def test_a_training_without_the_gap_controller_records_no_gap(small_heat):
+    """Converged solves, the tolerance mode a gap controller also trains in (the step
+    program the trainings above compiled)."""
     problem, train_set, validation = small_heat
-    training = heat.train(problem, heat_network(problem, 8), train_set, validation, unroll=2,
-                          refinement=pf.fixed(3), epochs=1, batch_size=12)
+    training = heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
+                          optimizer=ADAM, refinement=pf.converged(1e-10), epochs=1,
+                          batch_size=6)
     assert math.isnan(training.records[0].truncation_gap)
 
 
+@pytest.fixture(scope="module")
 def small_learned():
     """A 6x6 learned inverse, 16 training and 8 validation samples, an MLP [36, 8, 36]:
     (disc, problem, train_set, validation, network)."""
@@ -159,18 +174,24 @@ def small_learned():
     network = learned.mlp_init(jax.random.PRNGKey(0), [disc.n_dofs, 8, disc.n_dofs],
                                input_scale=float(np.std(np.asarray(samples.observations))),
                                output_scale=float(np.std(np.asarray(samples.sources))))
-    return disc, problem, train_set, validation, network
+    # the scales as float64 arrays, as a trained network holds them: one validation program
+    # for the untrained and the trained network
+    return disc, problem, train_set, validation, jax.tree.map(np.asarray, network)
 
 
-def test_learned_training_feeds_the_gap_of_its_validation_misfit():
-    _, problem, train_set, validation, network = small_learned()
+# the validation pass at a tolerance, compiled once for every rtol
+validation_at = jax.jit(learned.validation)
+
+
+def test_learned_training_feeds_the_gap_of_its_validation_misfit(small_learned):
+    _, problem, train_set, validation, network = small_learned
     control = truncation_gap(0.3, max_gap=1e-4, rtol_min=1e-8, redo=False)
     training = learned.train(problem, network, train_set, validation, refinement=control,
-                             epochs=2, batch_size=8)
+                             optimizer=ADAM, epochs=2, batch_size=8)
     first, last = training.records
-    misfit, _, its_conv = learned.validation(training.network, problem, validation)
-    truncated, _, its_rtol = learned.validation(training.network, problem, validation,
-                                                rtol=last.rtol)
+    misfit, _, its_conv = validation_at(training.network, problem, validation, rtol=1e-10)
+    truncated, _, its_rtol = validation_at(training.network, problem, validation,
+                                           rtol=last.rtol)
     assert last.validation_misfit == pytest.approx(float(misfit), rel=1e-10)
     assert last.truncation_gap == pytest.approx(abs(float(truncated) / float(misfit) - 1),
                                                 rel=1e-8)
@@ -180,8 +201,8 @@ def test_learned_training_feeds_the_gap_of_its_validation_misfit():
     assert last.rtol == pytest.approx(expected)
 
     def untrained_gap(rtol):
-        misfit = learned.validation(network, problem, validation)[0]
-        return abs(float(learned.validation(network, problem, validation, rtol=rtol)[0])
+        misfit = validation_at(network, problem, validation, rtol=1e-10)[0]
+        return abs(float(validation_at(network, problem, validation, rtol=rtol)[0])
                    / float(misfit) - 1)
 
     assert first.rtol < 0.3 and untrained_gap(first.rtol) <= 1e-4 < untrained_gap(
@@ -230,7 +251,7 @@ def test_heat_training_redoes_the_epoch_that_tightened_its_solves(small_heat):
 
     def train(refinement, epochs):
         return heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
-                          optimizer=optax.adam(1e-2), refinement=refinement, epochs=epochs,
+                          optimizer=ADAM, refinement=refinement, epochs=epochs,
                           batch_size=6)
 
     training = train(truncation_gap(0.3, max_gap=1.2e-4, rtol_min=1e-9), 3)
@@ -241,12 +262,12 @@ def test_heat_training_redoes_the_epoch_that_tightened_its_solves(small_heat):
         strict=True))
 
 
-def test_learned_training_redoes_the_epoch_that_tightened_its_solves():
-    _, problem, train_set, validation, network = small_learned()
+def test_learned_training_redoes_the_epoch_that_tightened_its_solves(small_learned):
+    _, problem, train_set, validation, network = small_learned
 
     def train(refinement, epochs):
         return learned.train(problem, network, train_set, validation, refinement=refinement,
-                             optimizer=optax.adam(1e-2), epochs=epochs, batch_size=8)
+                             optimizer=ADAM, epochs=epochs, batch_size=8)
 
     training = train(truncation_gap(0.3, max_gap=1e-3, rtol_min=1e-8), 3)
     check_redo(train, training.records, 1e-3)
@@ -256,7 +277,7 @@ def test_learned_training_redoes_the_epoch_that_tightened_its_solves():
 def test_without_redo_the_epoch_that_tightened_is_kept(small_heat):
     problem, train_set, validation = small_heat
     training = heat.train(problem, heat_network(problem), train_set, validation, unroll=2,
-                          optimizer=optax.adam(1e-2), epochs=2, batch_size=6,
+                          optimizer=ADAM, epochs=2, batch_size=6,
                           refinement=truncation_gap(0.3, max_gap=1.2e-4, redo=False))
     first, second = training.records
     assert first.redone == second.redone == 0
@@ -321,6 +342,7 @@ def test_the_gap_examples_are_their_scenes_with_gap_runs_beside_converged_partne
         assert runs[partner].heat == runs[name].heat
 
 
+@pytest.mark.slow  # the trainer tests above record the gaps; heat studies' tests pair the runs
 def test_a_shrunk_gap_study_pairs_the_gap_run_and_records_its_gaps(tmp_path):
     scene = with_overrides(load_scene(GAP_SCENE), {
         "mesh": {"n": 6}, "heat": {"trajectories": 8, "validation_trajectories": 2,
