@@ -2,6 +2,7 @@
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -145,7 +146,7 @@ def test_the_descent_slope_is_the_converged_objective_s_directional_derivative(p
     steps.append(steps[1] - 0.05 * rng.standard_normal(z0.size))
     steps.append(steps[2])  # a step that did not move
     check = descent_check(problem, np.stack(steps))
-    J = Objective(problem, ConvergedCG(rtol=1e-12))
+    J = jax.jit(Objective(problem, ConvergedCG(rtol=1e-12)))  # compiled once, not op by op
     for k in range(2):
         d = steps[k + 1] - steps[k]
         h = 1e-6

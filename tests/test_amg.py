@@ -2,6 +2,7 @@
 grouped
 by transformation (jit, vmap, jvp, vjp in both gradient modes), the rebuild policy, the command."""
 
+import functools
 import os
 import re
 import subprocess
@@ -408,8 +409,9 @@ def test_vmap_over_stacked_hierarchies(problems):
     problem = problems["square"]
     _, first = problem.built("jax")
     second = amg_preconditioner(problem.operator.with_values(2.0 * problem.operator.values))
-    stacked = jax.tree_util.tree_map(lambda a, c: jnp.stack([a, c]), first, second)
-    applied = jax.vmap(lambda M, r: M(r), in_axes=(0, None))(stacked, problem.b)
+    # stacked on the host and applied jitted: one program (op by op, some 35 small ones)
+    stacked = jax.tree_util.tree_map(lambda a, c: np.stack([a, c]), first, second)
+    applied = jax.jit(jax.vmap(lambda M, r: M(r), in_axes=(0, None)))(stacked, problem.b)
     # to round-off, not bit for bit: how XLA fuses the batched gathers is its own choice
     np.testing.assert_allclose(applied, jnp.stack([first(problem.b), second(problem.b)]),
                                rtol=1e-14)
@@ -469,19 +471,23 @@ def _loss(problem, mode):
     return fn
 
 
+# unrolled: the slow twin; converged too (ConvergedCG differentiates on the implicit path)
 @pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
-@pytest.mark.parametrize("mode", [pytest.param(m, marks=pytest.mark.slow) if m == "unrolled"
-                                  else m for m in SOLVERS])  # unrolled: the slow twin
+@pytest.mark.parametrize("mode", [pytest.param(m, marks=pytest.mark.slow) if m != "implicit"
+                                  else m for m in SOLVERS])
 def test_vjp_passes_the_taylor_test(small, mode, implementation):
     _, M = small.built(implementation)
     fn = loss(small, mode)
     x = (small.kappa, small.f)
     # steps small enough for the asymptotic regime of the (strongly contracting) AMG-CG map
-    result = pf.taylor_test(lambda v: fn(v, M), x, gradient=jax.grad(fn)(x, M), h0=2e-3)
+    result = pf.taylor_test(lambda v: fn(v, M), x, gradient=jax.jit(jax.grad(fn))(x, M),
+                            h0=2e-3)  # the gradient jitted: one program (grad of a jit: two)
     assert result.passed(), (result.rates, result.first_order)
 
 
-@pytest.mark.parametrize("implementation", IMPLEMENTATIONS)
+# callback: the slow twin (test_linear_rules_of_the_cycle[callback] checks its cycle's tangent)
+@pytest.mark.parametrize("implementation", [
+    "jax", pytest.param("callback", marks=pytest.mark.slow)])
 def test_unrolled_jvp_passes_the_taylor_test(small, implementation):
     _, M = small.built(implementation)
     fn = loss(small, "unrolled")
@@ -560,6 +566,12 @@ def test_bad_rebuild_policies(options, message):
         rebuild_policy(**options)
 
 
+#: one optimizer object for the inversions below: a step program is kept per optimizer object
+#: (and AMG hierarchies of equal shapes are its argument), so their runs share one compile
+SGD = optax.sgd(10.0)
+
+
+@functools.cache  # one problem for the tests below (each builds its own runs from it)
 def _coefficient_inversion(n=6):
     """A log-kappa inversion from a full noiseless field (the preconditioner's operator moves
     with every step)."""
@@ -582,7 +594,7 @@ def test_invert_rebuilds_the_hierarchy_at_the_current_kappa_when_the_policy_says
                         lambda self, matrix: built.append(matrix.to_scipy()) or
                         build(self, matrix))
     params = []
-    run = pf.invert(problem, refinement=fixed(4), steps=6, optimizer=optax.sgd(10.0),
+    run = pf.invert(problem, refinement=fixed(4), steps=6, optimizer=SGD,
                     preconditioner=pf.RebuiltAMG(rebuild_policy(every=2)),
                     callback=lambda record, z: params.append(np.asarray(z)))
     # the policy fires after steps 2, 4 and 6; steps 3 and 5 start with a new hierarchy, and
@@ -596,9 +608,9 @@ def test_invert_rebuilds_the_hierarchy_at_the_current_kappa_when_the_policy_says
         assert abs(matrix - expected).max() == 0.0
     assert len({float(abs(m).sum()) for m in built}) == 3  # kappa moved between the builds
     # a policy that never fires runs exactly as the hierarchy built at the start, passed in
-    never = pf.invert(problem, refinement=fixed(4), steps=3, optimizer=optax.sgd(10.0),
+    never = pf.invert(problem, refinement=fixed(4), steps=3, optimizer=SGD,
                       preconditioner=pf.RebuiltAMG(rebuild_policy(every=100)))
-    fixed_amg = pf.invert(problem, refinement=fixed(4), steps=3, optimizer=optax.sgd(10.0),
+    fixed_amg = pf.invert(problem, refinement=fixed(4), steps=3, optimizer=SGD,
                           preconditioner=amg_preconditioner(
                               problem.system.operator(jnp.ones(problem.n_parameters))))
     np.testing.assert_array_equal(never.history.column("loss"),
@@ -620,12 +632,12 @@ def test_the_first_hierarchy_build_is_run_time(monkeypatch):
         return build(self, matrix)
 
     preconditioner = pf.RebuiltAMG()
-    pf.invert(problem, refinement=fixed(4), steps=2, optimizer=optax.sgd(10.0),
+    pf.invert(problem, refinement=fixed(4), steps=2, optimizer=SGD,
               preconditioner=preconditioner)  # compiled here: the next run's times are steps
-    fast = pf.invert(problem, refinement=fixed(4), steps=2, optimizer=optax.sgd(10.0),
+    fast = pf.invert(problem, refinement=fixed(4), steps=2, optimizer=SGD,
                      preconditioner=preconditioner)
     monkeypatch.setattr(pf.RebuiltAMG, "build", slow_build)
-    slow = pf.invert(problem, refinement=fixed(4), steps=2, optimizer=optax.sgd(10.0),
+    slow = pf.invert(problem, refinement=fixed(4), steps=2, optimizer=SGD,
                      preconditioner=preconditioner)
     assert slow.history[0].time >= extra
     np.testing.assert_array_equal(slow.history.column("loss"), fast.history.column("loss"))
@@ -644,7 +656,9 @@ def test_after_a_rebuild_l_bfgs_evaluates_with_the_new_hierarchy():
     kappa = problem.parameterization.coefficients(z, problem.known)[0]
     new = amg_preconditioner(problem.system.operator(kappa))
     old = amg_preconditioner(problem.system.operator(jnp.ones(problem.n_parameters)))
-    at_new, at_old = (float(problem.loss(z, pf.TruncatedCG(3, cycle))[0]) for cycle in (new, old))
+    # jitted, the cycle an argument (op by op, the loss compiled some 20 small programs)
+    loss = jax.jit(lambda z, cycle: problem.loss(z, pf.TruncatedCG(3, cycle))[0])
+    at_new, at_old = (float(loss(z, cycle)) for cycle in (new, old))
     assert abs(at_new - at_old) > 1e-6 * abs(at_new)  # the test can tell them apart
     assert run.history[2].loss == pytest.approx(at_new, rel=1e-10)
 
@@ -658,7 +672,7 @@ def test_a_validation_monitor_with_rebuilds_compiles_its_programs_once(monkeypat
     inverse._validation_program.cache_clear()
     made = shared_compiles_made(monkeypatch)
     problem = _coefficient_inversion()
-    run = pf.invert(problem, refinement=fixed(4), steps=5, optimizer=optax.sgd(10.0),
+    run = pf.invert(problem, refinement=fixed(4), steps=5, optimizer=SGD,
                     preconditioner=pf.RebuiltAMG(rebuild_policy(every=1)),
                     monitor=pf.inverse.Validation(every=1))
     assert [record.rebuilds for record in run.history] == [0, 1, 2, 3, 4]

@@ -30,8 +30,10 @@ def test_negative_kappa_breaks_down_eagerly_and_is_flagged_under_jit():
     system, f = disc.system, np.ones(disc.n_dofs)
     with pytest.raises(pf.errors.SolverBreakdownError, match="not positive definite"):
         system.solve(-np.ones(disc.n_kappa), f, ConvergedCG())
-    for solver in (ConvergedCG(), TruncatedCG(20), TruncatedCG(20, gradient="implicit")):
-        sol = jax.jit(lambda k, s=solver: system.solve(k, f, s))(-jnp.ones(disc.n_kappa))
+    solvers = (ConvergedCG(), TruncatedCG(20), TruncatedCG(20, gradient="implicit"))
+    # the three solves in one program (one compile, not three)
+    sols = jax.jit(lambda k: [system.solve(k, f, s) for s in solvers])(-jnp.ones(disc.n_kappa))
+    for sol in sols:
         assert int(sol.status) == Status.BREAKDOWN
         assert np.isfinite(sol.x).all()
 
@@ -53,8 +55,10 @@ def test_nan_inputs_are_refused_eagerly_and_flagged_under_jit():
         system.solve(bad_kappa, np.ones(disc.n_dofs), TruncatedCG(5))
     with pytest.raises(pf.DataError, match="operator values"):
         solve(system.operator(jnp.asarray(bad_kappa)), b, TruncatedCG(5))
-    for solver in (ConvergedCG(), TruncatedCG(5), TruncatedCG(5, gradient="implicit")):
-        sol = jax.jit(lambda b, s=solver: solve(A, b, s))(jnp.asarray(bad_b))
+    solvers = (ConvergedCG(), TruncatedCG(5), TruncatedCG(5, gradient="implicit"))
+    # the three solves in one program (one compile, not three)
+    sols = jax.jit(lambda b: [solve(A, b, s) for s in solvers])(jnp.asarray(bad_b))
+    for sol in sols:
         assert int(sol.status) == Status.NONFINITE
 
 
@@ -148,7 +152,11 @@ def test_pure_neumann_gradient_passes_taylor_test(mode):
         x = disc.system.solve(jnp.exp(log_kappa), f, solver).x
         return jnp.vdot(weights, x) + 0.5 * jnp.sum(x ** 2)
 
-    result = pf.taylor_test(loss, jnp.zeros(disc.n_kappa))
+    # the values and the gradient from one program: one compile, not op by op
+    value_and_grad = jax.jit(jax.value_and_grad(loss))
+    zero = jnp.zeros(disc.n_kappa)
+    result = pf.taylor_test(lambda k: value_and_grad(k)[0], zero,
+                            gradient=value_and_grad(zero)[1])
     assert result.passed(), result.rates
 
 
@@ -220,9 +228,11 @@ def test_gradient_with_respect_to_tensor_components_passes_taylor_test(mode):
     kappa = jnp.asarray(disc.interpolate_kappa(lambda x: np.array([[1.0, 0.3], [0.3, 0.5]])))
     f = jnp.ones(disc.n_dofs)
     solver = TruncatedCG(10 * disc.n_free, gradient=mode)
-    # jitted: the gradient and the seven values compile once each, not op by op
-    result = pf.taylor_test(jax.jit(lambda k: jnp.sum(disc.system.solve(k, f, solver).x ** 2)),
-                            kappa)
+    # the values and the gradient from one program: one compile, not op by op
+    value_and_grad = jax.jit(jax.value_and_grad(
+        lambda k: jnp.sum(disc.system.solve(k, f, solver).x ** 2)))
+    result = pf.taylor_test(lambda k: value_and_grad(k)[0], kappa,
+                            gradient=value_and_grad(kappa)[1])
     assert result.passed(), result.rates
 
 
@@ -329,23 +339,27 @@ def test_unrolled_gradient_far_past_convergence_is_the_exact_one(preconditioner)
         return jnp.vdot(weights, disc.system.solve(jnp.exp(log_kappa), f, solver).x)
 
     zero = jnp.zeros(disc.n_kappa)
-    # each derivative jitted (one program each; op by op they compiled some 150 small ones)
-    grad = jax.jit(jax.grad(loss), static_argnums=1)
-    exact = grad(zero, ConvergedCG(rtol=1e-14, preconditioner=preconditioner))
+    exact_solver = ConvergedCG(rtol=1e-14, preconditioner=preconditioner)
     unrolled = TruncatedCG(10 * disc.n_free, preconditioner)
-    gradient = grad(zero, unrolled)
-    np.testing.assert_allclose(gradient, exact, rtol=1e-8, atol=1e-10 * abs(exact).max())
-    direction = jnp.asarray(np.random.default_rng(1).standard_normal(disc.n_kappa))
-    _, tangent = jax.jit(lambda d: jax.jvp(lambda z: loss(z, unrolled), (zero,), (d,)))(
-        direction)
-    assert float(tangent) == pytest.approx(float(jnp.vdot(exact, direction)), rel=1e-8)
+
     # second order: the derivative of the implicit tangent sees the implicit tangent of x
-    def hessian_vector(solver):
+    def hessian_vector(solver, d):
         squared = lambda z: loss(z, solver) ** 2  # noqa: E731 (a loss with curvature in x)
-        return jax.jit(lambda d: jax.jvp(jax.grad(squared), (zero,), (d,))[1])(direction)
-    reference = hessian_vector(ConvergedCG(rtol=1e-14, preconditioner=preconditioner))
-    np.testing.assert_allclose(hessian_vector(unrolled), reference, rtol=1e-7,
-                               atol=1e-9 * abs(reference).max())
+        return jax.jvp(jax.grad(squared), (zero,), (d,))[1]
+
+    # every derivative in one program (op by op they compiled some 150 small ones, jitted
+    # apart five)
+    @jax.jit
+    def derivatives(d):
+        return (jax.grad(loss)(zero, exact_solver), jax.grad(loss)(zero, unrolled),
+                jax.jvp(lambda z: loss(z, unrolled), (zero,), (d,))[1],
+                hessian_vector(exact_solver, d), hessian_vector(unrolled, d))
+
+    direction = jnp.asarray(np.random.default_rng(1).standard_normal(disc.n_kappa))
+    exact, gradient, tangent, reference, second = derivatives(direction)
+    np.testing.assert_allclose(gradient, exact, rtol=1e-8, atol=1e-10 * abs(exact).max())
+    assert float(tangent) == pytest.approx(float(jnp.vdot(exact, direction)), rel=1e-8)
+    np.testing.assert_allclose(second, reference, rtol=1e-7, atol=1e-9 * abs(reference).max())
 
 
 def test_a_frozen_unrolled_solve_runs_no_second_solve():
@@ -389,10 +403,9 @@ def test_float32_solves_run_in_float32_to_its_stated_accuracy(mode):
                   TruncatedCG(10 * disc.n_free, gradient=mode)).x
         return jnp.sum(x.astype(jnp.float64) ** 2)
 
-    # the gradients jitted (the solve above is the eager one)
-    gradient = jax.jit(jax.grad(loss))(kappa)
-    exact = jax.jit(jax.grad(lambda k: jnp.sum(disc.system.solve(k, f, ConvergedCG()).x ** 2)))(
-        kappa)
+    # the gradients jitted, in one program (the solve above is the eager one)
+    gradient, exact = jax.jit(lambda k: (jax.grad(loss)(k), jax.grad(
+        lambda k: jnp.sum(disc.system.solve(k, f, ConvergedCG()).x ** 2))(k)))(kappa)
     assert np.isfinite(gradient).all()
     np.testing.assert_allclose(gradient, exact, rtol=1e-3, atol=1e-4 * abs(exact).max())
 

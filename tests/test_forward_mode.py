@@ -43,7 +43,11 @@ CONVERGED = {
 }
 
 
-@pytest.mark.parametrize("name", CONVERGED)
+# truncated with the slow cases: the converged solve's tangent is the same rule's, and
+# test_truncated_jvp_is_the_truncated_tangent_solve pins the truncated one to its solve
+@pytest.mark.parametrize("name", [name if name == "converged" else
+                                  pytest.param(name, marks=pytest.mark.slow)
+                                  for name in CONVERGED])
 def test_jvp_matches_central_differences(problem, name):
     disc, kappa, f = problem
     x_of = state_map(disc, CONVERGED[name])
@@ -57,16 +61,23 @@ def test_jvp_matches_central_differences(problem, name):
     assert np.linalg.norm(tangent - difference) < 1e-7 * np.linalg.norm(difference)
 
 
-@pytest.mark.parametrize("name", CONVERGED)
+# truncated with the slow cases: test_truncated_sweeps_are_adjoint_only_as_they_converge holds
+# its K = K_adj = 10 n sweeps to the same identity
+@pytest.mark.parametrize("name", [name if name == "converged" else
+                                  pytest.param(name, marks=pytest.mark.slow)
+                                  for name in CONVERGED])
 def test_jvp_and_vjp_are_adjoint(problem, name):
     disc, kappa, f = problem
     x_of = state_map(disc, CONVERGED[name])
     dkappa, df, w = directions(disc)
-    _, tangent = jax.jvp(x_of, (kappa, f), (dkappa, df))
-    _, pullback = jax.vjp(x_of, kappa, f)
-    kappa_bar, f_bar = pullback(w)
-    forward = float(w @ tangent)
-    reverse = float(kappa_bar @ dkappa + f_bar @ df)
+
+    @jax.jit  # one program (op by op, the assembly's derivatives compiled some 110 small ones)
+    def products(kappa, f, dkappa, df, w):
+        _, tangent = jax.jvp(x_of, (kappa, f), (dkappa, df))
+        kappa_bar, f_bar = jax.vjp(x_of, kappa, f)[1](w)
+        return w @ tangent, kappa_bar @ dkappa + f_bar @ df
+
+    forward, reverse = (float(v) for v in products(kappa, f, dkappa, df, w))
     assert forward == pytest.approx(reverse, rel=1e-10)
 
 
@@ -78,12 +89,19 @@ def test_truncated_jvp_is_the_truncated_tangent_solve(problem):
     counter = IterationCounter()
     solver = TruncatedCG(5, gradient="implicit", adjoint_iterations=7)
     x_of = state_map(disc, solver, counter)
-    x, tangent = jax.jvp(x_of, (kappa, f), (dkappa, df))
+    # jitted: one program each (op by op, the assembly's tangents compile many small ones)
+    x, tangent = jax.jit(lambda *a: jax.jvp(x_of, a[:2], a[2:]))(kappa, f, dkappa, df)
+    jax.effects_barrier()
     assert counter.snapshot() == (5, 7)  # the tangent solve is tallied as an adjoint one
-    A = system.operator(kappa)
-    # db - dA x: b and A are affine / linear in (kappa, f), so db = b(dkappa, df) - h
-    rhs = system.rhs(dkappa, df) - system.neumann - pf.linalg.matvec(system.operator(dkappa), x)
-    reference = solve(A, rhs, TruncatedCG(7, gradient="implicit")).x
+
+    @jax.jit
+    def tangent_solve(kappa, dkappa, df, x):
+        # db - dA x: b and A are affine / linear in (kappa, f), so db = b(dkappa, df) - h
+        rhs = system.rhs(dkappa, df) - system.neumann \
+            - pf.linalg.matvec(system.operator(dkappa), x)
+        return solve(system.operator(kappa), rhs, TruncatedCG(7, gradient="implicit")).x
+
+    reference = tangent_solve(kappa, dkappa, df, x)
     np.testing.assert_allclose(tangent, reference, rtol=1e-12, atol=1e-12 * abs(reference).max())
 
 
@@ -92,14 +110,17 @@ def test_truncated_sweeps_are_adjoint_only_as_they_converge(problem):
     to round-off only once K_adj converges, and the gap closes as K_adj grows."""
     disc, kappa, f = problem
     dkappa, df, w = directions(disc)
-    gaps = []
-    for k_adj in (3, 20, 10 * disc.n_free):
+
+    @jax.jit  # K_adj traced: one program for the three counts
+    def gap(k_adj):
         x_of = state_map(disc, TruncatedCG(10 * disc.n_free, gradient="implicit",
                                            adjoint_iterations=k_adj))
         _, tangent = jax.jvp(x_of, (kappa, f), (dkappa, df))
         kappa_bar, f_bar = jax.vjp(x_of, kappa, f)[1](w)
-        forward, reverse = float(w @ tangent), float(kappa_bar @ dkappa + f_bar @ df)
-        gaps.append(abs(forward - reverse) / abs(reverse))
+        forward, reverse = w @ tangent, kappa_bar @ dkappa + f_bar @ df
+        return jnp.abs(forward - reverse) / jnp.abs(reverse)
+
+    gaps = [float(gap(k_adj)) for k_adj in (3, 20, 10 * disc.n_free)]
     # measured 0.35, 2.3e-4, 3e-15 (63 free dofs)
     assert gaps[0] > 0.1 and 1e-5 < gaps[1] < 1e-3 and gaps[2] < 1e-12
 
@@ -126,10 +147,14 @@ def test_jvp_through_a_singular_system():
 def test_jvp_with_an_amg_preconditioner(problem):
     disc, kappa, f = problem
     amg = pf.amg_preconditioner(disc.system.operator(kappa), max_coarse=5)
-    x_of = state_map(disc, ConvergedCG(rtol=1e-13, preconditioner=amg))
     dkappa, df, _ = directions(disc)
-    _, tangent = jax.jvp(x_of, (kappa, f), (dkappa, df))
-    reference = jax.jvp(state_map(disc, ConvergedCG(rtol=1e-13)), (kappa, f), (dkappa, df))[1]
+
+    def tangent_of(solver):  # jitted: one program (op by op, the assembly's many small ones)
+        return jax.jit(lambda *a: jax.jvp(state_map(disc, solver), a[:2], a[2:])[1])(
+            kappa, f, dkappa, df)
+
+    tangent = tangent_of(ConvergedCG(rtol=1e-13, preconditioner=amg))
+    reference = tangent_of(ConvergedCG(rtol=1e-13))
     np.testing.assert_allclose(tangent, reference, rtol=1e-9, atol=1e-11)
 
 
@@ -158,15 +183,16 @@ def test_hessian_vector_product_passes_the_taylor_test(log_kappa_problem, solver
     """grad J(z + h v) - grad J(z) - h H v = O(h^2): the remainder falls 4x per halving."""
     disc, problem = log_kappa_problem
     z = jnp.asarray(disc.interpolate_kappa(lambda x: 0.5 + 0.3 * x[0]))
-    grad = jax.jit(jax.grad(lambda z: problem.loss(z, solver)[0]))
-    hvp = jax.jit(lambda z, v: jax.jvp(grad, (z,), (v,))[1])
+    grad = jax.grad(lambda z: problem.loss(z, solver)[0])
+    # (grad J(z), H v): one program serves the products and the gradients below
+    hvp = jax.jit(lambda z, v: jax.jvp(grad, (z,), (v,)))
     rng = np.random.default_rng(0)
     v, w = (jnp.asarray(rng.normal(size=z.shape)) for _ in range(2))
-    Hv, Hw = hvp(z, v), hvp(z, w)
+    (_, Hv), (_, Hw) = hvp(z, v), hvp(z, w)
     # symmetric (forward over reverse through the tangent and second-order adjoint solves)
     assert float(w @ Hv) == pytest.approx(float(v @ Hw), rel=1e-9)
     # the Taylor test of z -> <grad J(z), w>, whose gradient is H w
-    result = pf.taylor_test(lambda z: grad(z) @ w, z, v, gradient=Hw, h0=1e-1, n_steps=5)
+    result = pf.taylor_test(lambda z: hvp(z, w)[0] @ w, z, v, gradient=Hw, h0=1e-1, n_steps=5)
     assert result.passed(), result.rates
     assert np.all(np.abs(result.rates - 2.0) < 0.2), result.rates
 

@@ -88,9 +88,10 @@ def test_exponent_one_is_the_gradient_also_for_pytree_parameters():
     def residual(p):
         return jnp.tanh(x @ p["w1"] + p["b1"]) @ p["w2"] - y
 
-    step, info = hig_update(jax.jacrev(residual)(params), residual(params), learning_rate=0.5,
-                            exponent=1.0, tau=0.0)
-    gradient = jax.grad(lambda p: 0.5 * jnp.sum(residual(p) ** 2))(params)
+    # jitted: one program each instead of the network's ops compiled one by one
+    step, info = jax.jit(lambda p: hig_update(jax.jacrev(residual)(p), residual(p),
+                                              learning_rate=0.5, exponent=1.0, tau=0.0))(params)
+    gradient = jax.jit(jax.grad(lambda p: 0.5 * jnp.sum(residual(p) ** 2)))(params)
     for name in params:
         assert _rel(step[name], -0.5 * gradient[name]) < 1e-12
     assert int(info.rank) == 14  # min(7 x 2 residuals, 27 parameters)
@@ -153,8 +154,8 @@ def test_matrix_free_matches_explicit_on_a_rank_k_network():
         return jnp.tanh(W2 @ jnp.tanh(W1 @ theta)) - data
 
     theta = jnp.asarray(0.3 * rng.standard_normal(20))
-    explicit, explicit_state = _apply(hig(0.5), theta, residual)
-    free, free_state = _apply(hig(0.5, rank=3), theta, residual)
+    explicit, explicit_state = jax.jit(lambda t: _apply(hig(0.5), t, residual))(theta)
+    free, free_state = jax.jit(lambda t: _apply(hig(0.5, rank=3), t, residual))(theta)
     assert int(explicit_state.rank) == int(free_state.rank) == 3
     assert float(free_state.s_max) == pytest.approx(float(explicit_state.s_max), rel=1e-12)
     assert _rel(free, explicit) < 1e-9
@@ -255,17 +256,19 @@ def test_residual_jacobian_taylor(reg):
     solver = ConvergedCG(rtol=1e-13)
     z = problem.parameterization.from_field(0.5 * np.asarray(problem.truth))
     blocks = (lambda z: problem.misfit_residual(z, solver), problem.regularization_residual)
-    r0, J = residual_jacobian(blocks, z, "reverse")
-    assert _rel(r0, problem.residual(z, solver)) < 1e-14
+    # jitted: the Jacobian and the residual compile once each, not op by op per evaluation
+    r0, J = jax.jit(lambda z: residual_jacobian(blocks, z, "reverse"))(z)
+    residual = jax.jit(lambda z: problem.residual(z, solver))
+    assert _rel(r0, residual(z)) < 1e-14
     dz = jnp.asarray(np.random.default_rng(7).standard_normal(z.shape))
     # for every component at once: the Taylor test of <w, r(z)> with gradient J^T w
     w = jnp.asarray(np.random.default_rng(8).standard_normal(r0.shape))
-    result = taylor_test(lambda z: w @ problem.residual(z, solver), z, dz, gradient=J.T @ w)
+    result = taylor_test(lambda z: w @ residual(z), z, dz, gradient=J.T @ w)
     assert result.passed()
     assert np.median(result.rates[np.isfinite(result.rates)]) == pytest.approx(2.0, abs=0.15)
     # and the vector remainder ||r(z + h dz) - r(z) - h J dz|| falls as h^2
-    remainders = [float(jnp.linalg.norm(problem.residual(z + h * dz, solver) - r0
-                                         - h * J @ dz)) for h in (1e-2, 5e-3)]
+    remainders = [float(jnp.linalg.norm(residual(z + h * dz) - r0 - h * J @ dz))
+                  for h in (1e-2, 5e-3)]
     assert np.log2(remainders[0] / remainders[1]) == pytest.approx(2.0, abs=0.15)
 
 

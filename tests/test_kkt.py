@@ -132,7 +132,10 @@ def _general_source_problem(dim=2):
                               known=disc.interpolate_kappa(lambda x: 1 + x[0]))
 
 
-@pytest.mark.parametrize(("dim", "amg"), [(2, "rs"), (2, "sa"), (3, "sa")])
+# (2, "sa") with the slow cases: (2, "rs") and (3, "sa") cover both AMG kinds and dimensions
+@pytest.mark.parametrize(("dim", "amg"), [(2, "rs"),
+                                          pytest.param(2, "sa", marks=pytest.mark.slow),
+                                          (3, "sa")])
 def test_the_kkt_solve_carries_dirichlet_neumann_data_and_a_reference(dim, amg):
     """Every affine term (Dirichlet and Neumann data, a variable kappa, the regulariser's
     reference, noisy data) as the reduced-space CG sees them through the JAX losses."""

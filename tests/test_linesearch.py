@@ -6,6 +6,7 @@ the gradient's slope it must stop after three trials with a failure optax's stat
 from __future__ import annotations
 
 import collections
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -85,11 +86,27 @@ _wrong_sign = _paraboloid_with_gradient_times(-1.0)
 _too_steep = _paraboloid_with_gradient_times(10.0)
 
 
-def _one_search(optimizer, fn, z):
+def _search(optimizer, fn, z):
     value, grad = jax.value_and_grad(fn)(z)
     updates, state = optimizer.update(grad, optimizer.init(z), z, value=value, grad=grad,
                                       value_fn=fn)
     return value, grad, updates, state
+
+
+@functools.cache
+def _search_program(optimizer, fn):
+    """:func:`_search` as one program, kept per transformation and objective (op by op,
+    every search compiled its loops anew)."""
+    return jax.jit(functools.partial(_search, optimizer, fn))
+
+
+def _one_search(optimizer, fn, z):
+    return _search_program(optimizer, fn)(z)
+
+
+# the transformations as module constants: tests that search one objective with one of them
+# share its compiled search (optax's transformations are pure)
+_OURS, _OPTAX, _POLYAK = pf.lbfgs(), optax.lbfgs(), pf.lbfgs(first_step="polyak")
 
 
 def test_a_search_step_holds_the_evaluation_once_and_runs_it_once_per_trial():
@@ -130,7 +147,7 @@ def test_a_non_finite_value_gets_the_value_and_gradient_at_params_from_one_trial
         jax.debug.callback(lambda: ran.update(["value_fn"]))
         return _badly_scaled(z)
 
-    optimizer = pf.lbfgs()
+    optimizer = _OURS
     z = jnp.array([-3.0, 4.0, -2.0, 3.0])
     *_, searched = _one_search(optimizer, _badly_scaled, z)  # a state with a search behind it
     moved = z + 0.1
@@ -151,14 +168,14 @@ def test_a_non_finite_value_gets_the_value_and_gradient_at_params_from_one_trial
 
 def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():
     z = jnp.array([0.2, -0.4, 0.7])
-    value, grad, updates, state = _one_search(pf.lbfgs(), _wrong_sign, z)
+    value, grad, updates, state = _one_search(_OURS, _wrong_sign, z)
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
     np.testing.assert_array_equal(updates, np.zeros(3))          # no step: every trial rose
     assert float(otu.tree_get(state, "value")) == float(value)   # the start's value and
     np.testing.assert_array_equal(otu.tree_get(state, "grad"), grad)  # gradient are kept
     assert bool(step_failed(state))                              # invert counts a failure
 
-    *_, optax_state = _one_search(optax.lbfgs(), _wrong_sign, z)
+    *_, optax_state = _one_search(_OPTAX, _wrong_sign, z)
     assert int(otu.tree_get(optax_state, "num_linesearch_steps")) == 20
     assert bool(step_failed(optax_state))
 
@@ -166,8 +183,8 @@ def test_a_gradient_of_the_wrong_sign_ends_the_search_after_three_trials():
 def test_a_too_steep_gradient_is_not_a_contradiction():
     # the values fall for small steps, so the search can succeed: the rule must not fire
     z = jnp.array([0.2, -0.4, 0.7])
-    *_, ours = _one_search(pf.lbfgs(), _too_steep, z)
-    *_, theirs = _one_search(optax.lbfgs(), _too_steep, z)
+    *_, ours = _one_search(_OURS, _too_steep, z)
+    *_, theirs = _one_search(_OPTAX, _too_steep, z)
     for name in ("num_linesearch_steps", "learning_rate", "decrease_error", "curvature_error"):
         assert float(otu.tree_get(ours, name)) == float(otu.tree_get(theirs, name)), name
 
@@ -292,13 +309,13 @@ def _quadratic_line(minimum):
 def test_a_polyak_first_step_ends_the_first_search_after_one_evaluation():
     """On a badly scaled least-squares objective the unit first trial doubles 20 times; the
     trial J / |s_0| is accepted at once, and it is that step exactly."""
-    z = jnp.zeros(3)
-    value, grad, updates, state = _one_search(pf.lbfgs(first_step="polyak"), _badly_scaled, z)
+    z = jnp.array([-3.0, 4.0, -2.0, 3.0])  # the start above: its compiled unit search serves
+    value, grad, updates, state = _one_search(_POLYAK, _badly_scaled, z)
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 1
     direction = -grad  # L-BFGS's first direction: the bare gradient
     slope = float(jnp.vdot(direction, grad))
     np.testing.assert_allclose(updates, float(value) / -slope * direction, rtol=1e-13)
-    *_, unit = _one_search(pf.lbfgs(), _badly_scaled, z)
+    *_, unit = _one_search(_OURS, _badly_scaled, z)
     assert int(otu.tree_get(unit, "num_linesearch_steps")) == 20
 
 
@@ -309,9 +326,16 @@ def test_the_polyak_trial_meets_the_wolfe_conditions_up_to_the_stated_minimum(sh
     """The docstring's claim: on a quadratic line with minimum m, one evaluation whenever
     m <= 0.73 J(z_0)."""
     minimum = share * 4.5 / (1.0 - share)  # m = share * J(0), J(0) = m + 4.5
-    *_, state = _one_search(pf.lbfgs(first_step="polyak"), _quadratic_line(minimum),
-                            jnp.zeros(1))
+    state = _polyak_search_on_a_quadratic_line(minimum)
     assert (int(otu.tree_get(state, "num_linesearch_steps")) == 1) == one_evaluation
+
+
+@jax.jit
+def _polyak_search_on_a_quadratic_line(minimum):
+    """The state after one Polyak-first search from 0 on ``_quadratic_line(minimum)``: the
+    minimum an argument, so that every case runs one compiled search."""
+    *_, state = _search(_POLYAK, _quadratic_line(minimum), jnp.zeros(1))
+    return state
 
 
 def test_a_polyak_first_step_needs_a_positive_value_and_a_descent_slope():
@@ -339,15 +363,23 @@ def _search_along(direction_scale, *, changed, max_linesearch_steps=20):
     steepest descent direction of a quadratic, whose line minimum is at
     ``t* = 1 / direction_scale``; ``changed``: the state says the objective changed since the
     last search (the value invert stores when PRDP refines), else a finite stored value."""
+    return _search_along_program(direction_scale, changed, max_linesearch_steps)
+
+
+def _search_along_op_by_op(direction_scale, changed, max_linesearch_steps):
     fn, z = _half_squared_distance_to_one, jnp.array([0.2, -0.4, 0.7])
     value, grad = jax.value_and_grad(fn)(z)
     search = pf.optim.scale_by_zoom_linesearch(max_linesearch_steps)
     state = search.init(z)
-    state = state._replace(value=jnp.asarray(jnp.inf if changed else value), grad=grad,
+    state = state._replace(value=jnp.where(changed, jnp.inf, value), grad=grad,
                            info=state.info._replace(num_linesearch_steps=jnp.asarray(3)))
     direction = -direction_scale * grad
     updates, state = search.update(direction, state, z, value=value, grad=grad, value_fn=fn)
     return direction, updates, state
+
+
+# the scale and the flag are arguments: one compiled search per trial budget
+_search_along_program = jax.jit(_search_along_op_by_op, static_argnums=2)
 
 
 def test_an_overshoot_after_the_objective_changed_restarts_at_the_quadratic_step():
@@ -357,8 +389,9 @@ def test_an_overshoot_after_the_objective_changed_restarts_at_the_quadratic_step
     assert int(otu.tree_get(state, "num_linesearch_steps")) == 2
     np.testing.assert_allclose(updates, 1e-3 * direction, rtol=1e-12)
     assert not bool(step_failed(state))
-    # the same search with the objective unchanged is optax's, many halvings long
-    _, our_updates, ours = _search_along(1000.0, changed=False)
+    # the same search with the objective unchanged is optax's, many halvings long (both op
+    # by op: compiled apart, the two programs may round a last bit differently)
+    _, our_updates, ours = _search_along_op_by_op(1000.0, False, 20)
     fn, z = _half_squared_distance_to_one, jnp.array([0.2, -0.4, 0.7])
     value, grad = jax.value_and_grad(fn)(z)
     theirs = optax.scale_by_zoom_linesearch(20)
@@ -410,10 +443,11 @@ def test_a_first_trial_outside_the_domain_restarts_a_tenth_shorter_until_finite(
     z = jnp.array([0.2, -0.4, 0.7])
     value, grad = jax.value_and_grad(fn)(z)
 
+    @jax.jit  # one program for both searches (the flag an argument)
     def search(changed):
         line = pf.optim.scale_by_zoom_linesearch(20)
         state = line.init(z)
-        state = state._replace(value=jnp.asarray(jnp.inf if changed else value), grad=grad,
+        state = state._replace(value=jnp.where(changed, jnp.inf, value), grad=grad,
                                info=state.info._replace(num_linesearch_steps=jnp.asarray(3)))
         return line.update(-1000.0 * grad, state, z, value=value, grad=grad, value_fn=fn)
 
@@ -429,38 +463,34 @@ def test_a_search_out_of_trials_after_a_restart_ends_at_its_safe_step_as_optax_s
     # along the line: slope -1000 up to a wall at t = 1.5e-3. The unit trial overshoots, the
     # restart at 1e-3 meets the decrease (not the curvature), the doubled 2e-3 hits the
     # wall; with three trials the search ends there, failed, at the safe 1e-3
-    def walled(z):
-        return jnp.sum(-z + 1e6 * jnp.maximum(z - 1.5, 0.0) ** 2)
+    updates, state = _three_trials_against_a_wall(jnp.zeros(1))
+    assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
+    np.testing.assert_allclose(updates, [1.0], rtol=1e-12)
+    assert float(otu.tree_get(state, "value")) == pytest.approx(float(_walled(jnp.ones(1))))
+    assert bool(step_failed(state))
 
-    z = jnp.zeros(1)
-    value, grad = jax.value_and_grad(walled)(z)
+
+def _walled(z):
+    return jnp.sum(-z + 1e6 * jnp.maximum(z - 1.5, 0.0) ** 2)
+
+
+@jax.jit
+def _three_trials_against_a_wall(z):
+    """The search above, from ``z`` in its dtype: (updates, state)."""
+    value, grad = jax.value_and_grad(_walled)(z)
     search = pf.optim.scale_by_zoom_linesearch(3)
     state = search.init(z)
     state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
-    updates, state = search.update(jnp.array([1000.0]), state, z, value=value, grad=grad,
-                                   value_fn=walled)
-    assert int(otu.tree_get(state, "num_linesearch_steps")) == 3
-    np.testing.assert_allclose(updates, [1.0], rtol=1e-12)
-    assert float(otu.tree_get(state, "value")) == pytest.approx(float(walled(jnp.ones(1))))
-    assert bool(step_failed(state))
+    return search.update(jnp.array([1000.0], z.dtype), state, z, value=value, grad=grad,
+                         value_fn=_walled)
 
 
 def test_float32_parameters_keep_their_dtype_when_a_search_gives_up_or_runs_out():
     # the give-up and out-of-trials branches must return the state's float32 types
     z = jnp.array([0.2, -0.4, 0.7], dtype=jnp.float32)
-    _, _, updates, state = _one_search(pf.lbfgs(), _wrong_sign, z)
+    _, _, updates, state = _one_search(_OURS, _wrong_sign, z)
     assert updates.dtype == jnp.float32 and int(otu.tree_get(state, "num_linesearch_steps")) == 3
     np.testing.assert_array_equal(updates, np.zeros(3, np.float32))
-
-    def walled(z):
-        return jnp.sum(-z + 1e6 * jnp.maximum(z - 1.5, 0.0) ** 2)
-
-    z = jnp.zeros(1, jnp.float32)
-    value, grad = jax.value_and_grad(walled)(z)
-    search = pf.optim.scale_by_zoom_linesearch(3)
-    state = search.init(z)
-    state = state._replace(info=state.info._replace(num_linesearch_steps=jnp.asarray(1)))
-    updates, state = search.update(jnp.array([1000.0], jnp.float32), state, z, value=value,
-                                   grad=grad, value_fn=walled)
+    updates, state = _three_trials_against_a_wall(jnp.zeros(1, jnp.float32))
     assert updates.dtype == jnp.float32 and bool(step_failed(state))
     np.testing.assert_allclose(updates, [1.0], rtol=1e-6)

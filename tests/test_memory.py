@@ -46,7 +46,8 @@ def _toy_run(theta, x0, iterations, segment):
     return jnp.sum(x) + s + jnp.vdot(jnp.cos(jnp.arange(iterations)), squares), (x, flags)
 
 
-@pytest.mark.parametrize("iterations", [0, 1, 5, 9])
+# 5 with the slow cases: 9 too has segments that divide it and segments that leave a rest
+@pytest.mark.parametrize("iterations", [0, 1, pytest.param(5, marks=pytest.mark.slow), 9])
 def test_segmented_scan_is_the_plain_scan_for_any_segment_length(iterations):
     theta, x0 = jnp.linspace(0.5, 1.5, 4), jnp.asarray([0.3, -0.2, 0.1, 0.4])
     direction = jnp.asarray([1.0, -0.5, 0.25, 2.0])
@@ -89,8 +90,10 @@ def _loss(small_problem, iterations, checkpoint):
 
 
 # K = 7 with the sqrt rule: s = 3, two segments and one iteration left over; K = 12 with s = 5:
-# two segments and two left over
-@pytest.mark.parametrize(("iterations", "checkpoint"), [(7, True), (12, 5)])
+# two segments and two left over (with the slow cases: a segment length given as a number is
+# the sqrt rule's scan with another length, which the toy scan above checks for every length)
+@pytest.mark.parametrize(("iterations", "checkpoint"), [
+    (7, True), pytest.param(12, 5, marks=pytest.mark.slow)])
 def test_checkpointed_solve_gives_the_plain_x_history_and_gradient(small_problem, iterations,
                                                                    checkpoint):
     kappa = jnp.asarray(small_problem[1])
@@ -112,6 +115,9 @@ def test_checkpointed_solve_gives_the_plain_x_history_and_gradient(small_problem
                                atol=1e-14 * float(np.max(np.abs(plain_grad))))
 
 
+# the toy scan's test above differentiates the segments in forward mode, and the test above
+# checks the solve's segments
+@pytest.mark.slow
 def test_checkpointed_solve_jvp_matches_the_plain_one(small_problem):
     disc, kappa, _ = small_problem
     direction = jnp.asarray(np.random.default_rng(3).normal(size=disc.n_kappa))

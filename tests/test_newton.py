@@ -1,6 +1,7 @@
 """Newton-CG and Gauss-Newton (prdp_fem.optim.newton): against dense solves, closed forms and
 hIPPYlib."""
 
+import functools
 import math
 
 import jax
@@ -22,6 +23,17 @@ def update(optimizer, state, z, fn, **extra):
     updates, state = optimizer.update(grad, state, z, value=value, grad=grad, value_fn=fn,
                                       **extra)
     return optax.apply_updates(z, updates), state
+
+
+@functools.cache
+def _jitted_update(optimizer, fn):
+    return jax.jit(lambda state, z: update(optimizer, state, z, fn))
+
+
+def jitted_update(optimizer, state, z, fn):
+    """:func:`update` as one program per optimizer and objective (op by op, every call
+    compiled the update's loops anew)."""
+    return _jitted_update(optimizer, fn)(state, z)
 
 
 # ------------------------------------------------------------------------------------------
@@ -74,11 +86,11 @@ def test_gauss_newton_and_exact_hessian_products_equal_the_dense_hessian(source)
     solver = ConvergedCG(rtol=1e-13)
     z = jnp.asarray(np.random.default_rng(1).normal(size=disc.n_dofs))
     v = jnp.asarray(np.random.default_rng(2).normal(size=disc.n_dofs))
-    # the problem is an argument of the jitted functions, not a constant folded into them
-    gauss_newton_v = jax.jit(lambda p, z, v: p.gauss_newton_product(z, v, solver))(
-        problem, z, v)
-    exact_v = jax.jit(lambda p, z, v: jax.jvp(jax.grad(lambda z: p.loss(z, solver)[0]), (z,),
-                                              (v,))[1])(problem, z, v)
+    # the problem is an argument of the jitted function, not a constant folded into it; both
+    # products in one program (one compile, not two)
+    gauss_newton_v, exact_v = jax.jit(lambda p, z, v: (
+        p.gauss_newton_product(z, v, solver),
+        jax.jvp(jax.grad(lambda z: p.loss(z, solver)[0]), (z,), (v,))[1]))(problem, z, v)
     dense = H @ np.asarray(v)
     np.testing.assert_allclose(gauss_newton_v, dense, rtol=1e-9, atol=1e-9 * abs(dense).max())
     np.testing.assert_allclose(exact_v, dense, rtol=1e-9, atol=1e-9 * abs(dense).max())
@@ -98,12 +110,13 @@ def test_gauss_newton_operator_is_jacobian_transpose_w_jacobian_plus_the_regular
         return pf.linalg.matvec(problem.observation.operator,
                          problem.system.expand(problem.state(z, solver).x))
 
-    J = np.asarray(jax.jit(jax.jacfwd(observed, argnums=1))(problem, z))
-    L = np.asarray(jax.hessian(lambda m: problem.regularizer(m))(z))
-    W = problem.observation.weight.to_scipy().toarray()
     v = jnp.asarray(np.random.default_rng(3).normal(size=z.shape))
+    # the Jacobian, the regulariser's Hessian and the product in one program (one compile)
+    J, L, product = (np.asarray(a) for a in jax.jit(lambda p, z, v: (
+        jax.jacfwd(observed, argnums=1)(p, z), jax.hessian(lambda m: p.regularizer(m))(z),
+        p.gauss_newton_product(z, v, solver)))(problem, z, v))
+    W = problem.observation.weight.to_scipy().toarray()
     expected = J.T @ W @ J @ v + 1e-3 * L @ v
-    product = jax.jit(lambda p, z, v: p.gauss_newton_product(z, v, solver))(problem, z, v)
     np.testing.assert_allclose(product, expected, rtol=1e-10, atol=1e-12 * abs(expected).max())
 
 
@@ -120,7 +133,7 @@ def quartic(z):
 def test_negative_curvature_takes_the_steepest_descent_direction():
     opt = newton_cg()
     z = jnp.zeros(2)
-    z1, state = update(opt, opt.init(z), z, quartic)
+    z1, state = jitted_update(opt, opt.init(z), z, quartic)
     # the first CG direction -g = (-0.1, -0.3) has d.Hd = -0.01 + 0.18 > 0; the second
     # meets negative curvature, so the step is the first CG iterate, alpha d = -(rz / dHd) g
     g = np.array([0.1, 0.3])
@@ -170,9 +183,9 @@ def test_forcing_terms_follow_their_formulas():
     z0 = jnp.linspace(-1.0, 1.0, 4)
     for forcing in ("eisenstat_walker", "hippylib"):
         opt = newton_cg(forcing=forcing, forcing_max=0.5)
-        z1, state = update(opt, opt.init(z0), z0, fn)
+        z1, state = jitted_update(opt, opt.init(z0), z0, fn)
         assert float(state.forcing) == 0.5  # eta_0 = forcing_max under both rules
-        _, state = update(opt, state, z1, fn)
+        _, state = jitted_update(opt, state, z1, fn)
         ratio = float(state.grad_norm) / float(state.initial_grad_norm)
         if forcing == "hippylib":
             expected = min(0.5, math.sqrt(ratio))
@@ -191,11 +204,11 @@ def test_inner_cg_stops_at_the_forcing_tolerance_and_counts_products():
 
     z = jnp.zeros(6)
     exact = newton_cg(forcing=1e-12)
-    z1, state = update(exact, exact.init(z), z, fn)
+    z1, state = jitted_update(exact, exact.init(z), z, fn)
     assert int(state.cg_iterations) == 6
     np.testing.assert_allclose(z1, 1.0 / scale, rtol=1e-12)
     loose = newton_cg(forcing=0.3, max_cg=50)
-    z1, state = update(loose, loose.init(z), z, fn)
+    z1, state = jitted_update(loose, loose.init(z), z, fn)
     k = int(state.cg_iterations)
     assert 1 <= k < 6
     p = np.asarray(z1) / float(state.step_size)
@@ -212,7 +225,7 @@ def test_converged_updates_are_skipped():
 
     state = opt.init(z)
     for _ in range(6):
-        z, state = update(opt, state, z, fn)
+        z, state = jitted_update(opt, state, z, fn)
     assert bool(state.converged)
     assert int(state.cg_iterations) == int(state.line_search_evaluations) == 0
     assert float(jnp.max(jnp.abs(z))) < 1e-10  # quadratic convergence to 0 well before step 6

@@ -91,7 +91,8 @@ def test_matvec_is_differentiable_in_values(random_spd):
     A = pf.SparseMatrix.from_scipy(random_spd)
     x = jnp.arange(40.0)
     y = jnp.ones(40)
-    grad = jax.grad(lambda v: y @ linalg.matvec(A.with_values(v), x))(A.values)
+    # jitted: one program (op by op, JAX's transpose pads each ELL slot in a program of its own)
+    grad = jax.jit(jax.grad(lambda v: y @ linalg.matvec(A.with_values(v), x)))(A.values)
     np.testing.assert_allclose(grad, y[A.rows] * x[A.cols])
 
 
@@ -273,15 +274,19 @@ def test_ell_and_coo_kernels_agree_in_value_jvp_and_vjp(random_spd, matrix):
     rng = np.random.default_rng(1)
     x, dx, dv, y = (rng.normal(size=s) for s in (40, 40, ell.nnz, 40))
 
-    def product(A):
-        return lambda values, x: linalg.matvec(A.with_values(values), x)
+    @jax.jit  # one program a kernel (op by op, each product and rule compiled its own)
+    def derivatives(A, x, dv, dx, y):
+        def product(values, x):
+            return linalg.matvec(A.with_values(values), x)
+
+        value, tangent = jax.jvp(product, (A.values, x), (dv, dx))
+        return value, tangent, *jax.vjp(product, A.values, x)[1](y)
 
     for A in (ell, coo, csr):
-        value, tangent = jax.jvp(product(A), (A.values, x), (dv, dx))
+        value, tangent, values_bar, x_bar = derivatives(A, x, dv, dx, y)
         np.testing.assert_allclose(value, matrix @ x, rtol=1e-12)
         np.testing.assert_allclose(tangent, A.with_values(dv).to_scipy() @ x + matrix @ dx,
                                    rtol=1e-12)
-        values_bar, x_bar = jax.vjp(product(A), A.values, x)[1](y)
         np.testing.assert_allclose(values_bar, y[A.rows] * x[A.cols], rtol=1e-12)
         np.testing.assert_allclose(x_bar, matrix.T @ y, rtol=1e-12)
 
@@ -297,14 +302,14 @@ def test_scaled_kernel_is_S_A_S(n, nnz, seed):
     s, x = rng.uniform(0.5, 2.0, n), rng.normal(size=n)
     scaled = sp.diags(s) @ reference @ sp.diags(s)
     coo = pf.SparseMatrix(A.rows, A.cols, A.values, A.shape)
-    kernels = (linalg.prepare(A), linalg.prepare(coo), linalg.prepare(A.with_kernel("csr")))
-    for product in _scaled_products(kernels, jnp.asarray(s), jnp.asarray(x)):
+    matrices = (A, coo, A.with_kernel("csr"))  # ELL, COO and CSR kernels
+    for product in _scaled_products(matrices, jnp.asarray(s), jnp.asarray(x)):
         np.testing.assert_allclose(product, scaled @ x, atol=1e-12)
 
 
 @jax.jit
-def _scaled_products(kernels, s, x):  # one program an example, not each operation's
-    return [kernel.scaled(s)(x) for kernel in kernels]
+def _scaled_products(matrices, s, x):  # one program an example, the kernels prepared in it
+    return [linalg.prepare(matrix).scaled(s)(x) for matrix in matrices]
 
 
 @pytest.mark.parametrize("shape", [(7, 30), (30, 7)])
@@ -344,10 +349,12 @@ def test_wide_rows_past_the_unrolled_slots_multiply_and_differentiate_right():
     assert linalg.prepare(A).values.shape[0] > 32
     rng = np.random.default_rng(5)
     x, dx, y = rng.normal(size=40), rng.normal(size=40), rng.normal(size=40)
-    value, tangent = jax.jvp(lambda x: linalg.matvec(A, x), (x,), (dx,))
+    # jitted: one program each (op by op, each product and rule compiled its own)
+    value, tangent = jax.jit(lambda x, dx: jax.jvp(lambda x: linalg.matvec(A, x), (x,), (dx,)))(
+        x, dx)
     np.testing.assert_allclose(value, matrix @ x, rtol=1e-12)
     np.testing.assert_allclose(tangent, matrix @ dx, rtol=1e-12)
-    values_bar = jax.grad(lambda v: y @ linalg.matvec(A.with_values(v), x))(A.values)
+    values_bar = jax.jit(jax.grad(lambda v: y @ linalg.matvec(A.with_values(v), x)))(A.values)
     np.testing.assert_allclose(values_bar, y[A.rows] * x[A.cols], rtol=1e-12)
 
 
@@ -381,10 +388,13 @@ def test_a_named_kernel_runs_forward_and_backward_and_changes_no_number(random_s
         return lambda values: jnp.sum(pf.solve(matrix.with_values(values), b, solver).x ** 2)
 
     csr = A.with_kernel("csr")
-    assert "csr_matvec" in str(jax.make_jaxpr(jax.grad(loss(csr)))(csr.values))
-    assert "csr_matvec" not in str(jax.make_jaxpr(jax.grad(loss(A)))(A.values))
-    value, grad = jax.jit(jax.value_and_grad(loss(csr)))(csr.values)
-    value_ell, grad_ell = jax.jit(jax.value_and_grad(loss(A)))(A.values)
+    # each program traced once: its jaxpr is read, then it is compiled and run
+    traced, traced_ell = (jax.jit(jax.value_and_grad(loss(matrix))).trace(matrix.values)
+                          for matrix in (csr, A))
+    assert "csr_matvec" in str(traced.jaxpr)
+    assert "csr_matvec" not in str(traced_ell.jaxpr)
+    value, grad = traced.lower().compile()(csr.values)
+    value_ell, grad_ell = traced_ell.lower().compile()(A.values)
     np.testing.assert_allclose(value, value_ell, rtol=1e-12)
     np.testing.assert_allclose(grad, grad_ell, rtol=1e-10, atol=1e-14 * np.abs(grad_ell).max())
 

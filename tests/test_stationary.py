@@ -170,8 +170,9 @@ def test_symmetric_implicit_and_unrolled_agree_from_zero():
     """The reference's setting: A symmetric, x0 = 0, K_adj = K: the same derivative in b."""
     A = SparseMatrix.from_scipy(laplacian())
     c = np.linspace(1.0, -1.0, N)
-    grads = [jax.grad(lambda b, g=g: jnp.vdot(c, solve(A, b, TruncatedJacobi(
-        25, gradient=g)).x))(jnp.asarray(rhs())) for g in ("unrolled", "implicit")]
+    # jitted: one program each (op by op, some 75 small ones)
+    grads = [jax.jit(jax.grad(lambda b, g=g: jnp.vdot(c, solve(A, b, TruncatedJacobi(
+        25, gradient=g)).x)))(jnp.asarray(rhs())) for g in ("unrolled", "implicit")]
     np.testing.assert_allclose(grads[0], grads[1], rtol=1e-12, atol=1e-15)
 
 
@@ -191,7 +192,10 @@ def test_taylor_remainders_are_second_order(gradient, K):
     params = (A.values, jnp.asarray(rhs()))
     direction = (jnp.asarray(np.cos(np.arange(A.values.shape[0]))) * 0.1,
                  jnp.asarray(np.sin(np.arange(N))))
-    result = pf.taylor_test(loss, params, direction, h0=1e-2, n_steps=5)
+    # jitted: a program for the loss and one for its gradient (op by op, some 40 small ones)
+    loss = jax.jit(loss)
+    result = pf.taylor_test(loss, params, direction, gradient=jax.jit(jax.grad(loss))(params),
+                            h0=1e-2, n_steps=5)
     assert result.passed(), result.rates
     np.testing.assert_allclose(np.median(result.rates[np.isfinite(result.rates)]), 2.0, atol=0.1)
 
@@ -223,12 +227,14 @@ def test_traced_counts_give_the_static_results():
     for K in (3, 11):
         value, grad = implicit(A.values, K, K - 1, 0.75)
         static = TruncatedJacobi(K, omega=0.75, gradient="implicit", adjoint_iterations=K - 1)
-        expected = jax.grad(lambda v, s=static: jnp.vdot(c, solve(with_values(A, v), b, s).x))
+        # the references jitted too: one program each (op by op, many small ones)
+        expected = jax.jit(jax.grad(lambda v, s=static: jnp.vdot(c, solve(with_values(A, v), b,
+                                                                           s).x)))
         np.testing.assert_allclose(grad, expected(A.values), rtol=1e-13, atol=1e-15)
         np.testing.assert_allclose(value, jnp.vdot(c, solve(A, b, static).x), rtol=1e-13)
         value, grad = unrolled(A.values, K)
-        expected = jax.grad(lambda v, K=K: jnp.vdot(c, solve(with_values(A, v), b,
-                                                             TruncatedJacobi(K)).x))
+        expected = jax.jit(jax.grad(lambda v, K=K: jnp.vdot(c, solve(with_values(A, v), b,
+                                                                     TruncatedJacobi(K)).x)))
         np.testing.assert_allclose(grad, expected(A.values), rtol=1e-12, atol=1e-15)
         sol = solve(A, b, TruncatedJacobi(K, scan_length=16))
         assert int(sol.iterations) == K and sol.residual_history.shape == (17,)
@@ -326,7 +332,9 @@ def test_counter_tallies_sweeps(gradient, adjoint):
     counter = pf.IterationCounter()
     solver = TruncatedJacobi(9, gradient=gradient,
                              adjoint_iterations=4 if gradient == "implicit" else None)
-    jax.grad(lambda b: jnp.sum(solve(A, b, solver, counter=counter).x))(jnp.asarray(rhs()))
+    # jitted: one program (op by op, some dozen small ones)
+    jax.jit(jax.grad(lambda b: jnp.sum(solve(A, b, solver, counter=counter).x)))(
+        jnp.asarray(rhs()))
     jax.effects_barrier()
     assert counter.snapshot() == (9, adjoint)
 

@@ -144,8 +144,10 @@ def _objective(system, solver):
     return J
 
 
-@pytest.mark.parametrize("solver", _SOLVERS, ids=lambda s: f"{type(s).__name__}-"
-                         f"{getattr(s, 'gradient', 'converged')}")
+# ConvergedCG with the slow cases: it taps the counts on TruncatedCG's implicit path
+@pytest.mark.parametrize("solver", [pytest.param(s, marks=pytest.mark.slow)
+                                    if isinstance(s, ConvergedCG) else s for s in _SOLVERS],
+                         ids=lambda s: f"{type(s).__name__}-{getattr(s, 'gradient', 'converged')}")
 def test_a_reverse_tally_returns_what_the_host_counter_hears(system, solver):
     """The same value, gradient and counts (primal, adjoint, solves) as outputs, no host
     call in the program."""

@@ -50,9 +50,10 @@ def right_hand_side(kind: str, smooth: np.ndarray, seed: int = 1) -> np.ndarray:
 
 @cache
 def programs(n_side: int, dim: int, iterations: int, checkpoint=False, scan=False):
-    """Jitted loss, gradient, directional derivative, status and relative residual for one
-    operator and K, and the converged solve's directional derivative (the right-hand side is
-    an argument: one compile serves every kind)."""
+    """For one operator and K, jitted: the loss; the derivative along ``v`` in reverse and in
+    forward mode; status and relative residual; the converged solve's derivative along ``v``
+    (the right-hand side is an argument: one compile serves every kind; the loss and the
+    diagnostics are one program, the two derivatives another)."""
     matrix, _ = operator(n_side, dim)
     target = 1e-3 * jnp.cos(1e-3 * jnp.arange(matrix.shape[0]))
     solver = TruncatedCG(iterations, gradient="unrolled", checkpoint=checkpoint,
@@ -61,13 +62,18 @@ def programs(n_side: int, dim: int, iterations: int, checkpoint=False, scan=Fals
     def loss(b, solver=solver):
         return 0.5 * jnp.sum((solve(matrix, b, solver).x - target) ** 2)
 
-    def diagnostics(b):
+    @jax.jit
+    def forward(b):
         sol = solve(matrix, b, solver)
-        return sol.status, sol.residual_norm / sol.initial_residual_norm
+        return (0.5 * jnp.sum((sol.x - target) ** 2), sol.status,
+                sol.residual_norm / sol.initial_residual_norm)
+
+    @jax.jit
+    def derivatives(b, v):
+        return jnp.vdot(jax.grad(loss)(b), v), jax.jvp(loss, (b,), (v,))[1]
 
     converged = partial(loss, solver=ConvergedCG(rtol=1e-13))
-    return (jax.jit(loss), jax.jit(jax.grad(loss)),
-            jax.jit(lambda b, v: jax.jvp(loss, (b,), (v,))[1]), jax.jit(diagnostics),
+    return (lambda b: forward(b)[0], derivatives, lambda b: forward(b)[1:],
             jax.jit(lambda b, v: jax.jvp(converged, (b,), (v,))[1]))
 
 
@@ -97,14 +103,14 @@ def check_derivative(n_side, dim, kind, iterations, **options) -> Status:
 
 
 def check_at(compiled, b, label) -> Status:
-    loss, grad, jvp, diagnostics, converged_jvp = compiled
+    loss, derivatives, diagnostics, converged_jvp = compiled
     v = jnp.asarray(direction(np.asarray(b)))
     status, relative_residual = diagnostics(b)
     flag = Status(int(status))
     if flag == Status.UNRELIABLE_DERIVATIVE:
         return flag
     assert flag == Status.SUCCESS
-    reverse, forward = float(jnp.vdot(grad(b), v)), float(jvp(b, v))
+    reverse, forward = (float(d) for d in derivatives(b, v))
     scale = max(abs(reverse), 1e-300)
     assert abs(reverse - forward) <= 1e-8 * scale, (label, reverse, forward)
     reference, spread = reference_derivative(loss, converged_jvp, b, v,
@@ -138,21 +144,21 @@ def test_family_of_right_hand_sides(n_side, dim, iterations):
         assert set(flags.values()) == {Status.SUCCESS}
 
 
-@pytest.mark.parametrize("n_side,dim", [(33, 2), (9, 3)])
+# 3-D with the slow cases: implicit mode solves the same way on either Laplacian
+@pytest.mark.parametrize("n_side,dim", [(33, 2), pytest.param(9, 3, marks=pytest.mark.slow)])
 def test_implicit_mode_past_convergence(n_side, dim):
     """Implicit mode (the truncated adjoint) past convergence: reverse = forward mode = the
     converged derivative, for the same family of right-hand sides."""
     matrix, smooth = operator(n_side, dim)
     target = 1e-3 * jnp.cos(1e-3 * jnp.arange(matrix.shape[0]))
 
-    def make(solver):
-        return lambda b: 0.5 * jnp.sum((solve(matrix, b, solver).x - target) ** 2)
+    def loss(b):
+        return 0.5 * jnp.sum((solve(matrix, b, TruncatedCG(400, gradient="implicit")).x
+                              - target) ** 2)
 
-    loss = make(TruncatedCG(400, gradient="implicit"))
-    converged = make(ConvergedCG(rtol=1e-13))
     grad = jax.jit(jax.grad(loss))
     jvp = jax.jit(lambda b, v: jax.jvp(loss, (b,), (v,))[1])
-    reference = jax.jit(lambda b, v: jax.jvp(converged, (b,), (v,))[1])
+    reference = programs(n_side, dim, 400)[-1]  # the converged derivative, as the family's
     for kind in ("smooth", "constant", "rough", "random", "smooth+noise"):
         b = jnp.asarray(right_hand_side(kind, smooth))
         v = jnp.asarray(direction(np.asarray(b)))
@@ -164,17 +170,19 @@ def test_implicit_mode_past_convergence(n_side, dim):
 def test_flag_fires_where_finite_differences_disagree():
     """Without the flag, K = 30 on the reported case returns a derivative that no finite
     difference supports: the flag is what stands between it and the user."""
-    loss, grad, _, diagnostics, _ = programs(65, 2, 30)
+    loss, derivatives, diagnostics, _ = programs(65, 2, 30)
     b = jnp.asarray(operator(65, 2)[1])
     v = jnp.asarray(direction(np.asarray(b)))
-    reverse = float(jnp.vdot(grad(b), v))
+    reverse = float(derivatives(b, v)[0])
     differences = [(float(loss(b + h * v)) - float(loss(b - h * v))) / (2 * h) for h in STEPS]
     assert abs(reverse) > 1e6 * max(abs(d) for d in differences)
     assert Status(int(diagnostics(b)[0])) == Status.UNRELIABLE_DERIVATIVE
 
 
-@pytest.mark.parametrize("iterations", [5, pytest.param(30, marks=pytest.mark.slow),
-                                        pytest.param(100, marks=pytest.mark.slow)])
+# slow: in the default suite test_memory pins the checkpointed gradient and jvp to the plain
+# scan's, and test_cg the bounded scan's (its value, gradient and jvp)
+@pytest.mark.slow
+@pytest.mark.parametrize("iterations", [5, 30, 100])
 def test_checkpointed_and_bounded_scans_agree(iterations):
     """Checkpointed segments and a traced K below a scan length: the same derivative and the
     same status as the plain scan."""
@@ -182,9 +190,8 @@ def test_checkpointed_and_bounded_scans_agree(iterations):
     v = jnp.asarray(direction(np.asarray(b)))
     results = []
     for options in ({}, {"checkpoint": True}, {"scan": True}):
-        _, grad, jvp, diagnostics, _ = programs(65, 2, iterations, **options)
-        results.append((int(diagnostics(b)[0]), float(jnp.vdot(grad(b), v)),
-                        float(jvp(b, v))))
+        _, derivatives, diagnostics, _ = programs(65, 2, iterations, **options)
+        results.append((int(diagnostics(b)[0]), *(float(d) for d in derivatives(b, v))))
     flags = {flag for flag, _, _ in results}
     assert len(flags) == 1
     if flags == {Status.SUCCESS}:
@@ -216,13 +223,24 @@ def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
         lifted = dataclasses.replace(system, dirichlet_values=g)
         return solve(lifted.operator(kappa), lifted.rhs(kappa, f), solver)
 
-    def make_loss(solver):
-        return jax.jit(lambda k, g: 0.5 * jnp.sum((solution(k, g, solver).x - target) ** 2))
+    def make_loss(solver):  # (kappa, g) -> (J, the solve)
+        def loss(kappa, g):
+            sol = solution(kappa, g, solver)
+            return 0.5 * jnp.sum((sol.x - target) ** 2), sol
+        return loss
 
-    solver = TruncatedCG(iterations, gradient="unrolled")
-    loss, converged = make_loss(solver), make_loss(ConvergedCG(rtol=1e-13))
+    unrolled = make_loss(TruncatedCG(iterations, gradient="unrolled"))
+    converged = make_loss(ConvergedCG(rtol=1e-13))
+    loss = jax.jit(lambda kappa, g: unrolled(kappa, g)[0])  # for the finite differences
+
+    @cache
+    def jvp(fn):  # J's derivative along tangents of both arguments, jitted
+        return jax.jit(lambda points, tangents: jax.jvp(lambda *p: fn(*p)[0], points,
+                                                        tangents)[1])
+
     g0 = jnp.asarray(system.dirichlet_values)
-    sol = solution(kappa, g0, solver)
+    # both arguments' gradients and the solve's diagnostics in one program
+    grads, sol = jax.jit(jax.grad(unrolled, argnums=(0, 1), has_aux=True))(kappa, g0)
     # a variable coefficient and a source with weight across the spectrum: never flagged,
     # so every derivative below is checked
     assert Status(int(sol.status)) == Status.SUCCESS
@@ -237,13 +255,14 @@ def test_coefficient_and_dirichlet_derivatives(coefficient_problem, iterations):
             return [a + h * v if i == argnum else a for i, a in enumerate(args)]
 
         def directional(fn, argnum=argnum, v=v):
-            return float(jax.jvp(lambda p: fn(*[p if i == argnum else a
-                                                for i, a in enumerate(args)]),
-                                 (args[argnum],), (v,))[1])
+            # along v in one argument: a zero tangent in the other (one program serves both)
+            tangents = tuple(v if i == argnum else jnp.zeros_like(a)
+                             for i, a in enumerate(args))
+            return float(jvp(fn)(args, tangents))
 
-        reverse = float(jnp.vdot(jax.grad(loss, argnum)(*args), v))
+        reverse = float(jnp.vdot(grads[argnum], v))
         scale = max(abs(reverse), 1e-300)
-        assert abs(reverse - directional(loss)) <= 1e-8 * scale
+        assert abs(reverse - directional(unrolled)) <= 1e-8 * scale
         if past_convergence:
             reference, spread = directional(converged), 0.0
         else:

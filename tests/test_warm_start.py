@@ -7,6 +7,8 @@ run's answer where the same ``K`` from zero stalls, and a converged run needs fe
 iterations for the same steps.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -38,6 +40,14 @@ _W = np.random.default_rng(1).standard_normal(N)
 def _value_and_grads(solver, start):
     """``d/ds w.x(s b)`` at ``s = 1``, the counts and the adjoint solution (the gradient with
     respect to the start)."""
+    _, (grad, counts, adjoint) = _program(solver)(1.0, zero_counts(), start)
+    return float(grad), read_counts(counts), np.asarray(adjoint)
+
+
+@functools.cache
+def _program(solver):
+    """The value and gradients above, one program per solver (the start an argument: a
+    cold and a warm start run one compiled program)."""
     matrix = SparseMatrix.from_scipy(_A)
 
     def J(scale, seed, adjoint_start):
@@ -45,9 +55,7 @@ def _value_and_grads(solver, start):
                     counter=ReverseTally(seed, adjoint_start))
         return jnp.vdot(jnp.asarray(_W), sol.x)
 
-    _, (grad, counts, adjoint) = jax.jit(jax.value_and_grad(J, argnums=(0, 1, 2)))(
-        1.0, zero_counts(), start)
-    return float(grad), read_counts(counts), np.asarray(adjoint)
+    return jax.jit(jax.value_and_grad(J, argnums=(0, 1, 2)))
 
 
 def test_the_adjoint_solution_leaves_as_the_starts_gradient():
@@ -112,11 +120,18 @@ def test_the_evaluation_returns_the_state_and_adjoint_solutions(coefficient_prob
     np.testing.assert_allclose(evaluation.grad, plain.grad, rtol=1e-8, atol=1e-14)
     # the state: A(kappa) u = b; the adjoint of J = misfit(u) + alpha R: A lambda = dJ/du
     # up to its sign, on the free dofs
-    kappa, f = problem.parameterization.coefficients(z, problem.known)
-    A = problem.system.operator(kappa).to_scipy().tocsc()
-    state = sp.linalg.spsolve(A, np.asarray(problem.system.rhs(kappa, f)))
+    # the system at z and the misfit's gradient jitted: one program each, not op by op
+    @jax.jit
+    def system_at(z):
+        kappa, f = problem.parameterization.coefficients(z, problem.known)
+        return problem.system.operator(kappa), problem.system.rhs(kappa, f)
+
+    operator, rhs = system_at(z)
+    A = operator.to_scipy().tocsc()
+    state = sp.linalg.spsolve(A, np.asarray(rhs))
     np.testing.assert_allclose(evaluation.warm_start.state, state, rtol=1e-9)
-    misfit_gradient = jax.grad(lambda x: problem.observation.misfit(problem.system.expand(x)))
+    misfit_gradient = jax.jit(jax.grad(
+        lambda x: problem.observation.misfit(problem.system.expand(x))))
     adjoint = sp.linalg.spsolve(A, np.asarray(misfit_gradient(jnp.asarray(state))))
     returned = np.asarray(evaluation.warm_start.adjoint)
     np.testing.assert_allclose(np.abs(returned), np.abs(adjoint), rtol=1e-7,
