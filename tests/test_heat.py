@@ -347,6 +347,27 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     assert len([c for c in made if c._static_argnum == 5]) == 3
 
 
+def test_a_second_training_with_the_default_optimizer_compiles_nothing(small,
+                                                                      backend_compiles):
+    """Trainings that pass no optimizer share one default object, so their step, and their
+    validation rollouts, are compiled once for the process (a bench's seeds, a script's
+    loop)."""
+    from prdp_fem.inverse import fixed
+
+    _, problem, trajectories, validation = small
+
+    def train(seed):
+        return heat.train(problem, network_for(problem, seed=seed), trajectories, validation,
+                          mode="nog", unroll=2, refinement=fixed(3), epochs=1, batch_size=12,
+                          test_set=validation)
+
+    first = train(0)
+    compiled = len(backend_compiles)
+    second = train(1)
+    assert backend_compiles[compiled:] == []
+    assert second.records[-1].validation_error != first.records[-1].validation_error
+
+
 def test_the_initial_network_is_scaled_to_its_targets(small):
     """The output layer's scale is the spread of the relative one-step targets: the
     converged coarse step's error (correction, small) or the step itself (prediction)."""

@@ -108,6 +108,7 @@ from ..inverse.steps import (
 from ..linalg import cg
 from ..linalg.cg import ConvergedCG, IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix
+from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
@@ -464,6 +465,13 @@ class HeatRecord(NamedTuple):
     #                                    their work counted in the totals above
 
 
+@jax.jit
+def _converged_steps(problem: HeatProblem, states: jax.Array) -> jax.Array:
+    """One converged step of ``problem`` from each of ``states`` (one program per shape)."""
+    exact = ConvergedCG(rtol=1e-12)
+    return jax.vmap(lambda x: heat_step(problem, x, exact)[0])(states)
+
+
 def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
                     hidden: tuple[int, ...] = (128,), seed: int = 0) -> Network:
     """An untrained MLP ``[n_free, *hidden, n_free]`` whose output scale is the spread of its
@@ -473,8 +481,7 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
     pairs = windows(train_set, 1)
     u, target = pairs[:, 0], pairs[:, 1]
     if setup == "correction":
-        exact = ConvergedCG(rtol=1e-12)
-        u = jax.vmap(lambda x: heat_step(problem, x, exact)[0])(u)
+        u = _converged_steps(problem, u)
     u, target = np.asarray(u), np.asarray(target)
     rho = np.sqrt(np.mean(u**2, axis=1, keepdims=True))
     rho = np.where((rho > 0) & (not problem.reaction), rho, 1.0)  # see correction()
@@ -520,6 +527,24 @@ def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, precondi
 #: converged runs of one mode trace and lower it once (about 0.8 s for the heat scene's
 #: correction step).
 _step_program = kept_programs(_new_step_program)
+
+
+def _new_validation_programs(setup, step, validation_rtol, preconditioner):
+    """The validation rollout with converged solves and the same rollout at a level (``K``
+    and ``rtol`` traced: one program for every level), jitted."""
+    solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
+                         preconditioner=preconditioner)
+    validate = jax.jit(lambda net, prob, val: rollout_error(
+        net, prob, val, solver, setup=setup, step=step))
+    validate_at = jax.jit(lambda net, prob, val, K, rtol: rollout_error(
+        net, prob, val, ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner),
+        setup=setup, step=step))
+    return validate, validate_at
+
+
+#: The validation programs per (setup, step, validation rtol, preconditioner name), kept as
+#: the step is: a study's runs and a bench's seeds trace them once per shape.
+_validation_programs = kept_programs(_new_validation_programs)
 
 
 def train(problem: HeatProblem, network: Model | Network, train_set: Trajectories,
@@ -589,24 +614,19 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     refinement = prdp(K0=1, dK=1) if refinement is None else refinement
     check_training_refinement(refinement, gradient)
     solves = setup != "prediction"
-    optimizer = optax.adam(1e-3) if optimizer is None else optimizer
+    optimizer = default_optimizer() if optimizer is None else optimizer
     counter = IterationCounter()
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
     key = preconditioner_key(preconditioner)
     step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
                             step, counted, substeps, keep=keeps_program(key))
-    validation_solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
-                                    preconditioner=preconditioner)
-    validate = jax.jit(lambda net, prob, val: rollout_error(
-        net, prob, val, validation_solver, setup=setup, step=step))
+    validate, validate_at = _validation_programs(setup, step, float(validation_rtol),
+                                                 preconditioner, keep=isinstance(key, str))
     # a truncation_gap() controller is fed the change of the validation error when its
     # rollouts run at the training's tolerance: one more rollout an epoch, counted and timed
-    # with the validation (K and rtol traced: one program for every level)
+    # with the validation
     gap_fed = solves and refinement.monitor == "truncation_gap"
-    validate_at = jax.jit(lambda net, prob, val, K, rtol: rollout_error(
-        net, prob, val, ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner),
-        setup=setup, step=step))
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "heat") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),

@@ -65,6 +65,7 @@ from ..inverse.steps import (
 from ..linalg.cg import IterationCounter
 from ..linalg.operator import FixedMatrix, SparseMatrix, matvec
 from ..optim.hig import JACOBIAN_MODES
+from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
@@ -503,6 +504,19 @@ def _new_step_program(optimizer, gradient, tolerance_mode, preconditioner) -> Sh
 _step_program = kept_programs(_new_step_program)
 
 
+def _new_validation_programs(validation_rtol, preconditioner):
+    """The validation pass with converged solves and the same pass at a level (``K`` and
+    ``rtol`` traced: one program for every level), jitted."""
+    validate = jax.jit(partial(validation, rtol=validation_rtol, preconditioner=preconditioner))
+    validate_at = jax.jit(lambda net, prob, samples, K, rtol: validation(
+        net, prob, samples, rtol=rtol, preconditioner=preconditioner, max_iterations=K))
+    return validate, validate_at
+
+
+#: The validation programs per (validation rtol, preconditioner name), kept as the step is.
+_validation_programs = kept_programs(_new_validation_programs)
+
+
 def _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement, layers):
     if gradient not in ("implicit", "unrolled"):
         raise SolverConfigError(f"gradient={gradient!r}: expected 'implicit' or 'unrolled'")
@@ -593,7 +607,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
         _check_split(samples, name, problem, n_observations)
     n = int(train_set.sources.shape[0])
     refinement = prdp(K0=5, dK=5) if refinement is None else refinement
-    optimizer = optax.adam(1e-3) if optimizer is None else optimizer
+    optimizer = default_optimizer() if optimizer is None else optimizer
     check_model(network, int(train_set.observations.shape[1]), problem.system.source.shape[1],
                 "the nodal source of the problem, one per observation vector")
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
@@ -605,14 +619,12 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
     if problem.factors is None:
         problem = problem.with_residual()
     counter = IterationCounter()
-    validate = jax.jit(partial(validation, rtol=validation_rtol,
-                               preconditioner=preconditioner))
+    validate, validate_at = _validation_programs(float(validation_rtol), preconditioner,
+                                                 keep=isinstance(key, str))
     # a truncation_gap() controller is fed the change of the validation misfit when its
     # solves run at the training's tolerance: one more pass an epoch, counted and timed with
-    # the validation (K and rtol traced: one program for every level)
+    # the validation
     gap_fed = refinement.monitor == "truncation_gap"
-    validate_at = jax.jit(lambda net, prob, samples, K, rtol: validation(
-        net, prob, samples, rtol=rtol, preconditioner=preconditioner, max_iterations=K))
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "learned") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
