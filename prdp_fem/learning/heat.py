@@ -621,6 +621,8 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     key = preconditioner_key(preconditioner)
     step_fn = _step_program(optimizer, setup, mode, gradient, refinement.tolerance_mode, key,
                             step, counted, substeps, keep=keeps_program(key))
+    # kept for a named preconditioner only: these programs close over the preconditioner
+    # (the step takes an AMG cycle as an argument, so keeps_program() keeps that one too)
     validate, validate_at = _validation_programs(setup, step, float(validation_rtol),
                                                  preconditioner, keep=isinstance(key, str))
     # a truncation_gap() controller is fed the change of the validation error when its

@@ -619,6 +619,8 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
     if problem.factors is None:
         problem = problem.with_residual()
     counter = IterationCounter()
+    # kept for a named preconditioner only: these programs close over the preconditioner
+    # (the step takes an AMG cycle as an argument, so keeps_program() keeps that one too)
     validate, validate_at = _validation_programs(float(validation_rtol), preconditioner,
                                                  keep=isinstance(key, str))
     # a truncation_gap() controller is fed the change of the validation misfit when its
