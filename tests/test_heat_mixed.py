@@ -1,5 +1,6 @@
 """The mixed setup: an emulator trained through the fine solver (the PRDP paper's heat chain)."""
 
+import itertools
 from pathlib import Path
 
 import jax
@@ -139,6 +140,48 @@ def test_mixed_training_validates_the_emulator_alone_and_prdp_saves_iterations(s
     assert abs(truncated.validation_error / exact.validation_error - 1) < 0.02
 
 
+def test_the_mixed_gap_bounds_the_chain_error_change_on_non_overlapping_validation_windows(small):
+    """A truncation_gap() controller on a mixed run is fed the chain gap over the validation
+    windows starting every ``unroll`` steps (recomputed here from the trained network's chain
+    states, converged and truncated), which bounds the change of the chain's error; it
+    tightens the solves exactly when the gap exceeds ``max_gap`` and counts both passes' CG
+    iterations with the validation's."""
+    _, problem, trajectories, validation = small
+    network = jax.tree.map(np.asarray,
+                           heat.initial_network(problem, trajectories, "mixed", (16,), seed=0))
+    unroll, max_gap = 2, 0.015
+    training = heat.train(problem, network, trajectories, validation, setup="mixed",
+                          mode="wig", unroll=unroll, optimizer=optax.adam(3e-3), epochs=6,
+                          batch_size=12, substeps=SUBSTEPS, seed=1,
+                          refinement=truncation_gap(1e-2, max_gap=max_gap, redo=False))
+    records = training.records
+    states = np.asarray(validation.states)  # 4 trajectories of 6 steps: starts 0, 2 and 4
+    gap_windows = jnp.asarray(np.concatenate(
+        [states[:, t:t + unroll + 1] for t in (0, 2, 4)]))
+    last = records[-1]
+    chains = {rtol: jax.vmap(lambda w, rtol=rtol: heat.chain_states(
+        training.network, problem, w, pf.ConvergedCG(rtol=rtol, max_iterations=100_000),
+        substeps=SUBSTEPS))(gap_windows) for rtol in (1e-10, last.rtol)}
+    (reference, reference_its), (truncated, truncated_its) = chains[1e-10], chains[last.rtol]
+    truth = gap_windows[:, 1:]
+    mass = problem.mass.to_scipy()
+
+    def norm2(e, t):  # sum over windows and steps of ||e||_M^2 / ||t||_M^2
+        e, t = np.asarray(e).reshape(-1, e.shape[-1]), np.asarray(t).reshape(-1, t.shape[-1])
+        return sum((a @ mass @ a) / (b @ mass @ b) for a, b in zip(e, t, strict=True))
+
+    change, residual = norm2(truncated - reference, truth), norm2(reference - truth, truth)
+    assert last.truncation_gap == pytest.approx(np.sqrt(change / residual), rel=1e-6)
+    loss_t, loss_c = norm2(truncated - truth, truth), norm2(reference - truth, truth)
+    assert abs(np.sqrt(loss_t / loss_c) - 1) <= last.truncation_gap  # the bound it claims
+    # the emulator's rollouts run no solver: the validation count is the two chain passes
+    assert last.validation_iterations - records[-2].validation_iterations == \
+        int(np.sum(reference_its)) + int(np.sum(truncated_its))
+    tightened = [b.rtol < a.rtol for a, b in itertools.pairwise(records)]
+    assert tightened == [a.truncation_gap > max_gap for a in records[:-1]]
+    assert any(tightened) and not all(tightened)
+
+
 def test_bad_mixed_options_are_refused(small):
     _, problem, trajectories, validation = small
     network = heat.initial_network(problem, trajectories, "mixed", (8,))
@@ -147,9 +190,6 @@ def test_bad_mixed_options_are_refused(small):
         heat.train(problem, network, trajectories, validation, mode="nog", **base)
     with pytest.raises(SolverConfigError, match="unroll=1 with setup='mixed'"):
         heat.train(problem, network, trajectories, validation, mode="wig", unroll=1, **base)
-    with pytest.raises(SolverConfigError, match="truncation_gap"):
-        heat.train(problem, network, trajectories, validation, mode="wig",
-                   refinement=truncation_gap(1e-2), **base)
     with pytest.raises(SolverConfigError, match="substeps=0"):
         heat.train(problem, network, trajectories, validation, mode="wig",
                    **{**base, "substeps": 0})
@@ -177,13 +217,20 @@ TINY_MIXED = {
                              r"expected 'wig'"),
     ({"setup": "mixed", "mode": "wig", "unroll": 1}, {},
      r"heat.unroll = 1 with heat.setup = 'mixed': expected at least 2"),
-    ({"setup": "mixed", "mode": "wig"}, {"kind": "gap"},
-     r"refinement.kind = 'gap' with heat.setup = 'mixed'"),
 ])
 def test_bad_mixed_scenes_name_the_key_and_the_expectation(heat_table, refinement, match):
     with pytest.raises(SceneError, match=match):
         parse_scene({"name": "bad", "heat": heat_table, "refinement": refinement},
                     source="bad.toml")
+
+
+def test_a_mixed_scene_takes_the_gap_kind_its_trainer_measures_on_the_chain():
+    scene = parse_scene({**TINY_MIXED, "refinement": {"kind": "gap", "max_gap": 0.02}},
+                        source="gap.toml")
+    variant = dict(scene.runs())["mixed prdp"]
+    assert variant.refinement.kind == "gap" and variant.refinement.max_gap == 0.02
+    assert heat_train_options(variant, build_heat(variant).problem)["refinement"].monitor == \
+        "truncation_gap"
 
 
 def test_a_mixed_study_trains_through_the_fine_step_pairs_and_evaluates(tmp_path):

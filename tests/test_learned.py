@@ -313,8 +313,7 @@ FULL_BATCH_OPTIMIZERS = {
 }
 
 
-@pytest.mark.slow  # the parametrisation over optimisers: each compiles a training
-@pytest.mark.parametrize("name", [
+@pytest.mark.parametrize("name", [  # each compiles a training: HIG's runs by default
     pytest.param("gauss_newton", marks=pytest.mark.slow),  # the learned study trains with it
     pytest.param("newton_cg", marks=pytest.mark.slow),
     pytest.param("lbfgs", marks=pytest.mark.slow), "hig"])

@@ -406,7 +406,9 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
         \gamma = \left| e_\text{rtol} / e_\text{converged} - 1 \right|,
 
     the relative change of the validation error when the validation rollouts (or solves) run
-    at the training's ``rtol`` instead of converged. ``rtol`` is multiplied by ``rtol_factor``
+    at the training's ``rtol`` instead of converged (a mixed heat run, whose rollouts run no
+    solver: the bound :func:`~prdp_fem.learning.heat.chain_gap` on that change for its
+    training chain over the validation windows). ``rtol`` is multiplied by ``rtol_factor``
     (down to ``rtol_min``) each time ``gamma > max_gap``, and never loosened.
 
     Why not :func:`prdp`'s rule: PRDP refines at a stall of the validation error when the

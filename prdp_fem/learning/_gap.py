@@ -40,9 +40,11 @@ def compile_passes(converged: Callable[[], tuple], truncated: Pass | None, K, rt
 
 
 def first_level(refinement: Refinement, control: RefinementState, converged: Callable[[], tuple],
-                truncated: Pass) -> tuple[RefinementState, int, float]:
-    """Feed the controller the untrained model's gap until it stops tightening: returns the
-    state, the CG iterations of those passes and their seconds (compilation excluded)."""
+                truncated: Pass, gap_of: Callable[[object, object], float] = gap,
+                ) -> tuple[RefinementState, int, float]:
+    """Feed the controller the untrained model's gap (``gap_of(converged value, truncated
+    value)``) until it stops tightening: returns the state, the CG iterations of those passes
+    and their seconds (compilation excluded)."""
     K, _, rtol = device_settings(control.settings())
     compile_passes(converged, truncated, K, rtol)
     start = time.perf_counter()
@@ -53,7 +55,7 @@ def first_level(refinement: Refinement, control: RefinementState, converged: Cal
         truncated_value, iterations = truncated(K, rtol)
         total += int(iterations)
         before = float(control.rtol)
-        control = refinement.update(control, gap(value, truncated_value))
+        control = refinement.update(control, gap_of(value, truncated_value))
         if not float(control.rtol) < before:
             break
     return control, total, time.perf_counter() - start

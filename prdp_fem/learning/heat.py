@@ -295,15 +295,15 @@ def reference_trajectories(disc: Discretization, initial, *, dt: float, steps: i
     return Trajectories(jnp.asarray(np.stack(states).transpose(2, 0, 1)))
 
 
-def windows(trajectories: Trajectories, unroll: int) -> jax.Array:
-    """Every window of ``unroll + 1`` consecutive states: ``(n_windows, unroll + 1, n_free)``,
-    trajectory-major."""
-    unroll = _count(unroll, "unroll")
+def windows(trajectories: Trajectories, unroll: int, stride: int = 1) -> jax.Array:
+    """The windows of ``unroll + 1`` consecutive states starting every ``stride`` steps (by
+    default every window): ``(n_windows, unroll + 1, n_free)``, trajectory-major."""
+    unroll, stride = _count(unroll, "unroll"), _count(stride, "stride")
     if unroll > trajectories.steps:
         raise SolverConfigError(f"unroll={unroll}: expected at most the {trajectories.steps} "
                                 "steps of each trajectory")
     states = trajectories.states
-    starts = range(trajectories.steps - unroll + 1)
+    starts = range(0, trajectories.steps - unroll + 1, stride)
     return jnp.stack([states[:, t:t + unroll + 1] for t in starts], axis=1).reshape(
         -1, unroll + 1, states.shape[-1])
 
@@ -386,20 +386,57 @@ def _check_mixed(mode: str, unroll: int) -> None:
                                 "network step and a solver step)")
 
 
-def _chain_loss(network, problem: HeatProblem, window: jax.Array, solver, substeps: int,
-                step: Step):
-    """The mixed chain over ``window``: the network's step from ``window[0]``, then solver
-    steps of ``substeps`` solves each, differentiated; the loss of the module docstring and
-    the CG iterations."""
+def chain_states(network: Model | Network, problem: HeatProblem, window: jax.Array, solver, *,
+                 substeps: int = 1, step: Step = heat_step):
+    """The mixed chain over ``window`` (``(m + 1, n_free)``): the network's step from
+    ``window[0]``, then solver steps of ``substeps`` solves each, differentiable; its states
+    ``s_1 .. s_m`` (``(m, n_free)``) and the CG iterations."""
     m = window.shape[0] - 1
     s, _ = stepper("prediction", network, problem, window[0], solver, step=step)
-    total, iterations = _relative_error2(problem, s, window[1]), jnp.zeros((), jnp.int32)
-    for k in range(1, m):
+    states, iterations = [s], jnp.zeros((), jnp.int32)
+    for _ in range(1, m):
         for _ in range(substeps):
             s, its = step(problem, s, solver)
             iterations = iterations + its
-        total = total + _relative_error2(problem, s, window[k + 1])
-    return total / m, iterations
+        states.append(s)
+    return jnp.stack(states), iterations
+
+
+def _chain_loss(network, problem: HeatProblem, window: jax.Array, solver, substeps: int,
+                step: Step):
+    """The loss of the module docstring over the mixed chain and its CG iterations."""
+    states, iterations = chain_states(network, problem, window, solver, substeps=substeps,
+                                      step=step)
+    total = _relative_error2(problem, states[0], window[1])
+    for k in range(1, states.shape[0]):
+        total = total + _relative_error2(problem, states[k], window[k + 1])
+    return total / states.shape[0], iterations
+
+
+def chain_gap(problem: HeatProblem, batch: jax.Array, converged: jax.Array,
+              truncated: jax.Array) -> jax.Array:
+    r"""The truncation gap of mixed chains over ``batch`` (``(B, m + 1, n_free)`` windows) from
+    their states with converged solves and with truncated ones (``(B, m, n_free)`` each):
+
+    .. math::
+
+        \gamma = \Big(\sum_{w,k} \|s^t_{w,k} - s^c_{w,k}\|_M^2 / \|u^*_{w,k}\|_M^2
+        \Big/ \sum_{w,k} \|s^c_{w,k} - u^*_{w,k}\|_M^2 / \|u^*_{w,k}\|_M^2\Big)^{1/2},
+
+    the truncation's change of the residuals the loss is made of, relative to those residuals.
+    By the triangle inequality it bounds ``|e_t / e_c - 1|`` for the chain's error
+    ``e = sqrt(loss)`` -- the validation gap's meaning -- without the cancellation a
+    difference of two losses has: a truncated step that under-damps can move a state closer
+    to the data as easily as away from it."""
+    truth = batch[:, 1:]
+
+    def weighted2(e, t):
+        return jnp.vdot(e, problem.mass(e)) / jnp.maximum(jnp.vdot(t, problem.mass(t)), 1e-300)
+
+    pairs = jax.vmap(jax.vmap(weighted2))
+    change = jnp.sum(pairs(truncated - converged, truth))
+    residual = jnp.sum(pairs(converged - truth, truth))
+    return jnp.sqrt(change / jnp.maximum(residual, 1e-300))
 
 
 def batch_loss(network: Model | Network, problem: HeatProblem, batch: jax.Array, solver, *,
@@ -460,7 +497,8 @@ class HeatRecord(NamedTuple):
     test_error: float = math.nan       # held-out rollout error (``test_set``), untimed
     validation_iterations: int = 0     # cumulative CG iterations of the validation rollouts
     truncation_gap: float = math.nan   # |validation error at the epoch's rtol / converged - 1|
-    #                                    (a truncation_gap() controller's input; else NaN)
+    #                                    (mixed: chain_gap() on validation windows; a
+    #                                    truncation_gap() controller's input; else NaN)
     redone: int = 0                    # tries of this epoch discarded (a controller's redo),
     #                                    their work counted in the totals above
 
@@ -547,6 +585,63 @@ def _new_validation_programs(setup, step, validation_rtol, preconditioner):
 _validation_programs = kept_programs(_new_validation_programs)
 
 
+def _new_chain_programs(step, validation_rtol, preconditioner, substeps):
+    """The mixed chain's states over windows with converged solves, the same at a level
+    (``K`` and ``rtol`` traced) and :func:`chain_gap`, jitted: what a truncation_gap()
+    controller is fed when the validation rollouts run no solver."""
+    def chain(net, prob, batch, solver):
+        states, iterations = jax.vmap(lambda w: chain_states(
+            net, prob, w, solver, substeps=substeps, step=step))(batch)
+        return states, jnp.sum(iterations)
+
+    converged = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
+                            preconditioner=preconditioner)
+    at_level = jax.jit(lambda net, prob, batch, K, rtol: chain(
+        net, prob, batch, ConvergedCG(rtol=rtol, max_iterations=K,
+                                      preconditioner=preconditioner)))
+    return (jax.jit(lambda net, prob, batch: chain(net, prob, batch, converged)), at_level,
+            jax.jit(chain_gap))
+
+
+#: The mixed chain's gap programs per (step, validation rtol, preconditioner name, substeps).
+_chain_programs = kept_programs(_new_chain_programs)
+
+
+class _GapPasses(NamedTuple):
+    """What a truncation_gap() controller is fed from: ``reference(net)`` and ``at(net, K,
+    rtol)`` return a value and its CG iterations, ``of(reference value, value at the level)``
+    the gap, ``compile(net)`` runs what the validation's compilation does not cover."""
+    reference: Callable
+    at: Callable
+    of: Callable
+    compile: Callable
+
+
+def _gap_passes(setup, problem, validation_set, unroll, substeps, step, validation_rtol,
+                preconditioner, validate, validate_at, *, keep) -> _GapPasses:
+    """The validation rollouts (converged, their error the reference, and at the level) --
+    or, for the mixed setup, whose rollouts run no solver, the training's own chain over the
+    validation windows starting every ``unroll`` steps, compared by :func:`chain_gap`."""
+    if setup != "mixed":
+        return _GapPasses(lambda net: validate(net, problem, validation_set),
+                          lambda net, K, rtol: validate_at(net, problem, validation_set, K,
+                                                           rtol),
+                          validation_gap, lambda net: None)
+    chain, chain_at, gap_program = _chain_programs(step, validation_rtol, preconditioner,
+                                                   substeps, keep=keep)
+    gap_windows = windows(validation_set, unroll, stride=unroll)
+
+    def compile_gap(net):  # the converged chain and the gap, outside the timed region
+        reference = jax.block_until_ready(chain(net, problem, gap_windows))[0]
+        jax.block_until_ready(gap_program(problem, gap_windows, reference, reference))
+
+    return _GapPasses(lambda net: chain(net, problem, gap_windows),
+                      lambda net, K, rtol: chain_at(net, problem, gap_windows, K, rtol),
+                      lambda converged, truncated: float(
+                          gap_program(problem, gap_windows, converged, truncated)),
+                      compile_gap)
+
+
 def train(problem: HeatProblem, network: Model | Network, train_set: Trajectories,
           validation_set: Trajectories, *, setup: str = "correction", mode: str = "nog",
           unroll: int = 3, optimizer: optax.GradientTransformation | None = None,
@@ -590,11 +685,6 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     substeps = _count(substeps, "substeps")
     if setup == "mixed":
         _check_mixed(mode, _count(unroll, "unroll"))
-        if getattr(refinement, "monitor", None) == "truncation_gap":
-            raise SolverConfigError("a truncation_gap() controller with setup='mixed': expected "
-                                    "prdp(), fixed(K) or converged(rtol) (the gap is measured "
-                                    "on rollouts that run the solver; a mixed run's rollouts "
-                                    "run the network alone)")
     for name, data in (("train_set", train_set), ("validation_set", validation_set),
                        ("test_set", test_set)):
         if data is None:
@@ -627,8 +717,11 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                                                  preconditioner, keep=isinstance(key, str))
     # a truncation_gap() controller is fed the change of the validation error when its
     # rollouts run at the training's tolerance: one more rollout an epoch, counted and timed
-    # with the validation
+    # with the validation (the mixed setup: one converged and one truncated chain)
     gap_fed = solves and refinement.monitor == "truncation_gap"
+    gap = _gap_passes(setup, problem, validation_set, unroll, substeps, step,
+                      float(validation_rtol), preconditioner, validate, validate_at,
+                      keep=isinstance(key, str))
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "heat") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
@@ -639,9 +732,10 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
         counter.adjoint = state.counters["adjoint"]
         checked = state.counters.get("validation", 0)  # the validation solves' CG iterations
         if gap_fed and state.epoch == 0:  # the first level, settled on the untrained model
+            gap.compile(network)
             control, iterations, seconds = first_level(
-                refinement, control, lambda: validate(network, problem, validation_set),
-                lambda K, rtol: validate_at(network, problem, validation_set, K, rtol))
+                refinement, control, partial(gap.reference, network), partial(gap.at, network),
+                gap.of)
             checked, run_time = checked + iterations, run_time + seconds
         compiled = False  # the validation programs (compiled outside the timed region)
         for epoch in range(state.epoch + 1, epochs + 1):
@@ -674,21 +768,26 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                     primal += int(iterations)
                 if not compiled:
                     compile_passes(partial(validate, network, problem, validation_set),
-                                   partial(validate_at, network, problem, validation_set)
-                                   if gap_fed else None, K, rtol)
+                                   partial(gap.at, network) if gap_fed else None, K, rtol)
+                    if gap_fed:
+                        gap.compile(network)
                     compiled = True
                 start = time.perf_counter()
                 error, iterations = validate(network, problem, validation_set)
                 checked += int(iterations)  # CG iterations count everything that ran
-                gap = math.nan
+                measured_gap = math.nan
                 if gap_fed:
-                    truncated, iterations = validate_at(network, problem, validation_set, K,
-                                                        rtol)
+                    reference = error
+                    if setup == "mixed":
+                        reference, iterations = gap.reference(network)
+                        checked += int(iterations)
+                    truncated, iterations = gap.at(network, K, rtol)
                     checked += int(iterations)
-                    gap = validation_gap(error, truncated)
+                    measured_gap = gap.of(reference, truncated)
                 previous = control
                 if solves:
-                    control = refinement.update(control, gap if gap_fed else float(error))
+                    control = refinement.update(control,
+                                                measured_gap if gap_fed else float(error))
                 run_time += time.perf_counter() - start
                 if not (refinement.redo and solves
                         and control.settings() != previous.settings()):
@@ -701,8 +800,8 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 epoch, int(previous.iterations) if solves else 0,
                 int(previous.adjoint_iterations) if solves else 0,
                 float(previous.rtol) if solves else 0.0, primal, run_time,
-                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked, gap,
-                redone)
+                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked,
+                measured_gap, redone)
             records.append(record)
             if callback is not None:
                 callback(record)

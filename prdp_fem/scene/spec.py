@@ -1234,11 +1234,6 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: refinement.kind = 'gap' with study.kind = {kind!r}: expected a "
             "learned or heat study (the truncation gap is measured on a training's "
             "validation set)")
-    if heat and scene.heat.setup == "mixed" and scene.refinement.kind == "gap":
-        raise SceneSolverConfigError(
-            f"{source}: refinement.kind = 'gap' with heat.setup = 'mixed': expected 'prdp', "
-            "'fixed' or 'converged' (the gap is measured on rollouts that run the solver; a "
-            "mixed run's rollouts run the network alone)")
     if kind != "inverse" and scene.solver.warm_start:
         raise SceneSolverConfigError(
             f"{source}: solver.warm_start = true with study.kind = {kind!r}: expected false "
