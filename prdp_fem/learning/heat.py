@@ -350,10 +350,14 @@ def stepper(setup: str, network: Model | Network | None, problem: HeatProblem, u
     return coarse + correction(network, coarse, homogeneous=homogeneous), iterations
 
 
-def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> jax.Array:
-    e = u - truth
+def _relative_norm2(problem: HeatProblem, e: jax.Array, reference: jax.Array) -> jax.Array:
+    """``||e||_M^2 / ||reference||_M^2``."""
     return jnp.vdot(e, problem.mass(e)) / jnp.maximum(
-        jnp.vdot(truth, problem.mass(truth)), 1e-300)
+        jnp.vdot(reference, problem.mass(reference)), 1e-300)
+
+
+def _relative_error2(problem: HeatProblem, u: jax.Array, truth: jax.Array) -> jax.Array:
+    return _relative_norm2(problem, u - truth, truth)
 
 
 def window_loss(network: Model | Network, problem: HeatProblem, window: jax.Array, solver, *,
@@ -429,11 +433,7 @@ def chain_gap(problem: HeatProblem, batch: jax.Array, converged: jax.Array,
     difference of two losses has: a truncated step that under-damps can move a state closer
     to the data as easily as away from it."""
     truth = batch[:, 1:]
-
-    def weighted2(e, t):
-        return jnp.vdot(e, problem.mass(e)) / jnp.maximum(jnp.vdot(t, problem.mass(t)), 1e-300)
-
-    pairs = jax.vmap(jax.vmap(weighted2))
+    pairs = jax.vmap(jax.vmap(lambda e, t: _relative_norm2(problem, e, t)))
     change = jnp.sum(pairs(truncated - converged, truth))
     residual = jnp.sum(pairs(converged - truth, truth))
     return jnp.sqrt(change / jnp.maximum(residual, 1e-300))
@@ -608,9 +608,11 @@ _chain_programs = kept_programs(_new_chain_programs)
 
 
 class _GapPasses(NamedTuple):
-    """What a truncation_gap() controller is fed from: ``reference(net)`` and ``at(net, K,
-    rtol)`` return a value and its CG iterations, ``of(reference value, value at the level)``
-    the gap, ``compile(net)`` runs what the validation's compilation does not cover."""
+    """What a truncation_gap() controller is fed from: ``reference(net, validated=None)`` and
+    ``at(net, K, rtol)`` return a value and its CG iterations (``validated``: the epoch's
+    converged validation ``(error, iterations)``, reused where it is the reference),
+    ``of(reference value, value at the level)`` the gap, ``compile(net)`` runs what the
+    validation's compilation does not cover."""
     reference: Callable
     at: Callable
     of: Callable
@@ -623,7 +625,10 @@ def _gap_passes(setup, problem, validation_set, unroll, substeps, step, validati
     or, for the mixed setup, whose rollouts run no solver, the training's own chain over the
     validation windows starting every ``unroll`` steps, compared by :func:`chain_gap`."""
     if setup != "mixed":
-        return _GapPasses(lambda net: validate(net, problem, validation_set),
+        def reference(net, validated=None):
+            return validate(net, problem, validation_set) if validated is None else validated
+
+        return _GapPasses(reference,
                           lambda net, K, rtol: validate_at(net, problem, validation_set, K,
                                                            rtol),
                           validation_gap, lambda net: None)
@@ -635,7 +640,7 @@ def _gap_passes(setup, problem, validation_set, unroll, substeps, step, validati
         reference = jax.block_until_ready(chain(net, problem, gap_windows))[0]
         jax.block_until_ready(gap_program(problem, gap_windows, reference, reference))
 
-    return _GapPasses(lambda net: chain(net, problem, gap_windows),
+    return _GapPasses(lambda net, validated=None: chain(net, problem, gap_windows),
                       lambda net, K, rtol: chain_at(net, problem, gap_windows, K, rtol),
                       lambda converged, truncated: float(
                           gap_program(problem, gap_windows, converged, truncated)),
@@ -721,7 +726,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     gap_fed = solves and refinement.monitor == "truncation_gap"
     gap = _gap_passes(setup, problem, validation_set, unroll, substeps, step,
                       float(validation_rtol), preconditioner, validate, validate_at,
-                      keep=isinstance(key, str))
+                      keep=isinstance(key, str)) if gap_fed else None
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "heat") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
@@ -777,12 +782,9 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 checked += int(iterations)  # CG iterations count everything that ran
                 measured_gap = math.nan
                 if gap_fed:
-                    reference = error
-                    if setup == "mixed":
-                        reference, iterations = gap.reference(network)
-                        checked += int(iterations)
-                    truncated, iterations = gap.at(network, K, rtol)
-                    checked += int(iterations)
+                    reference, iterations = gap.reference(network, validated=(error, 0))
+                    truncated, more = gap.at(network, K, rtol)
+                    checked += int(iterations) + int(more)
                     measured_gap = gap.of(reference, truncated)
                 previous = control
                 if solves:
