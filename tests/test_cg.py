@@ -88,7 +88,10 @@ def test_energy_error_decreases_monotonically_in_k(small_problem, preconditioner
     assert energy[-1] < 1e-8 * energy[0]
 
 
-@pytest.mark.parametrize("k", [0, 3, 17])
+# K = 0 and 3 with the slow cases: test_zero_iterations_return_x0 has both modes return x0 bit
+# for bit, and K = 17 steps the same iterations past K = 3
+@pytest.mark.parametrize("k", [pytest.param(0, marks=pytest.mark.slow),
+                               pytest.param(3, marks=pytest.mark.slow), 17])
 def test_forward_iterates_agree_between_modes(small_problem, k):
     disc, kappa, f = small_problem
     unrolled = solve_problem(disc, kappa, f, TruncatedCG(k)).x
@@ -96,8 +99,10 @@ def test_forward_iterates_agree_between_modes(small_problem, k):
     np.testing.assert_allclose(unrolled, implicit, rtol=1e-13, atol=1e-15)
 
 
-@pytest.mark.parametrize("jacobi", [True, False])
-@pytest.mark.parametrize("n_side", [64, 130])  # 3969 and 16641 unknowns: both r.r reductions
+# 3969 and 16641 unknowns: both r.r reductions; a general preconditioner forms z = M r at any
+# size, so its case above the row reduction is the slow twin of the 64 one
+@pytest.mark.parametrize(("n_side", "jacobi"), [
+    (64, True), (64, False), (130, True), pytest.param(130, False, marks=pytest.mark.slow)])
 def test_stacked_and_paired_states_take_the_same_iterations(n_side, jacobi):
     # the while loops keep [d, r] stacked in one array, the scan keeps a pair: one iteration
     from prdp_fem.bench.cg import poisson_operator
@@ -109,14 +114,17 @@ def test_stacked_and_paired_states_take_the_same_iterations(n_side, jacobi):
     precond = pf.linalg.JacobiPreconditioner(inverse_diagonal) if jacobi \
         else _DiagonalAsGeneral(inverse_diagonal)
     krylov = _krylov(op, precond)
-    init = jax.jit(_init, static_argnames="stacked")  # one program each (op by op, dozens)
-    stacked, paired = (init(krylov, b, jnp.zeros_like(b), stacked=flag).state
+
+    @jax.jit  # one program for both starts and six steps of each (op by op, dozens)
+    def six_steps(krylov, b):
+        starts = tuple(_init(krylov, b, jnp.zeros_like(b), stacked=flag).state
                        for flag in (True, False))
+        return jax.lax.fori_loop(0, 6, lambda _, states: tuple(
+            _step(krylov, state)[0] for state in states), starts)
+
+    stacked, paired = six_steps(krylov, b)
     assert stacked.dr.shape == (2, b.size) and isinstance(paired.dr, tuple)
     assert (b.size > _ROW_REDUCTION_FROM) == (n_side == 130)
-    step = jax.jit(_step)
-    for _ in range(6):
-        stacked, paired = step(krylov, stacked)[0], step(krylov, paired)[0]
     for field in ("d", "r", "p", "rz"):
         np.testing.assert_allclose(getattr(stacked, field), getattr(paired, field),
                                    rtol=1e-13, atol=1e-15 * float(jnp.abs(paired.p).max()))
@@ -278,17 +286,32 @@ def loss_fn(disc, solver, argument):
 
 
 @functools.cache
-def _taylor_case(kappa_space, argument):
-    """``(fn, args, index, gradient)`` for J = w . x_8 on a 6 x 6 square as a function of
-    ``args[index]``, and its jitted gradient: kept for the module, so that the Taylor tests
-    below share their programs."""
+def _taylor_case(kappa_space):
+    """``(fn, args, gradients)`` for J = w . x_8 on a 6 x 6 square as a function of ``args =
+    (kappa, f, x0)``, jitted, and its jitted gradients with respect to all three: kept for the
+    module, so that the Taylor tests below share one value and one gradient program."""
     disc = pf.discretize(pf.unit_square(6), element="P1", kappa_space=kappa_space,
                          dirichlet=lambda x: x[1])
     kappa = jnp.asarray(disc.interpolate_kappa(lambda x: 1.0 + x[0]))
     f = jnp.asarray(disc.interpolate(lambda x: np.sin(3 * x[0])))
     x0 = jnp.asarray(np.cos(np.arange(disc.n_free)))
-    fn, index = loss_fn(disc, TruncatedCG(8), argument)
-    return fn, (kappa, f, x0), index, jax.jit(jax.grad(fn))  # (a grad of the jit: two programs)
+    system = disc.system
+    w = jax.random.normal(jax.random.PRNGKey(WEIGHTS_SEED), (disc.n_free,))
+
+    def loss(kappa, f, x0):
+        return w @ solve(system.operator(kappa), system.rhs(kappa, f), TruncatedCG(8),
+                         x0=x0).x
+
+    args = (kappa, f, x0)
+    return jax.jit(loss), args, jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(*args)
+
+
+def _along(fn, args, index):
+    """``fn`` as a function of ``args[index]`` alone, the other arguments held."""
+    def partial_fn(value):
+        return fn(*args[:index], value, *args[index + 1:])
+
+    return partial_fn
 
 
 # the kappa space changes only the operator's map from kappa, the same in both modes, whose P1
@@ -299,17 +322,18 @@ def _taylor_case(kappa_space, argument):
     pytest.param("f", "P1", marks=pytest.mark.slow), ("x0", "P0"),
     pytest.param("x0", "P1", marks=pytest.mark.slow)])
 def test_unrolled_gradient_passes_taylor_test(kappa_space, argument):
-    fn, args, index, gradient = _taylor_case(kappa_space, argument)
-    result = pf.taylor_test(lambda v: fn(v, args), args[index],
-                            gradient=gradient(args[index], args), h0=1e-2)
+    fn, args, gradients = _taylor_case(kappa_space)
+    index = {"kappa": 0, "f": 1, "x0": 2}[argument]
+    result = pf.taylor_test(_along(fn, args, index), args[index], gradient=gradients[index],
+                            h0=1e-2)
     assert result.passed(), result.rates
     assert np.all(np.isfinite(result.rates[:3]))
 
 
 def test_taylor_test_rejects_a_wrong_gradient():
-    fn, args, _, gradient = _taylor_case("P0", "kappa")  # the programs of the test above
-    wrong = 1.2 * gradient(args[0], args)
-    result = pf.taylor_test(lambda v: fn(v, args), args[0], gradient=wrong)
+    fn, args, gradients = _taylor_case("P0")  # the programs of the test above
+    wrong = 1.2 * gradients[0]
+    result = pf.taylor_test(_along(fn, args, 0), args[0], gradient=wrong)
     assert not result.passed()
     assert np.nanmedian(result.rates) == pytest.approx(1.0, abs=0.2)
 
@@ -337,39 +361,31 @@ def p1_kappa_problem():
 
 
 @pytest.fixture(scope="module")
-def implicit_kappa_gradient(p1_kappa_problem):
-    """``gradient(kappa, K, K_adj)``: dJ/dkappa of J = w . x_K in implicit mode, K and K_adj
-    traced, so one program serves every count of the tests below (loss_fn closes over its
-    solver: a program per solver)."""
+def implicit_gradients(p1_kappa_problem):
+    """``gradients(kappa, K, K_adj)``: dJ/dkappa and dJ/df of J = w . x_K in implicit mode, K
+    and K_adj traced, so one program serves every count of the tests below (loss_fn closes
+    over its solver: a program per solver)."""
     disc, _, f, w = p1_kappa_problem
     system = disc.system
 
     @jax.jit
-    def gradient(kappa, k, k_adj):
+    def gradients(kappa, k, k_adj):
         solver = TruncatedCG(k, gradient="implicit", adjoint_iterations=k_adj)
-        return jax.grad(lambda c: jnp.asarray(w) @ solve(system.operator(c), system.rhs(c, f),
-                                                         solver).x)(kappa)
+        return jax.grad(lambda c, g: jnp.asarray(w) @ solve(
+            system.operator(c), system.rhs(c, g), solver).x, argnums=(0, 1))(kappa, f)
 
-    return gradient
-
-
-def gradients(disc, kappa, f, solver):
-    """dJ/dkappa and dJ/df, jitted together (one program; a grad of each jit compiled two)."""
-    fn = loss_fn(disc, solver, "kappa")[0]
-    zeros = jnp.zeros(disc.n_free)
-    return jax.jit(jax.grad(lambda kappa, f: fn(kappa, (kappa, f, zeros)), argnums=(0, 1)))(
-        kappa, f)
+    return gradients
 
 
 def relative(a, b):
     return float(np.linalg.norm(np.asarray(a) - b) / np.linalg.norm(b))
 
 
-def test_implicit_gradient_at_large_k_equals_exact_adjoint(p1_kappa_problem):
+def test_implicit_gradient_at_large_k_equals_exact_adjoint(p1_kappa_problem, implicit_gradients):
     disc, kappa, f, w = p1_kappa_problem
     kappa_bar, f_bar = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
-    solver = TruncatedCG(10 * disc.n_free, gradient="implicit")
-    g_kappa, g_f = gradients(disc, kappa, f, solver)
+    big = 10 * disc.n_free  # K_adj = K, as TruncatedCG's default
+    g_kappa, g_f = implicit_gradients(kappa, big, big)
     assert relative(g_kappa, kappa_bar) < 1e-8
     assert relative(g_f, f_bar) < 1e-8
     converged = jax.jit(jax.grad(loss_fn(disc, ConvergedCG(rtol=1e-13), "kappa")[0]))(
@@ -379,15 +395,15 @@ def test_implicit_gradient_at_large_k_equals_exact_adjoint(p1_kappa_problem):
 
 @pytest.mark.slow  # test_properties covers the same, over drawn cases
 def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem,
-                                                          implicit_kappa_gradient):
+                                                          implicit_gradients):
     disc, kappa, f, w = p1_kappa_problem
     kappa_bar, _ = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
     errors = {"unrolled": [], "implicit": []}
     args = (kappa, f, jnp.zeros(disc.n_free))
     for k in (3, 10, 30):
-        for mode in errors:  # the kappa gradient alone, jitted (gradients() also takes f's)
+        for mode in errors:  # the kappa gradient alone, jitted
             if mode == "implicit":  # K traced: one program for the three counts
-                g = implicit_kappa_gradient(kappa, k, k)
+                g = implicit_gradients(kappa, k, k)[0]
             else:  # a scan of K steps: a program per K
                 g = jax.jit(jax.grad(loss_fn(disc, TruncatedCG(k), "kappa")[0]))(kappa, args)
             assert np.all(np.isfinite(g))
@@ -397,12 +413,12 @@ def test_truncated_gradients_are_finite_and_approach_exact(p1_kappa_problem,
         assert errs[0] > errs[1] > errs[2], (mode, errs)
 
 
-def test_implicit_adjoint_iterations_are_separate(p1_kappa_problem, implicit_kappa_gradient):
+def test_implicit_adjoint_iterations_are_separate(p1_kappa_problem, implicit_gradients):
     disc, kappa, f, w = p1_kappa_problem
     kappa_bar, _ = exact_gradients(disc, np.asarray(kappa), np.asarray(f), w)
     big = 10 * disc.n_free
-    coarse_adjoint = implicit_kappa_gradient(kappa, big, 3)
-    fine_adjoint = implicit_kappa_gradient(kappa, big, big)
+    coarse_adjoint = implicit_gradients(kappa, big, 3)[0]
+    fine_adjoint = implicit_gradients(kappa, big, big)[0]
     assert relative(fine_adjoint, kappa_bar) < 1e-8
     assert relative(coarse_adjoint, kappa_bar) > 1e-3
 
@@ -412,17 +428,18 @@ def test_implicit_adjoint_iterations_are_separate(p1_kappa_problem, implicit_kap
 def test_gradients_finite_far_past_convergence_and_at_zero_rhs(small_problem, mode):
     disc, kappa, f = small_problem
     k = 10 * disc.n_free
-    fn, _ = loss_fn(disc, TruncatedCG(k, gradient=mode), "kappa")
-    args = (jnp.asarray(kappa), jnp.asarray(f), jnp.zeros(disc.n_free))
-    g = jax.jit(jax.grad(fn))(args[0], args)
-    assert np.all(np.isfinite(g))
-    op = disc.system.operator(jnp.asarray(kappa))
+    system = disc.system
 
-    def zero_rhs_loss(values):
-        return jnp.sum(solve(op.with_values(values), jnp.zeros(disc.n_free),
-                             TruncatedCG(k, gradient=mode)).x ** 2)
+    # the right-hand side scaled by an argument: one program serves b and b = 0 (x = 0, and
+    # with it a zero cotangent)
+    def loss(kappa, scale):
+        x = solve(system.operator(kappa), scale * system.rhs(kappa, f),
+                  TruncatedCG(k, gradient=mode)).x
+        return jnp.sum(x ** 2)
 
-    assert np.all(np.isfinite(jax.jit(jax.grad(zero_rhs_loss))(op.values)))
+    gradient = jax.jit(jax.grad(loss))
+    for scale in (1.0, 0.0):
+        assert np.all(np.isfinite(gradient(jnp.asarray(kappa), scale))), scale
 
 
 @pytest.mark.slow  # test_scan_length_with_checkpoints_jvp_and_vmap checkpoints by default
@@ -510,8 +527,9 @@ def test_an_eager_solve_compiles_one_program_and_reuses_it_for_new_numbers(
     assert len(backend_compiles) == programs, backend_compiles
     # each equals its solve traced anew (so the second did not run the first's numbers)
     assert int(eager[0].iterations) != int(eager[1].iterations)
-    for solver, sol in zip((first, second), eager, strict=True):
-        traced = jax.jit(lambda A, b, solver=solver: solve(A, b, solver))(A, b)
+    # (both traced into one program: compiling them apart cost a program more)
+    references = jax.jit(lambda A, b: [solve(A, b, solver) for solver in (first, second)])(A, b)
+    for sol, traced in zip(eager, references, strict=True):
         np.testing.assert_allclose(sol.x, traced.x, rtol=1e-13, atol=0)
         assert int(sol.iterations) == int(traced.iterations)
 
@@ -609,17 +627,21 @@ def test_scan_length_gives_the_k_iteration_map_and_its_gradient(small_problem):
         return jax.value_and_grad(_scan_length_loss(disc, f, w, k, 16), has_aux=True)(kappa)
 
     for k in (0, 9, 16):  # none, some and all of the bounded scan's iterations
-        (value, sol), grad = _static_scan(k)(kappa, disc.system, f, w)
+        if k:
+            (value, sol), grad = _static_scan(k)(kappa, disc.system, f, w)
+            x, iterations, history = sol.x, int(sol.iterations), sol.residual_history
+        else:  # the 0-iteration map is x0 = 0 whatever kappa, its history ||b|| alone
+            value, x, grad, iterations = 0.0, np.zeros(disc.n_free), np.zeros(kappa.shape), 0
+            history = np.linalg.norm(disc.system.rhs(kappa, f))[None]
         (value_b, sol_b), grad_b = bounded(kappa, k)
-        np.testing.assert_allclose(sol_b.x, sol.x, rtol=1e-13, atol=1e-15)
+        np.testing.assert_allclose(sol_b.x, x, rtol=1e-13, atol=1e-15)
         np.testing.assert_allclose(grad_b, grad, rtol=1e-11, atol=1e-14 * np.abs(grad).max())
         assert float(value_b) == pytest.approx(float(value), rel=1e-13)
-        assert int(sol_b.iterations) == int(sol.iterations) == k
-        assert float(sol_b.residual_norm) == pytest.approx(float(sol.residual_norm), rel=1e-13)
+        assert int(sol_b.iterations) == iterations == k
+        assert float(sol_b.residual_norm) == pytest.approx(float(history[-1]), rel=1e-13)
         # the history: k + 1 norms, then the final one repeated to scan_length + 1 entries
         assert sol_b.residual_history.shape == (17,)
-        np.testing.assert_allclose(sol_b.residual_history[:k + 1], sol.residual_history,
-                                   rtol=1e-13)
+        np.testing.assert_allclose(sol_b.residual_history[:k + 1], history, rtol=1e-13)
         np.testing.assert_array_equal(sol_b.residual_history[k:],
                                       sol_b.residual_history[k] * np.ones(17 - k))
     assert len(traces) == 1  # every K up to the scan length, the bound itself included
@@ -894,9 +916,14 @@ def test_scaled_jacobi_equals_pcg_with_z_equal_M_r(small_problem, mode):
 # ------------------------------------------------------------------------------------------
 
 
-# K = 4 with the slow cases: K = 1 and 17 bracket it
-@pytest.mark.parametrize("preconditioner", ["diagonal", "amg"])
-@pytest.mark.parametrize("k", [0, 1, pytest.param(4, marks=pytest.mark.slow), 17, "past"])
+# K = 4 with the slow cases: K = 1 and 17 bracket it; AMG at K = 1 and 17 too: the diagonal
+# cases keep those counts through the same loop, and AMG's past case runs every iteration of it
+@pytest.mark.parametrize(("k", "preconditioner"), [
+    (0, "diagonal"), (0, "amg"), (1, "diagonal"), pytest.param(1, "amg", marks=pytest.mark.slow),
+    pytest.param(4, "diagonal", marks=pytest.mark.slow),
+    pytest.param(4, "amg", marks=pytest.mark.slow),
+    (17, "diagonal"), pytest.param(17, "amg", marks=pytest.mark.slow),
+    ("past", "diagonal"), ("past", "amg")])
 def test_preconditioned_while_loops_take_the_scans_iterations(small_problem, preconditioner,
                                                               k):
     # implicit mode's loop preconditions the residual it starts from; the unrolled scan

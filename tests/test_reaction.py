@@ -72,7 +72,7 @@ def test_wig_gradient_through_the_nonlinear_steps_passes_a_taylor_test(fisher):
     _, problem, trajectories, _ = fisher
     network = learned.mlp_init(jax.random.PRNGKey(0), [problem.n_free, 16, problem.n_free],
                                output_scale=0.05)
-    batch = heat.windows(trajectories, 3)[:4]
+    batch = heat.windows(trajectories, 2)[:4]  # two steps: the second starts from a learned state
     solver = pf.TruncatedCG(4, gradient="unrolled")
 
     def loss(layers):
@@ -107,8 +107,9 @@ def test_training_the_fisher_corrector_lowers_the_validation_rollout_error(fishe
     coarse = heat.rollout_error(None, problem, validation, pf.ConvergedCG(rtol=1e-10))[0]
     training = heat.train(problem, network, trajectories, validation, mode="wig", unroll=3,
                           optimizer=optax.adam(3e-3), refinement=prdp(K0=2, dK=2),
-                          epochs=80, batch_size=16)
-    # measured: 0.71 of the coarse solver's error (8 training trajectories)
+                          epochs=50, batch_size=16)
+    # measured: 0.73 of the coarse solver's error after 50 epochs (8 training trajectories;
+    # 0.71 after 80: the programs' compile, not the epochs, is most of the time)
     assert training.records[-1].validation_error < 0.8 * float(coarse)
     assert float(start) == pytest.approx(float(coarse), rel=0.5)  # small untrained output
 
