@@ -121,12 +121,18 @@ def check_at(compiled, b, label) -> Status:
 
 
 def test_the_reported_case():
-    """P1 Laplacian, 4,096 unknowns, b = sin(pi x) y: K = 5 is exact, K = 30 (derivative
-    1e17 off before) is flagged, K = 100 (signs of reverse and forward mode differed) is
-    right."""
-    assert check_derivative(65, 2, "smooth", 5) == Status.SUCCESS
+    """P1 Laplacian, 4,096 unknowns, b = sin(pi x) y: K = 30 (derivative 1e17 off before) is
+    flagged, K = 100 (signs of reverse and forward mode differed) is right."""
     assert check_derivative(65, 2, "smooth", 30) == Status.UNRELIABLE_DERIVATIVE
     assert check_derivative(65, 2, "smooth", 100) == Status.SUCCESS
+
+
+# slow: a few iterations on smooth data are exact in the default suite through
+# test_family_of_right_hand_sides[9-3-1] (and test_coefficient_and_dirichlet_derivatives[3])
+@pytest.mark.slow
+def test_the_reported_case_is_exact_after_a_few_iterations():
+    """The reported case (above) at K = 5, before CG meets its invariant subspace: exact."""
+    assert check_derivative(65, 2, "smooth", 5) == Status.SUCCESS
 
 
 # the default suite: K = 1 in 3-D, K = 400 in 2-D; the rest with the slow cases
