@@ -148,50 +148,111 @@ def test_mixed_training_validates_the_emulator_alone_and_prdp_saves_iterations(s
     assert abs(truncated.validation_error / exact.validation_error - 1) < 0.02
 
 
+def _gap_windows(validation, unroll):
+    """The validation windows the mixed gap is measured on: starts every ``unroll`` steps."""
+    states = np.asarray(validation.states)
+    starts = range(0, validation.steps - unroll + 1, unroll)
+    return jnp.asarray(np.concatenate([states[:, t:t + unroll + 1] for t in starts]))
+
+
+# the test's own chain program (not the trainer's), the tolerance traced: one compile for all
+_chains_at = jax.jit(lambda network, problem, windows, rtol: jax.vmap(
+    lambda w: heat.chain_states(network, problem, w,
+                                pf.ConvergedCG(rtol=rtol, max_iterations=100_000),
+                                substeps=SUBSTEPS))(windows))
+
+
+def _mass_norm2(problem):
+    """``norm2(e, t)``: the sum over windows and steps of ``||e||_M^2 / ||t||_M^2``, with
+    SciPy's mass matrix."""
+    mass = problem.mass.to_scipy()
+
+    def norm2(e, t):
+        e, t = np.asarray(e).reshape(-1, e.shape[-1]), np.asarray(t).reshape(-1, t.shape[-1])
+        return sum((a @ mass @ a) / (b @ mass @ b) for a, b in zip(e, t, strict=True))
+
+    return norm2
+
+
 def test_the_mixed_gap_bounds_the_chain_error_change_on_non_overlapping_validation_windows(small):
     """A truncation_gap() controller on a mixed run is fed the chain gap over the validation
     windows starting every ``unroll`` steps (recomputed here from the trained network's chain
-    states, converged and truncated), which bounds the change of the chain's error; it
-    tightens the solves exactly when the gap exceeds ``max_gap`` and counts both passes' CG
-    iterations with the validation's."""
+    states, at the level and at the reference tolerance ``rtol * reference_factor``), which
+    is the gap against converged chains to about ``reference_factor`` of itself and bounds
+    the change of the chain's error; it tightens the solves exactly when the gap exceeds
+    ``max_gap`` and counts both passes' CG iterations with the validation's."""
     _, problem, trajectories, validation = small
     # the width and optimiser of the mixed training test: its step program, compiled once;
     # measured gaps 0.0140, 0.0141, 0.0161, 0.0018: the third epoch tightens, no other
     network = jax.tree.map(np.asarray,
                            heat.initial_network(problem, trajectories, "mixed", HIDDEN, seed=0))
-    unroll, max_gap = 2, 0.015
+    unroll, max_gap, factor = 2, 0.015, 1e-2
     training = heat.train(problem, network, trajectories, validation, setup="mixed",
                           mode="wig", unroll=unroll, optimizer=ADAM, epochs=4,
                           batch_size=12, substeps=SUBSTEPS, seed=1,
-                          refinement=truncation_gap(1e-2, max_gap=max_gap, redo=False))
+                          refinement=truncation_gap(1e-2, max_gap=max_gap, redo=False,
+                                                    reference_factor=factor))
     records = training.records
-    states = np.asarray(validation.states)  # 4 trajectories of 6 steps: starts 0, 2 and 4
-    gap_windows = jnp.asarray(np.concatenate(
-        [states[:, t:t + unroll + 1] for t in (0, 2, 4)]))
+    gap_windows = _gap_windows(validation, unroll)  # 4 trajectories of 6 steps: starts 0, 2, 4
+    assert gap_windows.shape[0] == 12
     last = records[-1]
-    # the test's own program (not the trainer's), the tolerance traced: one compile for both
-    chain_at = jax.jit(lambda network, rtol: jax.vmap(lambda w: heat.chain_states(
-        network, problem, w, pf.ConvergedCG(rtol=rtol, max_iterations=100_000),
-        substeps=SUBSTEPS))(gap_windows))
-    chains = {rtol: chain_at(training.network, rtol) for rtol in (1e-10, last.rtol)}
-    (reference, reference_its), (truncated, truncated_its) = chains[1e-10], chains[last.rtol]
+    chains = {rtol: _chains_at(training.network, problem, gap_windows, rtol)
+              for rtol in (1e-10, last.rtol * factor, last.rtol)}
+    (converged_states, _), (reference, reference_its), (truncated, truncated_its) = (
+        chains[1e-10], chains[last.rtol * factor], chains[last.rtol])
     truth = gap_windows[:, 1:]
-    mass = problem.mass.to_scipy()
+    norm2 = _mass_norm2(problem)
 
-    def norm2(e, t):  # sum over windows and steps of ||e||_M^2 / ||t||_M^2
-        e, t = np.asarray(e).reshape(-1, e.shape[-1]), np.asarray(t).reshape(-1, t.shape[-1])
-        return sum((a @ mass @ a) / (b @ mass @ b) for a, b in zip(e, t, strict=True))
+    def gap_against(states):
+        return np.sqrt(norm2(truncated - states, truth) / norm2(states - truth, truth))
 
-    change, residual = norm2(truncated - reference, truth), norm2(reference - truth, truth)
-    assert last.truncation_gap == pytest.approx(np.sqrt(change / residual), rel=1e-6)
-    loss_t, loss_c = norm2(truncated - truth, truth), norm2(reference - truth, truth)
-    assert abs(np.sqrt(loss_t / loss_c) - 1) <= last.truncation_gap  # the bound it claims
+    assert last.truncation_gap == pytest.approx(gap_against(reference), rel=1e-6)
+    converged_gap = gap_against(converged_states)  # the reference's error: ~factor of it
+    assert last.truncation_gap == pytest.approx(converged_gap, rel=3 * factor)
+    loss_t, loss_c = norm2(truncated - truth, truth), norm2(converged_states - truth, truth)
+    assert abs(np.sqrt(loss_t / loss_c) - 1) <= converged_gap  # the bound it claims
     # the emulator's rollouts run no solver: the validation count is the two chain passes
     assert last.validation_iterations - records[-2].validation_iterations == \
         int(np.sum(reference_its)) + int(np.sum(truncated_its))
     tightened = [b.rtol < a.rtol for a, b in itertools.pairwise(records)]
     assert tightened == [a.truncation_gap > max_gap for a in records[:-1]]
     assert any(tightened) and not all(tightened)
+
+
+def test_the_mixed_gap_s_first_level_refers_every_level_to_its_own_reference(small):
+    """Before epoch 1 the untrained emulator's gap is measured at each level the controller
+    tries, against a reference chain at that level times ``reference_factor``: the first
+    level and the CG iterations of those passes, recomputed here level by level."""
+    _, problem, trajectories, validation = small
+    network = jax.tree.map(np.asarray,
+                           heat.initial_network(problem, trajectories, "mixed", HIDDEN, seed=0))
+    unroll, max_gap, factor, first = 2, 0.015, 1e-2, 0.3
+    training = heat.train(problem, network, trajectories, validation, setup="mixed",
+                          mode="wig", unroll=unroll, optimizer=ADAM, epochs=1,
+                          batch_size=12, substeps=SUBSTEPS, seed=1,
+                          refinement=truncation_gap(first, max_gap=max_gap, redo=False,
+                                                    reference_factor=factor))
+    gap_windows = _gap_windows(validation, unroll)
+    truth = gap_windows[:, 1:]
+    norm2 = _mass_norm2(problem)
+
+    def passes(net, rtol):  # the gap at a level and the CG iterations of its two passes
+        (reference, its_r), (truncated, its_t) = (
+            _chains_at(net, problem, gap_windows, r) for r in (rtol * factor, rtol))
+        gap = np.sqrt(norm2(truncated - reference, truth) / norm2(reference - truth, truth))
+        return gap, int(np.sum(its_r)) + int(np.sum(its_t))
+
+    rtol, iterations, levels = first, 0, []
+    while True:
+        gap, its = passes(network, rtol)
+        iterations, levels = iterations + its, [*levels, gap]
+        if gap <= max_gap:
+            break
+        rtol *= 0.1
+    record = training.records[0]
+    assert len(levels) >= 2 and record.rtol == pytest.approx(rtol, rel=1e-12), levels
+    # the first level's passes, then epoch 1's two chain passes at the level it trained at
+    assert record.validation_iterations == iterations + passes(training.network, rtol)[1]
 
 
 def test_bad_mixed_options_are_refused(small):

@@ -64,7 +64,9 @@ def test_the_state_round_trips_through_json_and_jit():
     (dict(rtol=0.0), "rtol"), (dict(rtol=1e-12, rtol_min=1e-10), "rtol_min"),
     (dict(rtol_factor=1.0), "rtol_factor"), (dict(max_gap=0.0), "max_gap"),
     (dict(max_gap=math.inf), "max_gap"), (dict(max_gap=True), "max_gap"),
-    (dict(redo=1), "redo"),
+    (dict(redo=1), "redo"), (dict(reference_factor=1.0), "reference_factor"),
+    (dict(reference_factor=0.0), "reference_factor"),
+    (dict(reference_factor=True), "reference_factor"),
     (dict(max_iterations=0), "max_iterations")])
 def test_bad_settings_are_refused_with_their_names(options, match):
     with pytest.raises(SolverConfigError, match=match):
@@ -302,11 +304,15 @@ def test_a_gap_scene_builds_the_controller_with_its_settings():
     assert control.monitor == "truncation_gap" and float(state.rtol) == pytest.approx(1e-4)
     assert control.redo and not controller(parse_scene(heat_table(redo=False),
                                                        source="g.toml")).redo
+    assert control.reference_factor == 1e-2  # the API's default
+    assert controller(parse_scene(heat_table(reference_factor=1e-10),
+                                  source="g.toml")).reference_factor == 1e-10
 
 
 @pytest.mark.parametrize("refinement, match", [
     (dict(max_gap=0), "max_gap"), (dict(rtol=1e-3, rtol_min=1e-2), "rtol_min"),
-    (dict(K0=3), "K0"), (dict(redo="yes"), "redo")])
+    (dict(K0=3), "K0"), (dict(redo="yes"), "redo"), (dict(reference_factor=0), "reference_factor"),
+    (dict(reference_factor=1.0), "reference_factor")])
 def test_bad_gap_tables_name_the_key(refinement, match):
     with pytest.raises(SceneError, match=match):  # K0 belongs to another kind
         parse_scene(heat_table(**refinement), source="g.toml")
@@ -328,7 +334,10 @@ GAP_SCENE = Path(__file__).resolve().parents[1] / "examples" / "scenes" / "heat_
     (GAP_SCENE, "heat_emulator", {"correction nog gap": "correction nog converged",
                                   "correction wig gap": "correction wig converged"}),
     (GAP_SCENE.with_name("reaction_diffusion_gap.toml"), "reaction_diffusion",
-     {"wig gap": "wig converged"})])
+     {"wig gap": "wig converged"}),
+    (GAP_SCENE.with_name("heat_emulator_mixed_gap.toml"),
+     GAP_SCENE.with_name("heat_emulator_mixed.toml"),
+     {"mixed gap": "mixed converged"})])
 def test_the_gap_examples_are_their_scenes_with_gap_runs_beside_converged_partners(
         example, base, pairs):
     gap, base = load_scene(example), load_scene(base)

@@ -136,6 +136,10 @@ class Refinement(NamedTuple):
     #: ``None``: whatever the run loop's ``monitor`` says
     monitor: str | None = None
     redo: bool = False
+    #: a :func:`truncation_gap` controller's reference: where the trainer runs a reference
+    #: pass of its own (a mixed heat run), to ``rtol * reference_factor`` (never tighter than
+    #: the validation's tolerance); ``None``: to the validation's tolerance
+    reference_factor: float | None = None
 
 
 def _check_schedule(schedule: Schedule, name: str) -> Schedule:
@@ -397,7 +401,7 @@ def adaptive_tolerance(rtol0: float = 1e-2, *, power: float = 1.0, rtol_min: flo
 
 def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: float = 0.1,
                    rtol_min: float = 1e-10, max_iterations: int = 100_000,
-                   redo: bool = True) -> Refinement:
+                   redo: bool = True, reference_factor: float | None = 1e-2) -> Refinement:
     r"""Refine a training's solves while they still change what is measured: every solve
     runs to ``rtol``, and after each epoch the trainer feeds the *truncation gap*
 
@@ -433,6 +437,15 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
     tolerance, ``state.iterations`` the cap ``max_iterations``, ``state.checkpoint`` the last
     gap fed.
 
+    ``reference_factor``: where the trainer has no converged validation to compare with (a
+    mixed heat run validates an emulator that runs no solver, so both of its chain passes are
+    extra), the reference chain runs to ``rtol * reference_factor`` (never tighter than the
+    validation's tolerance) instead of converged. CG's error falls about in proportion to its
+    tolerance, so the gap measured is the converged reference's to within about
+    ``reference_factor`` of itself (1 % at the default) for a fraction of the iterations;
+    ``None`` compares with converged chains. Where the validation runs the solver the
+    reference is the converged validation itself, free, and this is not used.
+
     >>> controller = truncation_gap(1e-2, max_gap=0.01)
     >>> state = controller.init()
     >>> for gap in [0.002, 0.03, 0.004, 0.02]:
@@ -454,6 +467,11 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
     _check_cap(max_iterations)
     if not isinstance(redo, bool):
         raise SolverConfigError(f"redo={redo!r}: expected True or False")
+    if reference_factor is not None and (
+            isinstance(reference_factor, bool) or not isinstance(reference_factor, int | float)
+            or not 0 < reference_factor < 1):
+        raise SolverConfigError(f"reference_factor={reference_factor!r}: expected None (a "
+                                "converged reference) or a number in (0, 1)")
 
     def init() -> RefinementState:
         return _initial_state(max_iterations, max_iterations, rtol, 2)
@@ -474,7 +492,9 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
             refinements=state.refinements + refined.astype(state.refinements.dtype),
             stopped=~refine)
 
-    return Refinement(init, update, tolerance_mode=True, monitor="truncation_gap", redo=redo)
+    return Refinement(init, update, tolerance_mode=True, monitor="truncation_gap", redo=redo,
+                      reference_factor=None if reference_factor is None
+                      else float(reference_factor))
 
 
 def _is_count(value) -> bool:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from functools import partial
 
 import jax
 
@@ -39,16 +40,21 @@ def compile_passes(converged: Callable[[], tuple], truncated: Pass | None, K, rt
         jax.block_until_ready(truncated(K, rtol))
 
 
-def first_level(refinement: Refinement, control: RefinementState, converged: Callable[[], tuple],
-                truncated: Pass, gap_of: Callable[[object, object], float] = gap,
+def first_level(refinement: Refinement, control: RefinementState,
+                converged: Callable[[float], tuple], truncated: Pass,
+                gap_of: Callable[[object, object], float] = gap, *,
+                reference_follows_level: bool = False,
                 ) -> tuple[RefinementState, int, float]:
-    """Feed the controller the untrained model's gap (``gap_of(converged value, truncated
+    """Feed the controller the untrained model's gap (``gap_of(reference value, truncated
     value)``) until it stops tightening: returns the state, the CG iterations of those passes
-    and their seconds (compilation excluded)."""
+    and their seconds (compilation excluded). ``converged(rtol)`` is the reference pass for
+    the level ``rtol``: run once, or at every level tried where ``reference_follows_level``
+    (a reference tied to the level, :class:`~prdp_fem.inverse.refinement.Refinement`'s
+    ``reference_factor``)."""
     K, _, rtol = device_settings(control.settings())
-    compile_passes(converged, truncated, K, rtol)
+    compile_passes(partial(converged, rtol), truncated, K, rtol)
     start = time.perf_counter()
-    value, iterations = converged()
+    value, iterations = converged(rtol)
     total = int(iterations)
     while True:
         K, _, rtol = device_settings(control.settings())
@@ -58,4 +64,7 @@ def first_level(refinement: Refinement, control: RefinementState, converged: Cal
         control = refinement.update(control, gap_of(value, truncated_value))
         if not float(control.rtol) < before:
             break
+        if reference_follows_level:
+            value, iterations = converged(float(control.rtol))
+            total += int(iterations)
     return control, total, time.perf_counter() - start

@@ -585,66 +585,73 @@ def _new_validation_programs(setup, step, validation_rtol, preconditioner):
 _validation_programs = kept_programs(_new_validation_programs)
 
 
-def _new_chain_programs(step, validation_rtol, preconditioner, substeps):
-    """The mixed chain's states over windows with converged solves, the same at a level
-    (``K`` and ``rtol`` traced) and :func:`chain_gap`, jitted: what a truncation_gap()
-    controller is fed when the validation rollouts run no solver."""
-    def chain(net, prob, batch, solver):
+def _new_chain_programs(step, preconditioner, substeps):
+    """The mixed chain's states over windows at a level (``K`` and ``rtol`` traced: the
+    reference and the level share one program) and :func:`chain_gap`, jitted: what a
+    truncation_gap() controller is fed when the validation rollouts run no solver."""
+    def chain(net, prob, batch, K, rtol):
+        solver = ConvergedCG(rtol=rtol, max_iterations=K, preconditioner=preconditioner)
         states, iterations = jax.vmap(lambda w: chain_states(
             net, prob, w, solver, substeps=substeps, step=step))(batch)
         return states, jnp.sum(iterations)
 
-    converged = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
-                            preconditioner=preconditioner)
-    at_level = jax.jit(lambda net, prob, batch, K, rtol: chain(
-        net, prob, batch, ConvergedCG(rtol=rtol, max_iterations=K,
-                                      preconditioner=preconditioner)))
-    return (jax.jit(lambda net, prob, batch: chain(net, prob, batch, converged)), at_level,
-            jax.jit(chain_gap))
+    return jax.jit(chain), jax.jit(chain_gap)
 
 
-#: The mixed chain's gap programs per (step, validation rtol, preconditioner name, substeps).
+#: The mixed chain's gap programs per (step, preconditioner name, substeps).
 _chain_programs = kept_programs(_new_chain_programs)
 
 
 class _GapPasses(NamedTuple):
-    """What a truncation_gap() controller is fed from: ``reference(net, validated=None)`` and
-    ``at(net, K, rtol)`` return a value and its CG iterations (``validated``: the epoch's
-    converged validation ``(error, iterations)``, reused where it is the reference),
-    ``of(reference value, value at the level)`` the gap, ``compile(net)`` runs what the
-    validation's compilation does not cover."""
+    """What a truncation_gap() controller is fed from: ``reference(net, rtol, validated=None)``
+    (the reference for the level ``rtol``) and ``at(net, K, rtol)`` return a value and its CG
+    iterations (``validated``: the epoch's converged validation ``(error, iterations)``,
+    reused where it is the reference), ``of(reference value, value at the level)`` the gap,
+    ``compile(net)`` runs what the validation's compilation does not cover;
+    ``follows_level``: whether the reference depends on the level."""
     reference: Callable
     at: Callable
     of: Callable
     compile: Callable
+    follows_level: bool
 
 
 def _gap_passes(setup, problem, validation_set, unroll, substeps, step, validation_rtol,
-                preconditioner, validate, validate_at, *, keep) -> _GapPasses:
+                preconditioner, validate, validate_at, reference_factor, *,
+                keep) -> _GapPasses:
     """The validation rollouts (converged, their error the reference, and at the level) --
     or, for the mixed setup, whose rollouts run no solver, the training's own chain over the
-    validation windows starting every ``unroll`` steps, compared by :func:`chain_gap`."""
+    validation windows starting every ``unroll`` steps, compared by :func:`chain_gap`: the
+    reference chain to ``rtol * reference_factor`` (``None``: to ``validation_rtol``), never
+    tighter than ``validation_rtol``."""
     if setup != "mixed":
-        def reference(net, validated=None):
+        def reference(net, rtol, validated=None):
             return validate(net, problem, validation_set) if validated is None else validated
 
         return _GapPasses(reference,
                           lambda net, K, rtol: validate_at(net, problem, validation_set, K,
                                                            rtol),
-                          validation_gap, lambda net: None)
-    chain, chain_at, gap_program = _chain_programs(step, validation_rtol, preconditioner,
-                                                   substeps, keep=keep)
+                          validation_gap, lambda net: None, False)
+    chain, gap_program = _chain_programs(step, preconditioner, substeps, keep=keep)
     gap_windows = windows(validation_set, unroll, stride=unroll)
+    cap = 100_000  # the converged validation's cap
 
-    def compile_gap(net):  # the converged chain and the gap, outside the timed region
-        reference = jax.block_until_ready(chain(net, problem, gap_windows))[0]
-        jax.block_until_ready(gap_program(problem, gap_windows, reference, reference))
+    def reference(net, rtol, validated=None):
+        del validated  # the validation ran no solver: the chain's reference is its own
+        tolerance = validation_rtol if reference_factor is None else max(
+            float(rtol) * reference_factor, validation_rtol)
+        K, _, tolerance = device_settings((cap, cap, tolerance))
+        return chain(net, problem, gap_windows, K, tolerance)
 
-    return _GapPasses(lambda net, validated=None: chain(net, problem, gap_windows),
-                      lambda net, K, rtol: chain_at(net, problem, gap_windows, K, rtol),
+    def compile_gap(net):  # the chain and the gap, outside the timed region
+        states = jax.block_until_ready(reference(net, validation_rtol))[0]
+        jax.block_until_ready(gap_program(problem, gap_windows, states, states))
+
+    return _GapPasses(reference,
+                      lambda net, K, rtol: chain(net, problem, gap_windows, K, rtol),
                       lambda converged, truncated: float(
                           gap_program(problem, gap_windows, converged, truncated)),
-                      compile_gap)
+                      compile_gap, reference_factor is not None)
 
 
 def train(problem: HeatProblem, network: Model | Network, train_set: Trajectories,
@@ -726,7 +733,8 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     gap_fed = solves and refinement.monitor == "truncation_gap"
     gap = _gap_passes(setup, problem, validation_set, unroll, substeps, step,
                       float(validation_rtol), preconditioner, validate, validate_at,
-                      keep=isinstance(key, str)) if gap_fed else None
+                      refinement.reference_factor, keep=isinstance(key, str)) \
+        if gap_fed else None
     rng = np.random.default_rng(seed)
     with CheckpointSession.open(checkpoints, "heat") as saved:
         state = start_state(saved, network.params, optimizer.init(network.params),
@@ -740,7 +748,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
             gap.compile(network)
             control, iterations, seconds = first_level(
                 refinement, control, partial(gap.reference, network), partial(gap.at, network),
-                gap.of)
+                gap.of, reference_follows_level=gap.follows_level)
             checked, run_time = checked + iterations, run_time + seconds
         compiled = False  # the validation programs (compiled outside the timed region)
         for epoch in range(state.epoch + 1, epochs + 1):
@@ -782,7 +790,8 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 checked += int(iterations)  # CG iterations count everything that ran
                 measured_gap = math.nan
                 if gap_fed:
-                    reference, iterations = gap.reference(network, validated=(error, 0))
+                    reference, iterations = gap.reference(network, rtol,
+                                                          validated=(error, 0))
                     truncated, more = gap.at(network, K, rtol)
                     checked += int(iterations) + int(more)
                     measured_gap = gap.of(reference, truncated)

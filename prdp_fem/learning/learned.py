@@ -639,7 +639,8 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
         network = network.replace_params(layers)
         if gap_fed and state.epoch == 0:  # the first level, settled on the untrained model
             control, iterations, seconds = first_level(
-                refinement, control, lambda: _misfit(validate(network, problem, validation_set)),
+                refinement, control,
+                lambda rtol: _misfit(validate(network, problem, validation_set)),
                 lambda K, rtol: _misfit(validate_at(network, problem, validation_set, K, rtol)))
             checked, run_time = checked + iterations, run_time + seconds
         compiled = False  # the validation programs (compiled outside the timed region)

@@ -472,7 +472,8 @@ def controller(scene: Scene) -> Refinement:
         return converged(spec.rtol)
     if spec.kind == "gap":
         return truncation_gap(spec.rtol, max_gap=spec.max_gap, rtol_factor=spec.rtol_factor,
-                              rtol_min=spec.rtol_min, redo=spec.redo)
+                              rtol_min=spec.rtol_min, redo=spec.redo,
+                              reference_factor=spec.reference_factor)
     if spec.kind == "adaptive":
         return adaptive_tolerance(spec.rtol0, power=spec.power, rtol_min=spec.rtol_min,
                                   failure_factor=spec.failure_factor)

@@ -521,7 +521,8 @@ class GapSpec(RefinementSpec):
     """``kind = "gap"``: :func:`prdp_fem.inverse.truncation_gap`, a training's solves to
     ``rtol``, multiplied by ``rtol_factor`` (down to ``rtol_min``) while running the validation
     at that tolerance changes its error by more than ``max_gap`` (learned and heat scenes);
-    ``redo``: the epoch that tightened them is trained again."""
+    ``redo``: the epoch that tightened them is trained again; ``reference_factor``: a mixed
+    heat run's reference chain runs to ``rtol * reference_factor`` (1e-10 or less: converged)."""
 
     kind: str = dataclasses.field(default="gap", init=False)
     monitor: str = "truncation_gap"
@@ -530,6 +531,7 @@ class GapSpec(RefinementSpec):
     rtol_factor: float = 0.1
     rtol_min: float = 1e-10
     redo: bool = True
+    reference_factor: float = 1e-2
 
 
 #: The spec class of each ``refinement.kind``.
@@ -932,6 +934,8 @@ def _refinement(t: _Table) -> RefinementSpec:
                                              open_low=True),
         "max_gap": lambda k: t.number(k, defaults.max_gap, low=0.0, open_low=True),
         "redo": lambda k: t.boolean(k, defaults.redo),
+        "reference_factor": lambda k: t.number(k, defaults.reference_factor, low=0.0,
+                                               high=0.5, open_low=True),
         "K": lambda k: t.integer(k, defaults.K, 0),
         "K_adj": lambda k: t.integer(k, defaults.K_adj, 0),
     }
