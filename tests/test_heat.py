@@ -316,7 +316,7 @@ def test_unrolled_training_refines_k_within_one_compiled_step(small, monkeypatch
                           epochs=6, batch_size=12)
     ks = [r.iterations for r in training.records]
     assert len(set(ks)) > 1 and max(ks) <= 16, ks
-    [step] = [c for c in made if c._static_argnum == 5]
+    [step] = [c for c in made if c._static_argnum == 4]
     assert [key[0] for key in step._cache] == [16]
     last = training.records[-1]
     assert last.primal_iterations == sum(k * 2 * 60 for k in ks)
@@ -344,13 +344,13 @@ def test_trainings_with_equal_settings_share_one_kept_step(small, monkeypatch):
     first = train(adam, fixed(3))
     tolerance = train(adam, converged(1e-10))
     again = train(adam, fixed(3))
-    steps = [c for c in made if c._static_argnum == 5]
+    steps = [c for c in made if c._static_argnum == 4]
     assert len(steps) == 2  # fixed K and the tolerance mode are two programs, kept
     assert [r._replace(time=0.0) for r in again.records] == \
         [r._replace(time=0.0) for r in first.records]
     assert tolerance.records[-1].rtol == 1e-10
     train(optax.adam(3e-3), fixed(3))
-    assert len([c for c in made if c._static_argnum == 5]) == 3
+    assert len([c for c in made if c._static_argnum == 4]) == 3
 
 
 def test_a_second_training_with_the_default_optimizer_compiles_nothing(small,

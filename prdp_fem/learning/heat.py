@@ -106,7 +106,7 @@ from ..inverse.steps import (
     step_solver,
 )
 from ..linalg import cg
-from ..linalg.cg import ConvergedCG, IterationCounter
+from ..linalg.cg import COUNTS, ConvergedCG, IterationCounter, ReverseTally, zero_counts
 from ..linalg.operator import FixedMatrix, SparseMatrix
 from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
@@ -217,7 +217,8 @@ def _rate(value: Any) -> float:
 
 
 def heat_step(problem: HeatProblem, u: jax.Array, solver, *,
-              counter: IterationCounter | None = None) -> tuple[jax.Array, jax.Array]:
+              counter: IterationCounter | ReverseTally | None = None
+              ) -> tuple[jax.Array, jax.Array]:
     """One implicit-Euler step from ``u`` (free dofs) by ``solver`` (a
     :class:`~prdp_fem.linalg.TruncatedCG` or :class:`~prdp_fem.linalg.ConvergedCG`), warm-started
     from
@@ -530,24 +531,30 @@ def initial_network(problem: HeatProblem, train_set: Trajectories, setup: str,
 
 def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner, step_fn,
                counted: bool, substeps: int):
-    """One optimiser step; the counter and (K, K_adj, rtol) are arguments, so trainings that
-    differ only in them run one compiled program (per scan length in unrolled mode).
-    ``counted``: ``step_fn`` is :func:`heat_step` and takes the counter."""
+    """One optimiser step; (K, K_adj, rtol) are arguments, so trainings that differ only in
+    them run one compiled program (per scan length in unrolled mode). It returns the forward
+    solves' CG iterations and the backward pass's adjoint ones: ``counted`` (``step_fn`` is
+    :func:`heat_step`, which takes a counter) tallies the adjoint solves with a
+    :class:`~prdp_fem.linalg.ReverseTally` -- the gradient with respect to a seed, in the
+    program: a host counter's calls cost a tenth of a truncated epoch at 900 dofs (16 calls
+    a step, and JAX's slow dispatch path for a program that holds them)."""
 
-    def step(network, opt_state, problem, batch, counter, scan_length, K, K_adj, rtol,
+    def step(network, opt_state, problem, batch, scan_length, K, K_adj, rtol,
              cycle=None):  # cycle: see inverse._preconditioner_key
         solver = step_solver(gradient, tolerance_mode, K, K_adj, rtol,
                          preconditioner if cycle is None else cycle, scan_length)
-        stepper = partial(step_fn, counter=counter) if counted else step_fn
 
-        def loss_of(params):  # the model's params train; the rest (an MLP's scales) is fixed
+        def loss_of(params, seed):  # the model's params train; the rest (an MLP's scales) not
+            stepper = partial(step_fn, counter=ReverseTally(seed)) if counted else step_fn
             return batch_loss(network.replace_params(params), problem, batch, solver,
                               setup=setup, mode=mode, step=stepper, substeps=substeps)
 
-        (loss, iterations), grads = jax.value_and_grad(loss_of, has_aux=True)(network.params)
+        (loss, iterations), (grads, counts) = jax.value_and_grad(
+            loss_of, argnums=(0, 1), has_aux=True)(network.params, zero_counts())
         updates, opt_state = optimizer.update(grads, opt_state, network.params)
         params = optax.apply_updates(network.params, updates)
-        return network.replace_params(params), opt_state, loss, iterations, \
+        adjoint = jnp.round(counts[COUNTS.index("adjoint")]).astype(jnp.int64)
+        return network.replace_params(params), opt_state, loss, iterations, adjoint, \
             optax.tree.norm(grads)
 
     return step
@@ -557,7 +564,7 @@ def _new_step_program(optimizer, setup, mode, gradient, tolerance_mode, precondi
                       step, counted, substeps) -> SharedCompile:
     return SharedCompile(_make_step(optimizer, setup, mode, gradient, tolerance_mode,
                                     preconditioner, step, counted, substeps),
-                         static_argnum=5)
+                         static_argnum=4)
 
 
 #: The compiled step per settings (optimizer object, setup, mode, gradient, tolerance mode,
@@ -675,9 +682,10 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     ``dt / substeps``, and its ``substeps``); its validation and test rollouts are the network's
     alone.
 
-    WIG's adjoint solves are tallied on the host (:class:`~prdp_fem.linalg.cg.IterationCounter`;
-    ONE and NOG run none). ``test_set``: held-out trajectories whose rollout error (converged
-    solves, outside the timed region) each record carries as ``test_error``.
+    WIG's adjoint solves are tallied in the step's program (a
+    :class:`~prdp_fem.linalg.ReverseTally`; ONE and NOG run none). ``test_set``: held-out
+    trajectories whose rollout error (converged solves, outside the timed region) each record
+    carries as ``test_error``.
     ``checkpoints``: save and resume the whole training state, as
     :func:`~prdp_fem.learning.learned.train` does.
     ``callback(record)`` runs after every epoch, also outside the timed region (and first for
@@ -718,7 +726,6 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     check_training_refinement(refinement, gradient)
     solves = setup != "prediction"
     optimizer = default_optimizer() if optimizer is None else optimizer
-    counter = IterationCounter()
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
     key = preconditioner_key(preconditioner)
@@ -743,7 +750,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
         network = network.replace_params(state.params)
         opt_state, control, records = state.opt_state, state.control, list(state.records)
         primal, run_time = state.counters["primal"], state.counters["run_time"]
-        counter.adjoint = state.counters["adjoint"]
+        adjoint = state.counters["adjoint"]
         checked = state.counters.get("validation", 0)  # the validation solves' CG iterations
         if gap_fed and state.epoch == 0:  # the first level, settled on the untrained model
             gap.compile(network)
@@ -769,9 +776,10 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                     batch = data[order[i:i + batch_size]]
                     compile_before = step_fn.seconds  # compilation is timed apart from the run
                     start = time.perf_counter()
-                    network, opt_state, loss, iterations, grad_norm = jax.block_until_ready(
-                        step_fn(network, opt_state, problem, batch, counter, scan_length, K,
-                                K_adj, rtol, *cycle_argument(preconditioner)))
+                    network, opt_state, loss, iterations, adjoint_its, grad_norm = \
+                        jax.block_until_ready(step_fn(network, opt_state, problem, batch,
+                                                      scan_length, K, K_adj, rtol,
+                                                      *cycle_argument(preconditioner)))
                     run_time += time.perf_counter() - start - (step_fn.seconds - compile_before)
                     if not (math.isfinite(float(loss)) and math.isfinite(float(grad_norm))):
                         raise InversionError(
@@ -780,6 +788,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                             "a smaller learning rate or more CG iterations")
                     losses.append(float(loss))
                     primal += int(iterations)
+                    adjoint += int(adjoint_its)
                 if not compiled:
                     compile_passes(partial(validate, network, problem, validation_set),
                                    partial(gap.at, network) if gap_fed else None, K, rtol)
@@ -812,7 +821,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                 epoch, int(previous.iterations) if solves else 0,
                 int(previous.adjoint_iterations) if solves else 0,
                 float(previous.rtol) if solves else 0.0, primal, run_time,
-                float(np.mean(losses)), float(error), counter.adjoint, test_error, checked,
+                float(np.mean(losses)), float(error), adjoint, test_error, checked,
                 measured_gap, redone)
             records.append(record)
             if callback is not None:
@@ -820,7 +829,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
             if saved is not None:
                 saved.save(TrainingState(epoch, network.params, opt_state, control,
                                          rng.bit_generator.state, records,
-                                         {"primal": primal, "adjoint": counter.adjoint,
+                                         {"primal": primal, "adjoint": adjoint,
                                           "validation": checked,
                                           "steps": 0, "run_time": run_time}),
                            final=epoch == epochs)
