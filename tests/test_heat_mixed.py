@@ -116,6 +116,37 @@ def test_the_mixed_gradient_passes_a_taylor_test_and_flows_through_the_solver(sm
     assert float(difference) > 0.1 * float(optax.tree.norm(gradient))
 
 
+def test_the_steps_adjoint_tally_equals_a_host_counters_count_in_tolerance_mode(small):
+    """A training step counts its adjoint solves in its own program (the gradient with respect
+    to a tally seed): one step over all 60 windows at rtol 1e-3 counts what a host counter
+    counts for the same loss's gradient at the same parameters: each window's 4 adjoint
+    solves, summed over the batch under ``vmap``."""
+    _, problem, trajectories, validation = small
+    network = jax.tree.map(np.asarray,
+                           heat.initial_network(problem, trajectories, "mixed", HIDDEN, seed=0))
+    batch = heat.windows(trajectories, 2)
+    training = heat.train(problem, network, trajectories, validation, setup="mixed",
+                          mode="wig", unroll=2, optimizer=ADAM, epochs=1,
+                          batch_size=batch.shape[0], substeps=SUBSTEPS,
+                          refinement=converged(1e-3))
+    [record] = training.records
+    host = pf.IterationCounter()
+
+    @jax.jit
+    def gradient(params, rtol):  # rtol traced, as in the step
+        solver = pf.ConvergedCG(rtol=rtol, max_iterations=record.iterations,
+                                preconditioner="jacobi")
+        return jax.grad(lambda p: heat.batch_loss(
+            network.replace_params(p), problem, batch, solver, setup="mixed", mode="wig",
+            substeps=SUBSTEPS, step=lambda *a: heat.heat_step(*a, counter=host))[0])(params)
+
+    jax.block_until_ready(gradient(network.params, jnp.float64(1e-3)))
+    jax.effects_barrier()
+    assert host.adjoint_solves == batch.shape[0] * SUBSTEPS
+    assert record.adjoint_iterations_total == host.adjoint > host.adjoint_solves
+    assert record.primal_iterations == host.primal
+
+
 def test_mixed_training_validates_the_emulator_alone_and_prdp_saves_iterations(small):
     """PRDP and converged mixed runs: the validation rollouts run no solver (the emulator
     alone, equal to the prediction setup's rollout error), both runs lower it, and the PRDP
