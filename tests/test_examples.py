@@ -99,6 +99,16 @@ def test_learned_inverse_example_trains_both_runs_from_one_start(load_example):
     assert prdp[-1].primal_iterations < 0.5 * converged[-1].primal_iterations
 
 
+def test_heat_hybrid_example_tabulates_the_hybrid_s_two_setups_in_every_mode(load_example):
+    """The script's default table: correction and prediction, each with ONE, NOG and WIG (the
+    mixed setup is WIG only and has its own scene)."""
+    from prdp_fem.learning import heat
+
+    rows = load_example("heat_hybrid").ROWS
+    assert sorted(rows) == sorted((setup, mode) for setup in ("correction", "prediction")
+                                  for mode in heat.MODES)
+
+
 @pytest.mark.slow  # 9 s; test_heat and test_heat_study train the hybrid
 def test_heat_hybrid_example_correction_nog_beats_prediction_wig_and_prdp_saves(load_example):
     """6x6 mesh, 12 training trajectories, 30 epochs: the pinned small case of the table."""
