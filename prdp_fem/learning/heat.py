@@ -106,7 +106,7 @@ from ..inverse.steps import (
     step_solver,
 )
 from ..linalg import cg
-from ..linalg.cg import COUNTS, ConvergedCG, IterationCounter, ReverseTally, zero_counts
+from ..linalg.cg import ConvergedCG, IterationCounter, ReverseTally, read_counts, zero_counts
 from ..linalg.operator import FixedMatrix, SparseMatrix
 from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
@@ -136,6 +136,8 @@ __all__ = [
 ]
 
 SETUPS = ("correction", "prediction", "mixed")
+# the iteration cap of converged validation and reference solves (never reached in practice)
+_CONVERGED_CAP = 100_000
 MODES = ("one", "nog", "wig")
 
 # a heat step: (problem, u, solver) -> (u_next, iterations); tests pass stand-ins
@@ -533,11 +535,11 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
                counted: bool, substeps: int):
     """One optimiser step; (K, K_adj, rtol) are arguments, so trainings that differ only in
     them run one compiled program (per scan length in unrolled mode). It returns the forward
-    solves' CG iterations and the backward pass's adjoint ones: ``counted`` (``step_fn`` is
-    :func:`heat_step`, which takes a counter) tallies the adjoint solves with a
-    :class:`~prdp_fem.linalg.ReverseTally` -- the gradient with respect to a seed, in the
-    program: a host counter's calls cost a tenth of a truncated epoch at 900 dofs (16 calls
-    a step, and JAX's slow dispatch path for a program that holds them)."""
+    solves' CG iterations and the seed's gradient of a
+    :class:`~prdp_fem.linalg.ReverseTally` (:func:`~prdp_fem.linalg.read_counts`), whose
+    ``"adjoint"`` entry counts the backward pass's solves where ``counted`` (``step_fn`` is
+    :func:`heat_step`, which takes a counter): no host call, so the step keeps JAX's fast
+    dispatch path."""
 
     def step(network, opt_state, problem, batch, scan_length, K, K_adj, rtol,
              cycle=None):  # cycle: see inverse._preconditioner_key
@@ -553,8 +555,7 @@ def _make_step(optimizer, setup, mode, gradient, tolerance_mode, preconditioner,
             loss_of, argnums=(0, 1), has_aux=True)(network.params, zero_counts())
         updates, opt_state = optimizer.update(grads, opt_state, network.params)
         params = optax.apply_updates(network.params, updates)
-        adjoint = jnp.round(counts[COUNTS.index("adjoint")]).astype(jnp.int64)
-        return network.replace_params(params), opt_state, loss, iterations, adjoint, \
+        return network.replace_params(params), opt_state, loss, iterations, counts, \
             optax.tree.norm(grads)
 
     return step
@@ -577,7 +578,7 @@ _step_program = kept_programs(_new_step_program)
 def _new_validation_programs(setup, step, validation_rtol, preconditioner):
     """The validation rollout with converged solves and the same rollout at a level (``K``
     and ``rtol`` traced: one program for every level), jitted."""
-    solver = ConvergedCG(rtol=validation_rtol, max_iterations=100_000,
+    solver = ConvergedCG(rtol=validation_rtol, max_iterations=_CONVERGED_CAP,
                          preconditioner=preconditioner)
     validate = jax.jit(lambda net, prob, val: rollout_error(
         net, prob, val, solver, setup=setup, step=step))
@@ -641,13 +642,12 @@ def _gap_passes(setup, problem, validation_set, unroll, substeps, step, validati
                           validation_gap, lambda net: None, False)
     chain, gap_program = _chain_programs(step, preconditioner, substeps, keep=keep)
     gap_windows = windows(validation_set, unroll, stride=unroll)
-    cap = 100_000  # the converged validation's cap
 
     def reference(net, rtol, validated=None):
         del validated  # the validation ran no solver: the chain's reference is its own
         tolerance = validation_rtol if reference_factor is None else max(
             float(rtol) * reference_factor, validation_rtol)
-        K, _, tolerance = device_settings((cap, cap, tolerance))
+        K, _, tolerance = device_settings((_CONVERGED_CAP, _CONVERGED_CAP, tolerance))
         return chain(net, problem, gap_windows, K, tolerance)
 
     def compile_gap(net):  # the gap, outside the timed region (the chain is the level's
@@ -776,7 +776,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                     batch = data[order[i:i + batch_size]]
                     compile_before = step_fn.seconds  # compilation is timed apart from the run
                     start = time.perf_counter()
-                    network, opt_state, loss, iterations, adjoint_its, grad_norm = \
+                    network, opt_state, loss, iterations, counts, grad_norm = \
                         jax.block_until_ready(step_fn(network, opt_state, problem, batch,
                                                       scan_length, K, K_adj, rtol,
                                                       *cycle_argument(preconditioner)))
@@ -788,7 +788,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                             "a smaller learning rate or more CG iterations")
                     losses.append(float(loss))
                     primal += int(iterations)
-                    adjoint += int(adjoint_its)
+                    adjoint += read_counts(counts)["adjoint"]
                 if not compiled:
                     compile_passes(partial(validate, network, problem, validation_set),
                                    partial(gap.at, network) if gap_fed else None, K, rtol)
