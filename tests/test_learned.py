@@ -431,3 +431,30 @@ def test_trainings_of_one_program_compile_once_and_keep_their_own_tallies(tiny, 
     tallies = [[(r.primal_iterations, r.adjoint_iterations_total, r.steps) for r in t.records]
                for t in (shared, alone)]
     assert tallies[0] == tallies[1] and tallies[0][-1][0] > 0
+
+
+def test_a_per_learning_rate_controller_is_fed_each_epoch_s_mean_rate(tiny):
+    """12 samples in batches of 4: 3 steps an epoch under a cosine schedule over 6 steps; the
+    controller sees each epoch's mean rate over the first step's (closed form
+    ``(1 + cos(pi k / 6)) / 2``), and 1 under the default optimiser's constant rate. With an
+    optimiser of the caller's and no ``learning_rate`` the training refuses to guess."""
+    problem, train_set, validation_set, network = tiny
+    control = prdp(K0=2, dK=2, per_learning_rate=True)
+    fed = []
+
+    def update(state, value, failed=False, learning_rate_scale=1.0):
+        fed.append(learning_rate_scale)
+        return control.update(state, value, failed, learning_rate_scale)
+
+    spy = control._replace(update=update)
+    schedule = optax.cosine_decay_schedule(1e-3, 6)
+    learned.train(problem, network, train_set, validation_set, optimizer=optax.adam(schedule),
+                  learning_rate=schedule, refinement=spy, epochs=2, batch_size=4)
+    learned.train(problem, network, train_set, validation_set, refinement=spy, epochs=1,
+                  batch_size=4)
+    expected = [np.mean([(1 + np.cos(np.pi * k / 6)) / 2 for k in range(3 * e, 3 * e + 3)])
+                for e in range(2)]
+    np.testing.assert_allclose(fed, [*expected, 1.0], rtol=1e-6)  # a float32 schedule
+    with pytest.raises(SolverConfigError, match="learning_rate="):
+        learned.train(problem, network, train_set, validation_set,
+                      optimizer=optax.adam(schedule), refinement=spy, epochs=1, batch_size=4)

@@ -63,7 +63,7 @@ from .driver import (
     make_step,
 )
 from .history import History, StepRecord
-from .refinement import Refinement, RefinementState, prdp
+from .refinement import Refinement, RefinementState, prdp, refuse_learning_rate_scaling
 from .steps import (
     cycle_argument,
     keeps_program,
@@ -310,6 +310,7 @@ def _checked_options(refinement, gradient, steps, preconditioner, monitor,
     if not isinstance(refinement, Refinement):
         raise SolverConfigError(f"refinement={refinement!r}: expected a controller from "
                                 "prdp_fem.inverse.refinement (prdp(), fixed(K) or converged(rtol))")
+    refuse_learning_rate_scaling(refinement, "a batched inversion")
     if refinement.tolerance_mode and gradient == "unrolled":
         raise SolverConfigError("a tolerance-mode controller needs gradient='implicit' (reverse "
                                 "mode cannot run through a loop of unknown length)")

@@ -60,7 +60,7 @@ from ..linalg.cg import (
 from ..linalg.operator import SparseMatrix, matvec
 from ..optim.linesearch import Evaluation, has_search_state, lbfgs, with_warm_start_slot
 from .history import History, StepRecord
-from .refinement import Refinement, RefinementState, prdp
+from .refinement import Refinement, RefinementState, prdp, refuse_learning_rate_scaling
 from .steps import (
     cycle_argument,
     device_settings,
@@ -760,6 +760,7 @@ def invert(problem: InverseProblem, *, optimizer: optax.GradientTransformation |
 def _monitor_for(refinement: Refinement, monitor):
     """The run's monitor: the one given, the controller's, or ``"loss"``; a controller that
     must be fed one value refuses another."""
+    refuse_learning_rate_scaling(refinement, "an inversion")
     wanted = getattr(refinement, "monitor", None)
     if wanted is None:
         return "loss" if monitor is None else monitor

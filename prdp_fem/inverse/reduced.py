@@ -59,7 +59,7 @@ from ..linalg.cg import IterationCounter, TruncatedCG
 from ..linalg.host_cg import dot, jacobi_pcg, power_of_two_scale
 from .driver import InverseProblem, initial_params
 from .history import History, StepRecord
-from .refinement import Refinement, fixed
+from .refinement import Refinement, fixed, refuse_learning_rate_scaling
 from .steps import (
     cycle_argument,
     preconditioner_key,
@@ -208,6 +208,7 @@ def reduced_cg(problem: InverseProblem, *, refinement: Refinement | None = None,
     """
     check_quadratic(problem)
     refinement = fixed(50) if refinement is None else refinement
+    refuse_learning_rate_scaling(refinement, "reduced_cg")
     _check_options(refinement, iterations, rtol, riesz_rtol, preconditioner)
     counter = IterationCounter()
     f = np.asarray(initial_params(problem, init))

@@ -41,9 +41,11 @@ to another level when ``K`` changes (counting it sent unpreconditioned CG to ``K
 run's first step is exempt: its line search starts from an arbitrary step size.
 
 Beyond the reference: separate primal and adjoint :class:`Schedule` s, multiplicative growth,
-``K_max`` caps, a latched stop, and a *tolerance mode* in which refinement divides a relative
-residual tolerance instead of raising ``K``. A non-finite monitored value counts as divergence
-(refine) and is kept out of the moving average.
+``K_max`` caps, a latched stop, a *tolerance mode* in which refinement divides a relative
+residual tolerance instead of raising ``K``, and (opt-in, ``per_learning_rate=True``) a stall
+judged per unit learning rate, ``r_t > 1 - (1 - \tau_\text{step})\,\eta_t / \eta_1`` for
+the learning rate ``\eta_t`` of the steps behind ``e_t``. A non-finite monitored value counts
+as divergence (refine) and is kept out of the moving average.
 
 >>> controller = prdp(K0=10, dK=10, K_max=40)
 >>> state = controller.init()
@@ -136,6 +138,10 @@ class Refinement(NamedTuple):
     #: ``None``: whatever the run loop's ``monitor`` says
     monitor: str | None = None
     redo: bool = False
+    #: feed ``update`` the learning rate of the optimiser steps behind each value relative to
+    #: the run's first (``update(state, value, learning_rate_scale=...)``; :func:`prdp` with
+    #: ``per_learning_rate=True``): the trainers compute it from their ``learning_rate``
+    scaled_by_learning_rate: bool = False
     #: a :func:`truncation_gap` controller's reference: where the trainer runs a reference
     #: pass of its own (a mixed heat run), to ``rtol * reference_factor`` (never tighter than
     #: the validation's tolerance); ``None``: to the validation's tolerance
@@ -179,7 +185,8 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
          adjoint: Schedule | None = None, tau_step: float = 0.98, tau_stop: float = 0.9,
          ema_window: int = 6, delta: int = 3, latch: bool = False, restart: bool = False,
          stall_on_failure: bool = False, rtol: float | None = None, rtol_factor: float = 0.1,
-         rtol_min: float = 1e-12, initial_checkpoint: float | None = None) -> Refinement:
+         rtol_min: float = 1e-12, initial_checkpoint: float | None = None,
+         per_learning_rate: bool = False) -> Refinement:
     """The PRDP controller (reference defaults; see the module docstring for the rule).
 
     Parameters
@@ -245,6 +252,9 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
             and math.isfinite(initial_checkpoint) and initial_checkpoint > 0):
         raise SolverConfigError(
             f"initial_checkpoint={initial_checkpoint!r}: expected None or a finite number > 0")
+    if not isinstance(per_learning_rate, bool):
+        raise SolverConfigError(f"per_learning_rate={per_learning_rate!r}: expected True or "
+                                "False")
     checkpoint0 = math.nan if initial_checkpoint is None else float(initial_checkpoint)
     a = 2.0 / (ema_window + 1.0)
 
@@ -255,12 +265,20 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
             state = _initial_state(primal.K0, primal.K0 if dual is None else dual.K0, 0.0, delta)
         return state._replace(checkpoint=np.asarray(checkpoint0, np.float64))
 
-    def update(state: RefinementState, value, failed=False) -> RefinementState:
-        xp = array_module(*state, value, failed)
+    def update(state: RefinementState, value, failed=False,
+               learning_rate_scale=1.0) -> RefinementState:
+        xp = array_module(*state, value, failed, learning_rate_scale)
+        if per_learning_rate:
+            # the fall a step must keep up shrinks with its size (a scale of 0: only a
+            # rising error stalls)
+            threshold = 1.0 - (1.0 - tau_step) * xp.maximum(
+                xp.asarray(learning_rate_scale, np.float64), 0.0)
+        else:
+            threshold = tau_step
         with np.errstate(divide="ignore", invalid="ignore"):  # NaN/inf ratios are decided on
-            return _decide(xp, state, xp.asarray(value, np.float64), failed)
+            return _decide(xp, state, xp.asarray(value, np.float64), failed, threshold)
 
-    def _decide(xp, state, value, failed) -> RefinementState:
+    def _decide(xp, state, value, failed, threshold) -> RefinementState:
         finite = xp.isfinite(value)
         first = state.count == 0  # (re)seed the moving average with this value
         previous = state.ema[-1]
@@ -270,7 +288,7 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
         count = state.count + finite.astype(state.count.dtype)
         checkpoint = xp.where(finite & xp.isnan(state.checkpoint), value, state.checkpoint)
         s = ema[-1]
-        averaged_stall = (count > delta) & (s / ema[0] > tau_step)
+        averaged_stall = (count > delta) & (s / ema[0] > threshold)
         gain = s / checkpoint
         worth_it = (gain < tau_stop) | (gain > 1.0)
         stalled = averaged_stall
@@ -309,7 +327,7 @@ def prdp(K0: int = 25, dK: int = 10, K_max: int = 600, *, factor: float = 1.0,
             refinements=state.refinements + refine.astype(state.refinements.dtype),
             stopped=stopped)
 
-    return Refinement(init, update, tolerance_mode)
+    return Refinement(init, update, tolerance_mode, scaled_by_learning_rate=per_learning_rate)
 
 
 def fixed(K: int, K_adj: int | None = None) -> Refinement:
@@ -495,6 +513,17 @@ def truncation_gap(rtol: float = 1e-2, *, max_gap: float = 0.01, rtol_factor: fl
     return Refinement(init, update, tolerance_mode=True, monitor="truncation_gap", redo=redo,
                       reference_factor=None if reference_factor is None
                       else float(reference_factor))
+
+
+def refuse_learning_rate_scaling(refinement: Refinement, run: str) -> None:
+    """Refuse a controller that judges stalls per unit learning rate in a run loop that does
+    not feed it one (``run`` names the loop): fed nothing, it would silently run the
+    reference rule."""
+    if getattr(refinement, "scaled_by_learning_rate", False):
+        raise SolverConfigError(
+            f"refinement: prdp(per_learning_rate=True) is fed the learning rate of a "
+            f"training's epochs (prdp_fem.learning's trainers); {run} does not feed it "
+            "(expected per_learning_rate=False)")
 
 
 def _is_count(value) -> bool:

@@ -111,6 +111,7 @@ from ..linalg.operator import FixedMatrix, SparseMatrix
 from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
+from ._step_size import epoch_scales
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .learned import Network, Training, mlp_init
 from .model import Model, check_model
@@ -669,7 +670,8 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
           validation_rtol: float = 1e-10, step: Step = heat_step, substeps: int = 1,
           test_set: Trajectories | None = None, checkpoints: Checkpoints | None = None,
-          callback: Callable[[HeatRecord], None] | None = None) -> Training:
+          callback: Callable[[HeatRecord], None] | None = None,
+          learning_rate: Callable[[Any], Any] | float | None = None) -> Training:
     """Train ``network`` (any model, :mod:`prdp_fem.learning.model`, from the free dofs to
     the free dofs; only its ``params`` train, an MLP's scales stay fixed) as the ``setup``
     stepper with ``mode`` over windows of ``unroll``
@@ -690,6 +692,10 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     :func:`~prdp_fem.learning.learned.train` does.
     ``callback(record)`` runs after every epoch, also outside the timed region (and first for
     each record a resumed run restored).
+    ``learning_rate``: ``optimizer``'s learning rate (an optax schedule of the update count,
+    or a number), read only by a controller that judges stalls per unit learning rate
+    (``prdp(per_learning_rate=True)``), which is fed each epoch's mean rate over the first
+    step's; needed with an ``optimizer`` of your own.
 
     Returns a :class:`~prdp_fem.learning.learned.Training` of :class:`HeatRecord` s. Raises
     :class:`~prdp_fem.errors.SolverConfigError` / :class:`~prdp_fem.errors.ShapeError` for
@@ -725,6 +731,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     refinement = prdp(K0=1, dK=1) if refinement is None else refinement
     check_training_refinement(refinement, gradient)
     solves = setup != "prediction"
+    scales = epoch_scales(refinement, learning_rate, n // batch_size, optimizer is None)
     optimizer = default_optimizer() if optimizer is None else optimizer
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
@@ -807,8 +814,9 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                     measured_gap = gap.of(reference, truncated)
                 previous = control
                 if solves:
-                    control = refinement.update(control,
-                                                measured_gap if gap_fed else float(error))
+                    control = refinement.update(
+                        control, measured_gap if gap_fed else float(error),
+                        **({} if scales is None else {"learning_rate_scale": scales(epoch)}))
                 run_time += time.perf_counter() - start
                 if not (refinement.redo and solves
                         and control.settings() != previous.settings()):

@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from functools import cached_property, partial
 from typing import Any, NamedTuple
 
@@ -68,6 +69,7 @@ from ..optim.hig import JACOBIAN_MODES
 from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
+from ._step_size import epoch_scales
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .model import Model, check_model
 
@@ -560,7 +562,8 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
           refinement: Refinement | None = None, epochs: int = 50, batch_size: int = 16,
           gradient: str = "implicit", preconditioner: Any = "jacobi", seed: int = 0,
           validation_rtol: float = 1e-10, test_set: SourceSamples | None = None,
-          checkpoints: Checkpoints | None = None, callback=None) -> Training:
+          checkpoints: Checkpoints | None = None, callback=None,
+          learning_rate: Callable[[Any], Any] | float | None = None) -> Training:
     """Train ``network`` for ``epochs`` epochs of shuffled mini-batches (``seed``) while
     ``refinement`` (default :func:`~prdp_fem.inverse.prdp` with ``K0=5, dK=5``) picks the CG
     iterations once per epoch from the validation misfit.
@@ -590,6 +593,10 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
     ``resume=True`` continue from the latest checkpoint, bit for bit as an uninterrupted run.
     ``callback(record)`` runs after every epoch, and first for each record a resumed run
     restored (so that a log it writes is complete).
+    ``learning_rate``: ``optimizer``'s learning rate (an optax schedule of the update count,
+    or a number), read only by a controller that judges stalls per unit learning rate
+    (``prdp(per_learning_rate=True)``), which is fed each epoch's mean rate over the first
+    step's; needed with an ``optimizer`` of your own.
 
     Raises :class:`~prdp_fem.errors.SolverConfigError` for bad options (including L-BFGS with
     mini-batches) or an object that is not a model, :class:`~prdp_fem.errors.CheckpointError`
@@ -607,11 +614,13 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
         _check_split(samples, name, problem, n_observations)
     n = int(train_set.sources.shape[0])
     refinement = prdp(K0=5, dK=5) if refinement is None else refinement
+    own_optimizer = optimizer is not None
     optimizer = default_optimizer() if optimizer is None else optimizer
     check_model(network, int(train_set.observations.shape[1]), problem.system.source.shape[1],
                 "the nodal source of the problem, one per observation vector")
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
                             network.params)
+    scales = epoch_scales(refinement, learning_rate, n // batch_size, not own_optimizer)
     key = preconditioner_key(preconditioner)
     step = _step_program(optimizer, gradient, refinement.tolerance_mode, key,
                          keep=keeps_program(key))
@@ -692,7 +701,9 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                     checked += int(iterations)
                     gap = validation_gap(misfit, truncated)
                 previous = control
-                control = refinement.update(control, gap if gap_fed else float(misfit))
+                control = refinement.update(
+                    control, gap if gap_fed else float(misfit),
+                    **({} if scales is None else {"learning_rate_scale": scales(epoch)}))
                 run_time += time.perf_counter() - start
                 redo = refinement.redo and previous.settings() != control.settings()
                 if redo:

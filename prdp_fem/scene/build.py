@@ -378,7 +378,8 @@ def train_options(scene: Scene, problem: LearnedInverse) -> dict[str, Any]:
     spec = scene.learned
     updates = spec.epochs * (spec.samples // spec.batch_size)
     return dict(optimizer=optimizer(scene, updates), refinement=controller(scene),
-                epochs=scene.learned.epochs, batch_size=scene.learned.batch_size,
+                learning_rate=learning_rate(scene, updates), epochs=scene.learned.epochs,
+                batch_size=scene.learned.batch_size,
                 gradient=scene.solver.gradient,
                 preconditioner=training_preconditioner(scene, problem),
                 seed=scene.learned.seed, validation_rtol=scene.refinement.validation_rtol)
@@ -458,6 +459,7 @@ def heat_train_options(scene: Scene, problem: heat.HeatProblem) -> dict[str, Any
     updates = spec.epochs * (spec.windows // spec.batch_size)
     return dict(setup=spec.setup, mode=spec.mode, unroll=spec.unroll,
                 optimizer=optimizer(scene, updates), refinement=controller(scene),
+                learning_rate=learning_rate(scene, updates),
                 epochs=spec.epochs, batch_size=spec.batch_size, gradient=scene.solver.gradient,
                 preconditioner=training_preconditioner(scene, problem), seed=spec.seed,
                 validation_rtol=scene.refinement.validation_rtol,
@@ -483,7 +485,8 @@ def controller(scene: Scene) -> Refinement:
                 tau_step=spec.tau_step, tau_stop=spec.tau_stop, ema_window=ema_window_of(scene),
                 delta=spec.delta, latch=spec.latch, restart=spec.restart,
                 stall_on_failure=spec.stall_on_failure, rtol=spec.rtol,
-                rtol_factor=spec.rtol_factor, rtol_min=spec.rtol_min)
+                rtol_factor=spec.rtol_factor, rtol_min=spec.rtol_min,
+                per_learning_rate=spec.per_learning_rate)
 
 
 def optimizer(scene: Scene, updates: int | None = None) -> optax.GradientTransformation:
@@ -520,10 +523,26 @@ def _optimizer(spec: OptimizerSpec, updates: int) -> optax.GradientTransformatio
     if spec.name == "hig":
         return hig(spec.learning_rate, spec.exponent, spec.tau, spec.rank,
                    relative=spec.relative)
-    learning_rate = spec.learning_rate
+    return getattr(optax, spec.name)(_learning_rate(spec, updates))
+
+
+@functools.lru_cache(maxsize=16)
+def _learning_rate(spec: OptimizerSpec, updates: int):
+    """A first-order optimiser's learning rate: a number, or its ``decay`` schedule."""
     if spec.decay == "cosine":
-        learning_rate = optax.cosine_decay_schedule(spec.learning_rate, max(updates, 1))
-    return getattr(optax, spec.name)(learning_rate)
+        return optax.cosine_decay_schedule(spec.learning_rate, max(updates, 1))
+    return spec.learning_rate
+
+
+def learning_rate(scene: Scene, updates: int) -> Any:
+    """The learning rate of the scene's optimiser over ``updates`` updates (a number or an
+    optax schedule), ``None`` for one that has none (L-BFGS, Newton-CG, Gauss-Newton)."""
+    spec = scene.optimizer
+    if spec.name in ("lbfgs", "newton_cg", "gauss_newton"):
+        return None
+    if spec.name == "hig":  # a constant step (no decay)
+        return spec.learning_rate
+    return _learning_rate(spec, int(updates))
 
 
 def solver_preconditioner(scene: Scene, matrix) -> str | AMGCycle | PyamgCycle:

@@ -482,6 +482,7 @@ class PrdpSpec(RefinementSpec):
     rtol: float | None = None     # tolerance mode: the first relative tolerance ...
     rtol_factor: float = 0.1      # ... rtol *= rtol_factor at a refinement ...
     rtol_min: float = 1e-12       # ... down to rtol_min
+    per_learning_rate: bool = False  # a stall judged per unit learning rate (trainings)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -923,6 +924,7 @@ def _refinement(t: _Table) -> RefinementSpec:
         "latch": lambda k: t.boolean(k, defaults.latch),
         "restart": lambda k: t.boolean(k, defaults.restart),
         "stall_on_failure": lambda k: t.boolean(k, defaults.stall_on_failure),
+        "per_learning_rate": lambda k: t.boolean(k, defaults.per_learning_rate),
         "rtol": lambda k: t.number(k, defaults.rtol, low=0.0, high=0.5, open_low=True),
         "rtol_factor": lambda k: t.number(k, defaults.rtol_factor, low=0.0, high=1.0,
                                           open_low=True),
@@ -1238,6 +1240,17 @@ def parse_scene(table: dict, *, source: str = "<table>", directory: str | None =
             f"{source}: refinement.kind = 'gap' with study.kind = {kind!r}: expected a "
             "learned or heat study (the truncation gap is measured on a training's "
             "validation set)")
+    if getattr(scene.refinement, "per_learning_rate", False):
+        if kind not in ("learned", "heat"):
+            raise SceneSolverConfigError(
+                f"{source}: refinement.per_learning_rate = true with study.kind = {kind!r}: "
+                "expected a learned or heat study (the trainers feed the controller their "
+                "learning rate)")
+        if scene.optimizer.name in ("lbfgs", "newton_cg", "gauss_newton"):
+            raise SceneSolverConfigError(
+                f"{source}: refinement.per_learning_rate = true with optimizer.name = "
+                f"{scene.optimizer.name!r}: expected an optimiser with a learning rate "
+                "('adam', 'sgd' or 'hig')")
     if kind != "inverse" and scene.solver.warm_start:
         raise SceneSolverConfigError(
             f"{source}: solver.warm_start = true with study.kind = {kind!r}: expected false "
