@@ -126,6 +126,18 @@ def small_heat_case(dt: float = 0.02):
     return disc, problem, trajectories.take(np.arange(12)), trajectories.take(np.arange(12, 16))
 
 
+def learning_rate_spy(control):
+    """``(spy, fed)``: ``control`` with an ``update`` that records the learning-rate scale
+    each call is fed into the list ``fed``."""
+    fed = []
+
+    def update(state, value, failed=False, learning_rate_scale=1.0):
+        fed.append(learning_rate_scale)
+        return control.update(state, value, failed, learning_rate_scale)
+
+    return control._replace(update=update), fed
+
+
 @pytest.fixture
 def small_problem():
     """P1 on an 8x8 square, P0 kappa, non-zero Dirichlet data, a source: (disc, kappa, f)."""

@@ -9,7 +9,7 @@ import numpy as np
 import optax
 import pytest
 import scipy.sparse.linalg as spla
-from conftest import shared_compiles_made
+from conftest import learning_rate_spy, shared_compiles_made
 from skfem.models.poisson import laplace
 
 import prdp_fem as pf
@@ -439,14 +439,7 @@ def test_a_per_learning_rate_controller_is_fed_each_epoch_s_mean_rate(tiny):
     ``(1 + cos(pi k / 6)) / 2``), and 1 under the default optimiser's constant rate. With an
     optimiser of the caller's and no ``learning_rate`` the training refuses to guess."""
     problem, train_set, validation_set, network = tiny
-    control = prdp(K0=2, dK=2, per_learning_rate=True)
-    fed = []
-
-    def update(state, value, failed=False, learning_rate_scale=1.0):
-        fed.append(learning_rate_scale)
-        return control.update(state, value, failed, learning_rate_scale)
-
-    spy = control._replace(update=update)
+    spy, fed = learning_rate_spy(prdp(K0=2, dK=2, per_learning_rate=True))
     schedule = optax.cosine_decay_schedule(1e-3, 6)
     learned.train(problem, network, train_set, validation_set, optimizer=optax.adam(schedule),
                   learning_rate=schedule, refinement=spy, epochs=2, batch_size=4)

@@ -8,7 +8,7 @@ import jax
 import numpy as np
 import optax
 import pytest
-from conftest import small_heat_case
+from conftest import learning_rate_spy, small_heat_case
 
 import prdp_fem as pf
 from prdp_fem.errors import SolverConfigError
@@ -116,14 +116,7 @@ def test_heat_training_feeds_each_epoch_s_mean_rate_and_refuses_an_unknown_one(s
     (closed form ``(1 + cos(pi k / 15)) / 2``). With an optimiser of the caller's and no
     ``learning_rate`` the training refuses to guess it."""
     _, problem, trajectories, validation = small
-    control = prdp(K0=2, dK=1, per_learning_rate=True)
-    fed = []
-
-    def update(state, value, failed=False, learning_rate_scale=1.0):
-        fed.append(learning_rate_scale)
-        return control.update(state, value, failed, learning_rate_scale)
-
-    spy = control._replace(update=update)
+    spy, fed = learning_rate_spy(prdp(K0=2, dK=1, per_learning_rate=True))
     schedule = optax.cosine_decay_schedule(1e-3, 15)
     network = learned.mlp_init(jax.random.PRNGKey(0), [problem.n_free, 8, problem.n_free],
                                output_scale=0.05)
