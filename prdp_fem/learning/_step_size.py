@@ -1,10 +1,12 @@
-"""The learning rate of an epoch's steps relative to the run's first: what a controller that
-judges stalls per unit learning rate (``prdp(per_learning_rate=True)``) is fed."""
+"""A trainer's controller update after an epoch: fed the learning rate of the epoch's steps
+relative to the run's first where the controller judges stalls per unit learning rate
+(``prdp(per_learning_rate=True)``)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -12,16 +14,25 @@ from ..errors import SolverConfigError
 from ..inverse.refinement import Refinement
 
 
-def epoch_scales(refinement: Refinement, learning_rate, batches: int,
-                 default_optimizer: bool) -> Callable[[int], float] | None:
-    """``scale(epoch)``: the mean learning rate of epoch ``epoch``'s ``batches`` steps (1-based
-    epochs) over the first step's, or ``None`` when ``refinement`` does not ask for it.
+def epoch_update(refinement: Refinement, learning_rate, batches: int,
+                 default_optimizer: bool) -> Callable[[Any, float, int], Any]:
+    """``update(state, value, epoch)``: ``refinement.update`` after epoch ``epoch`` (1-based)
+    of ``batches`` steps, fed the mean learning rate of its steps over the first step's when
+    the controller asks for it.
 
     ``learning_rate``: an optax schedule of the update count, a number, or ``None`` -- a
     constant rate, allowed only with the trainers' default optimizer (whose rate is
     constant): with an optimiser of the caller's the controller cannot know its rate."""
     if not refinement.scaled_by_learning_rate:
-        return None
+        return lambda state, value, epoch: refinement.update(state, value)
+    scale = _epoch_scale(learning_rate, batches, default_optimizer)
+    return lambda state, value, epoch: refinement.update(state, value,
+                                                         learning_rate_scale=scale(epoch))
+
+
+def _epoch_scale(learning_rate, batches: int, default_optimizer: bool
+                 ) -> Callable[[int], float]:
+    """``scale(epoch)``: the mean learning rate of epoch ``epoch``'s steps over the first's."""
     if learning_rate is None:
         if not default_optimizer:
             raise SolverConfigError(

@@ -111,7 +111,7 @@ from ..linalg.operator import FixedMatrix, SparseMatrix
 from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
-from ._step_size import epoch_scales
+from ._step_size import epoch_update
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .learned import Network, Training, mlp_init
 from .model import Model, check_model
@@ -731,7 +731,7 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
     refinement = prdp(K0=1, dK=1) if refinement is None else refinement
     check_training_refinement(refinement, gradient)
     solves = setup != "prediction"
-    scales = epoch_scales(refinement, learning_rate, n // batch_size, optimizer is None)
+    update_control = epoch_update(refinement, learning_rate, n // batch_size, optimizer is None)
     optimizer = default_optimizer() if optimizer is None else optimizer
     # only WIG differentiates the solver; count its adjoint solves when the step is ours
     counted = step is heat_step and solves and mode == "wig"
@@ -814,9 +814,8 @@ def train(problem: HeatProblem, network: Model | Network, train_set: Trajectorie
                     measured_gap = gap.of(reference, truncated)
                 previous = control
                 if solves:
-                    control = refinement.update(
-                        control, measured_gap if gap_fed else float(error),
-                        **({} if scales is None else {"learning_rate_scale": scales(epoch)}))
+                    control = update_control(
+                        control, measured_gap if gap_fed else float(error), epoch)
                 run_time += time.perf_counter() - start
                 if not (refinement.redo and solves
                         and control.settings() != previous.settings()):

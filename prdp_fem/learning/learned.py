@@ -69,7 +69,7 @@ from ..optim.hig import JACOBIAN_MODES
 from ._defaults import default_optimizer
 from ._gap import compile_passes, first_level
 from ._gap import gap as validation_gap
-from ._step_size import epoch_scales
+from ._step_size import epoch_update
 from .checkpoint import Checkpoints, CheckpointSession, TrainingState, start_state
 from .model import Model, check_model
 
@@ -620,7 +620,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                 "the nodal source of the problem, one per observation vector")
     _check_training_options(optimizer, gradient, epochs, batch_size, n, refinement,
                             network.params)
-    scales = epoch_scales(refinement, learning_rate, n // batch_size, not own_optimizer)
+    update_control = epoch_update(refinement, learning_rate, n // batch_size, not own_optimizer)
     key = preconditioner_key(preconditioner)
     step = _step_program(optimizer, gradient, refinement.tolerance_mode, key,
                          keep=keeps_program(key))
@@ -701,9 +701,7 @@ def train(problem: LearnedInverse, network: Model | Network, train_set: SourceSa
                     checked += int(iterations)
                     gap = validation_gap(misfit, truncated)
                 previous = control
-                control = refinement.update(
-                    control, gap if gap_fed else float(misfit),
-                    **({} if scales is None else {"learning_rate_scale": scales(epoch)}))
+                control = update_control(control, gap if gap_fed else float(misfit), epoch)
                 run_time += time.perf_counter() - start
                 redo = refinement.redo and previous.settings() != control.settings()
                 if redo:
